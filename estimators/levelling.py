@@ -15,7 +15,7 @@ Pure and incremental: ``levelling_step(state, gyro, accel, params) -> state`` (W
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -39,10 +39,10 @@ class LevellingParams:
 @dataclass(frozen=True)
 class LevellingState:
     n: int = 0
-    accel_mean_m_s2: np.ndarray = np.zeros(3)
-    accel_m2: np.ndarray = np.zeros(3)
-    gyro_mean_rad_s: np.ndarray = np.zeros(3)
-    gyro_m2: np.ndarray = np.zeros(3)
+    accel_mean_m_s2: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    accel_m2: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    gyro_mean_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    gyro_m2: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 @dataclass(frozen=True)

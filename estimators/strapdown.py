@@ -1,11 +1,14 @@
 """Quaternion strapdown integration of body (or sensor) rates, coning-correct.
 
-Per IMU sample k with rate w_k at FC time t_k (METHODS.md A step 4; Savage, "Strapdown Inertial
-Navigation Integration Algorithm Design", part 1, eq. 7.1.1.1-1 in its two-sample form):
+Per IMU sample k with rate w_k at FC time t_k (METHODS.md A step 4). The FC sends rate samples,
+not angle increments, so the rate is taken linear over [t_{k-1}, t_k]. Bortz's equation
+phi_dot = w + 1/2 phi x w, integrated to second order for w(t) = w_{k-1} + (w_k - w_{k-1}) t/dt:
 
-    dtheta_k = (w_{k-1} + w_k) / 2 * dt                 (trapezoidal angle increment)
-    phi_k    = dtheta_k + 1/12 * dtheta_{k-1} x dtheta_k (coning correction)
-    q_k      = q_{k-1} * q(phi_k)                        (q_ref_from_sensor, right-multiplied)
+    phi_k = (w_{k-1} + w_k) / 2 * dt  +  dt^2 / 12 * (w_{k-1} x w_k)   (coning term)
+    q_k   = q_{k-1} * q(phi_k)                          (q_ref_from_sensor, right-multiplied)
+
+(tests/test_strapdown_levelling.py: classical coning at 5 Hz sampled at 200 Hz drifts half as
+much as without the coning term.)
 
 The reference frame is whatever frame ``q`` started in (NED for the attitude, the launch sensor
 frame ISF for method A). Earth rate and transport rate are NOT removed here: over a short flight
@@ -16,7 +19,7 @@ Pure: ``strapdown_step(state, gyro_rad_s, time_s, params) -> (state, diag)``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -36,7 +39,6 @@ class StrapdownState:
     time_s: float | None = None
     """FC time of the last accepted sample (s); None before the first."""
     gyro_prev_rad_s: np.ndarray | None = None
-    dtheta_prev_rad: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 @dataclass(frozen=True)
@@ -58,16 +60,16 @@ def strapdown_step(state: StrapdownState, gyro_rad_s: np.ndarray, time_s: float,
     if w.shape != (3,) or not np.all(np.isfinite(w)) or not math.isfinite(time_s):
         return state, StrapdownDiag(False, "non-finite sample")
     if state.time_s is None or state.gyro_prev_rad_s is None:
-        return StrapdownState(state.q_ref_from_sensor, time_s, w, np.zeros(3)), StrapdownDiag(False, "first sample")
+        return StrapdownState(state.q_ref_from_sensor, time_s, w), StrapdownDiag(False, "first sample")
     dt = time_s - state.time_s
     if dt <= 0.0:
         return state, StrapdownDiag(False, f"time not increasing (dt={dt:.6f} s)", dt)
     if dt > params.max_dt_s:
         # restart the increments at the new sample; the attitude is kept, the gap reported
-        return (StrapdownState(state.q_ref_from_sensor, time_s, w, np.zeros(3)),
+        return (StrapdownState(state.q_ref_from_sensor, time_s, w),
                 StrapdownDiag(False, f"gap of {dt:.3f} s not integrated", dt))
-    dtheta = 0.5 * (state.gyro_prev_rad_s + w) * dt
-    phi = dtheta + np.cross(state.dtheta_prev_rad, dtheta) / 12.0
+    w0 = state.gyro_prev_rad_s
+    phi = 0.5 * (w0 + w) * dt + (dt * dt / 12.0) * np.cross(w0, w)
     q = quat_mul(state.q_ref_from_sensor, quat_from_rotvec(phi))
     q = q / math.sqrt(float(q @ q))
-    return StrapdownState(q, time_s, w, dtheta), StrapdownDiag(True, "", dt)
+    return StrapdownState(q, time_s, w), StrapdownDiag(True, "", dt)

@@ -1,0 +1,229 @@
+"""The daemon's TOML configuration: one table of keys, validated at start.
+
+Every key is declared once in ``SPEC`` with its type, default, valid range and a one-line doc; the
+example config ``systemd/azimuthd.toml`` documents the same keys and a test keeps the two in step.
+Errors name the key and the problem (``ConfigError: mavlink.imu_rate_hz: must be in (0, 1000],
+got 5000``); unknown keys are errors too, so a typo never silently falls back to a default.
+"""
+from __future__ import annotations
+
+import math
+import os
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+DEFAULT_CONFIG_PATH = "/etc/azimuthd/azimuthd.toml"
+
+
+class ConfigError(ValueError):
+    """A config file that cannot be used; the message names the key and the problem."""
+
+
+@dataclass(frozen=True)
+class Key:
+    type: type | tuple
+    default: Any
+    doc: str
+    check: Callable[[Any], str | None] | None = None
+    """Returns None when the value is valid, else what is wrong."""
+
+
+def _range(lo: float, hi: float, lo_open: bool = False, hi_open: bool = False):
+    def check(v):
+        if not math.isfinite(v):
+            return f"must be finite, got {v}"
+        ok_lo = v > lo if lo_open else v >= lo
+        ok_hi = v < hi if hi_open else v <= hi
+        if ok_lo and ok_hi:
+            return None
+        return f"must be in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}, got {v:g}"
+    return check
+
+
+def _choice(*options: str):
+    def check(v):
+        return None if v in options else f"must be one of {', '.join(options)}; got {v!r}"
+    return check
+
+
+def _mavlink_url(v: str):
+    from mavlink_io.url import parse_url
+    try:
+        parse_url(v)
+    except ValueError as exc:
+        return str(exc)
+    return None
+
+
+def _url_list(v: list):
+    for i, item in enumerate(v):
+        if not isinstance(item, str):
+            return f"item {i} must be a string, got {type(item).__name__}"
+        err = _mavlink_url(item)
+        if err:
+            return f"item {i}: {err}"
+    return None
+
+
+def _str_list(v: list):
+    for i, item in enumerate(v):
+        if not isinstance(item, str):
+            return f"item {i} must be a string, got {type(item).__name__}"
+    return None
+
+
+def _vehicle_name(v: str):
+    if not v or any(c in v for c in "/*$#? "):
+        return f"must be a non-empty name without '/', '*', '$', '#', '?' or spaces; got {v!r}"
+    return None
+
+
+def _field_vector(v: list):
+    if len(v) != 3 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
+        return f"must be three finite numbers [north, east, down] in gauss, got {v!r}"
+    if not 0.05 <= math.sqrt(sum(x * x for x in v)) <= 1.0:
+        return "magnitude must be 0.05..1.0 gauss (Earth's field is 0.22..0.67 G)"
+    return None
+
+
+_F = (int, float)
+
+SPEC: dict[str, dict[str, Key]] = {
+    "vehicle": {
+        "name": Key(str, "uav1", "vehicle name in Zenoh keys azimuthd/<name>/...", _vehicle_name),
+    },
+    "mavlink": {
+        "url": Key(str, "udpin:0.0.0.0:14550", "flight controller link (udpin:, udpout:, tcp:, tcpin:, serial:DEV:BAUD, /dev/tty...:BAUD)", _mavlink_url),
+        "system_id": Key(int, 0, "vehicle system id; 0 = learn it from the autopilot's HEARTBEAT", _range(0, 255)),
+        "component_id": Key(int, 191, "our component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER)", _range(1, 255)),
+        "heartbeat_hz": Key(_F, 1.0, "our HEARTBEAT rate", _range(0.2, 10)),
+        "link_timeout_s": Key(_F, 2.0, "silence after which the link counts as lost and streams are re-requested", _range(0.2, 60)),
+        "imu_gap_s": Key(_F, 0.5, "IMU sample interval reported as a gap (not integrated)", _range(0.005, 10)),
+        "imu_rate_hz": Key(_F, 200.0, "requested RAW_IMU / HIGHRES_IMU rate", _range(1, 1000)),
+        "pressure_rate_hz": Key(_F, 50.0, "requested SCALED_PRESSURE rate", _range(1, 200)),
+        "attitude_rate_hz": Key(_F, 50.0, "requested rate of the FC's own ATTITUDE (reference for method B)", _range(1, 200)),
+    },
+    "site": {
+        "lat_deg": Key(_F, None, "launch site latitude (required unless earth_field_ned_gauss is set)", _range(-90, 90)),
+        "lon_deg": Key(_F, None, "launch site longitude", _range(-180, 180)),
+        "alt_m": Key(_F, 0.0, "launch site altitude above the WGS-84 ellipsoid", _range(-500, 10000)),
+        "decimal_year": Key(_F, None, "date for the field model (e.g. 2026.9); default: today", _range(2025, 2030)),
+        "earth_field_ned_gauss": Key(list, None, "the Earth field [N, E, D] in gauss, instead of the WMM", _field_vector),
+    },
+    "imu": {
+        "mount_roll_deg": Key(_F, 0.0, "IMU mounting: roll of the sensor axes in the body frame", _range(-180, 180)),
+        "mount_pitch_deg": Key(_F, 0.0, "IMU mounting: pitch of the sensor axes in the body frame", _range(-90, 90)),
+        "mount_yaw_deg": Key(_F, 0.0, "IMU mounting: yaw of the sensor axes in the body frame", _range(-180, 180)),
+        "still_seconds": Key(_F, 2.0, "at-rest data needed for levelling and gyro bias", _range(0.2, 600)),
+    },
+    "launch": {
+        "case": Key(str, "inclined", "how the flight direction is found: vertical | inclined | aligned", _choice("vertical", "inclined", "aligned")),
+        "detect_accel_m_s2": Key(_F, 5.0, "launch when |specific force| exceeds g by this much ...", _range(0.3, 200)),
+        "detect_hold_s": Key(_F, 0.05, "... for this long", _range(0.0, 5)),
+        "boost_window_s": Key(_F, 1.0, "time after launch used for the flight direction (inclined case)", _range(0.05, 10)),
+    },
+    "azimuth": {
+        "distortion_model": Key(str, "seed7", "magnetometer distortion model: seed7 (3 scales, 3 biases) | full12 (soft + hard iron)", _choice("seed7", "full12")),
+    },
+    "outputs": {
+        "attitude_hz": Key(_F, 50.0, "ATTITUDE / ATTITUDE_QUATERNION rate we send", _range(1, 400)),
+        "odometry_hz": Key(_F, 10.0, "ODOMETRY (heading feed to the FC's EKF) rate, only while heading is valid", _range(5, 100)),
+        "named_value_hz": Key(_F, 2.0, "NAMED_VALUE_FLOAT (azimuth, heading sigma, phase) rate", _range(0.1, 50)),
+        "extra_mavlink_urls": Key(list, [], "more MAVLink endpoints that get our outputs (a GCS, a test client)", _url_list),
+        "status_interval_s": Key(_F, 0.0, "print a status line to stdout this often; 0 = never", _range(0, 3600)),
+    },
+    "zenoh": {
+        "enabled": Key(bool, True, "publish state over Zenoh", None),
+        "mode": Key(str, "peer", "Zenoh session mode: peer | client", _choice("peer", "client")),
+        "listen": Key(list, [], "Zenoh listen endpoints, e.g. tcp/127.0.0.1:7447", _str_list),
+        "connect": Key(list, [], "Zenoh endpoints to connect to (a router)", _str_list),
+        "tls_root_ca": Key(str, "", "TLS root CA file for tls/ endpoints", None),
+        "tls_cert": Key(str, "", "TLS certificate file", None),
+        "tls_key": Key(str, "", "TLS private key file", None),
+    },
+    "service": {
+        "state_dir": Key(str, "", "calibrations live here; default $STATE_DIRECTORY, else ~/.local/state/azimuthd", None),
+        "log_level": Key(str, "info", "debug | info | warning | error", _choice("debug", "info", "warning", "error")),
+    },
+}
+
+
+def _type_ok(value: Any, typ: type | tuple) -> bool:
+    if isinstance(value, bool) and typ is not bool:
+        return False  # TOML true is not a number
+    return isinstance(value, typ)
+
+
+def _type_name(typ: type | tuple) -> str:
+    if typ == _F:
+        return "a number"
+    return {str: "a string", int: "an integer", bool: "true or false", list: "a list"}.get(typ, str(typ))
+
+
+def validate(raw: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Check a parsed TOML document against SPEC; returns every key with defaults filled in."""
+    out: dict[str, dict[str, Any]] = {}
+    for section in raw:
+        if section not in SPEC:
+            raise ConfigError(f"{section}: unknown section (known: {', '.join(SPEC)})")
+        if not isinstance(raw[section], dict):
+            raise ConfigError(f"{section}: must be a table [{section}]")
+    for section, keys in SPEC.items():
+        given = raw.get(section, {})
+        for key in given:
+            if key not in keys:
+                raise ConfigError(f"{section}.{key}: unknown key (known: {', '.join(keys)})")
+        values = {}
+        for key, spec in keys.items():
+            name = f"{section}.{key}"
+            if key not in given:
+                values[key] = spec.default
+                continue
+            v = given[key]
+            if not _type_ok(v, spec.type):
+                raise ConfigError(f"{name}: must be {_type_name(spec.type)}, got {v!r}")
+            if spec.type == _F:
+                v = float(v)
+            if spec.check is not None:
+                problem = spec.check(v)
+                if problem:
+                    raise ConfigError(f"{name}: {problem}")
+            values[key] = v
+        out[section] = values
+    site = out["site"]
+    if site["earth_field_ned_gauss"] is None and (site["lat_deg"] is None or site["lon_deg"] is None):
+        raise ConfigError("site.lat_deg: required (with site.lon_deg) unless site.earth_field_ned_gauss is given")
+    if (site["lat_deg"] is None) != (site["lon_deg"] is None):
+        raise ConfigError("site.lon_deg: lat_deg and lon_deg go together")
+    return out
+
+
+def load(path: str | os.PathLike) -> dict[str, dict[str, Any]]:
+    """Read and validate a config file; ConfigError names the file and the problem."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: config file not found") from None
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    return validate(raw)
+
+
+def state_dir(cfg: dict[str, dict[str, Any]]) -> Path:
+    """The directory for calibrations: config, else systemd's $STATE_DIRECTORY, else per-user."""
+    if cfg["service"]["state_dir"]:
+        return Path(cfg["service"]["state_dir"])
+    sd = os.environ.get("STATE_DIRECTORY")
+    if sd:
+        return Path(sd.split(":")[0])
+    base = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
+    return Path(base) / "azimuthd"
