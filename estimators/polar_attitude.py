@@ -1,0 +1,429 @@
+"""Polar-capable attitude filter: roll and pitch from the IMU alone (METHODS.md C, first filter).
+
+Seed: CN108627154B (Honeywell, "polar region operating attitude and heading reference system").
+The attitude filter has NO latitude input and NO heading input; its output (roll, pitch and their
+covariance) is therefore the same anywhere on Earth, including at the pole.
+
+Frames
+------
+B  body (FRD; the caller rotates sensor data into B with the configured mounting).
+P  the "floating platform" frame: locally level at start (its azimuth is the body's azimuth at
+   start, i.e. arbitrary), then carried by the mechanisation below; it is never corrected for
+   position, so nothing in the filter divides by cos(latitude).
+
+Nominal mechanisation (per IMU sample, two-sample strapdown as estimators/strapdown.py):
+
+    C_PB' = C_PB [w_hat x] - [W_hat x] C_PB,   w_hat = w_meas - b_g_hat,
+    W_hat = w_ie_P_hat + w_eP_P_hat            (Earth rate + transport rate, both in P)
+
+Error states (19, METHODS.md C order), true = estimate + error, except the attitude error
+eps (body frame):  C_PB_true = C_PB_hat (I + [eps x]).
+
+    x = [eps(3), db_g(3), da_v(3), dw_ie_P(3), dw_eP_P(3), db_a(3), dg(1)]
+
+    eps'     = -[w_hat x] eps - db_g - C_BP_hat (dw_ie_P + dw_eP_P) - n_g
+    db_g'    = -db_g / tau_bg + w          (first-order Gauss-Markov, GM)
+    da_v'    = -da_v / tau_av + w          (vehicle acceleration, body frame, GM)
+    dw_ie_P' = -dw_ie_P / tau_ie + w       (Earth rate in P, GM: P drifts w.r.t. N)
+    dw_eP_P' = -dw_eP_P / tau_eP + w       (transport rate in P, GM)
+    db_a'    = -db_a / tau_ba + w          (accelerometer bias, body, GM)
+    dg'      = -dg / tau_g + w             (equator-to-pole gravity variation, GM)
+
+Derivation of eps': with C = C_hat (I + E), E = [eps x], C' = C[w x] - [W x]C and the nominal
+C_hat' = C_hat[w_hat x] - [W_hat x]C_hat, keeping first-order terms,
+E' = [dw x] + E[w_hat x] - [w_hat x]E - [(C_hat^T dW) x] and E[w x] - [w x]E = [(eps x w) x],
+so eps' = eps x w_hat + dw - C_BP dW with dw = w - w_hat = -(db_g + n_g).
+(tests/test_polar_attitude.py checks this against a finite-difference propagation.)
+
+Measurement (METHODS.md C): the specific force residual, averaged over ``update_period_s``:
+
+    f_meas = b_a + a_v - C_BP g_P + n_a,      g_P = [0, 0, g0 + dg]
+    C_BP = (I - [eps x]) C_BP_hat  =>  C_BP g_P = g_B_hat + [g_B_hat x] eps + C_BP_hat[:, 2] dg
+    z = f_meas - f_hat = db_a + da_v - [g_B_hat x] eps - C_BP_hat[:, 2] dg + n_a
+
+The vehicle-acceleration GM state is what keeps manoeuvre accelerations out of the attitude
+(they are absorbed as a_v for ~tau_av); the accelerometer bias and the gravity variation are
+slow, the Earth and transport rates in P make the horizontal drift of P observable through the
+tilt it causes, at any latitude.
+
+Output: roll and pitch of B relative to the local level (= P's level) and their 2x2
+covariance, from the attitude-error covariance through d(roll, pitch)/d(eps).
+
+Pure: ``polar_attitude_step(state, time_s, gyro_body_rad_s, accel_body_m_s2, params)
+-> (state, diag)``; the covariance and measurement update run every ``update_period_s``,
+the nominal attitude at every sample.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from estimators.rotations import (dcm_from_quat, euler_from_dcm, quat_from_euler,
+                                  quat_from_rotvec, quat_mul, rotvec_from_quat, skew)
+
+EARTH_RATE_RAD_S = 7.292115e-5
+STANDARD_GRAVITY_M_S2 = 9.80665
+N_STATES = 19
+# slices of the error-state vector
+I_ATT, I_BG, I_AV, I_WIE, I_WEP, I_BA, I_DG = (slice(0, 3), slice(3, 6), slice(6, 9),
+                                               slice(9, 12), slice(12, 15), slice(15, 18),
+                                               slice(18, 19))
+
+
+@dataclass(frozen=True)
+class PolarAttitudeParams:
+    """Tuning of the attitude filter. Units in the names; defaults suit a consumer MEMS IMU."""
+
+    update_period_s: float = 0.05
+    """Interval of the covariance propagation and specific-force update (s)."""
+    init_period_s: float = 0.5
+    """Specific force averaged at start to level the filter (s); the vehicle should be still."""
+    gyro_noise_rad_s_rt_hz: float = math.radians(0.01)
+    """Gyro angle random walk (rad/s/sqrt(Hz))."""
+    gyro_bias_sigma_rad_s: float = math.radians(0.5)
+    """Steady-state sigma of the gyro bias GM process (rad/s)."""
+    gyro_bias_tau_s: float = 3600.0
+    accel_noise_m_s2: float = 0.05
+    """Per-sample white noise of the specific force (m/s^2); divided by the samples averaged."""
+    accel_meas_floor_m_s2: float = 0.02
+    """Floor on the sigma of the averaged specific-force residual (model error, vibration)."""
+    vehicle_accel_sigma_m_s2: float = 0.3
+    """Steady-state sigma of the vehicle-acceleration GM process in straight flight (m/s^2)."""
+    vehicle_accel_tau_s: float = 2.0
+    manoeuvre_speed_m_s: float = 25.0
+    """Speed V used to bound the centripetal acceleration |w| V a rotating vehicle can have: while
+    the gyros show a rate |w|, the vehicle-acceleration variance is raised to at least
+    sigma_av^2 + (|w| V)^2 (manoeuvre-adaptive; 0 < V, set it to the vehicle's cruise speed)."""
+    earth_rate_sigma_rad_s: float = EARTH_RATE_RAD_S
+    """Prior sigma per axis of the Earth rate in P (rad/s): no latitude is given."""
+    earth_rate_tau_s: float = 3600.0
+    transport_rate_sigma_rad_s: float = 1.5e-5
+    """Sigma per axis of the transport rate in P (rad/s), ~ ground speed / Earth radius."""
+    transport_rate_tau_s: float = 600.0
+    accel_bias_sigma_m_s2: float = 0.05
+    accel_bias_tau_s: float = 3600.0
+    gravity_variation_sigma_m_s2: float = 0.03
+    """Sigma of g - g0 (equator to pole: 9.780 -> 9.832 m/s^2)."""
+    gravity_variation_tau_s: float = 3600.0
+    gravity_m_s2: float = STANDARD_GRAVITY_M_S2
+    """g0: the gravity the estimated variation is relative to."""
+    init_tilt_sigma_rad: float = math.radians(1.0)
+    init_yaw_sigma_rad: float = math.radians(0.1)
+    """Yaw of B in P at start (P takes the start azimuth, so only round-off)."""
+    max_platform_yaw_sigma_rad: float = math.radians(5.0)
+    """Cap on the sigma of the attitude error about P's vertical. That component is the azimuth
+    of P, which is arbitrary and unobservable; letting it grow without bound would break the
+    small-angle error model, so beyond the cap it is absorbed into the definition of P (the row
+    and column of the covariance along P's vertical are scaled down: a congruence, P stays
+    positive semi-definite). Roll and pitch do not depend on it."""
+    gate_chi2: float = 25.0
+    """Innovation gate on the 3-dof specific-force residual (NIS); larger is rejected."""
+    max_dt_s: float = 0.1
+    """Largest IMU sample interval that is integrated; a longer gap is reported, not integrated."""
+
+    def __post_init__(self) -> None:
+        for name in ("update_period_s", "init_period_s", "gyro_noise_rad_s_rt_hz",
+                     "gyro_bias_sigma_rad_s", "gyro_bias_tau_s", "accel_noise_m_s2",
+                     "accel_meas_floor_m_s2", "vehicle_accel_sigma_m_s2", "vehicle_accel_tau_s", "manoeuvre_speed_m_s",
+                     "earth_rate_sigma_rad_s", "earth_rate_tau_s", "transport_rate_sigma_rad_s",
+                     "transport_rate_tau_s", "accel_bias_sigma_m_s2", "accel_bias_tau_s",
+                     "gravity_variation_sigma_m_s2", "gravity_variation_tau_s", "gravity_m_s2",
+                     "init_tilt_sigma_rad", "init_yaw_sigma_rad", "max_platform_yaw_sigma_rad",
+                     "gate_chi2", "max_dt_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0.0):
+                raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+
+
+@dataclass(frozen=True)
+class PolarAttitudeState:
+    """Filter state; serialisable with ``to_dict``/``from_dict``."""
+
+    initialised: bool = False
+    time_s: float | None = None
+    q_P_from_body: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
+    x_hat: np.ndarray = field(default_factory=lambda: np.zeros(16))
+    """Nominal non-attitude states [b_g(3) rad/s, a_v(3) m/s^2, w_ie_P(3), w_eP_P(3) rad/s,
+    b_a(3) m/s^2, dg(1) m/s^2]."""
+    P: np.ndarray = field(default_factory=lambda: np.zeros((N_STATES, N_STATES)))
+    gyro_prev_rad_s: np.ndarray | None = None
+    # accumulators of the current update interval
+    acc_n: int = 0
+    acc_dt_s: float = 0.0
+    acc_f_sum_m_s2: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    acc_down_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    """Sum of the predicted down direction in B, C_BP_hat[:, 2], over the interval."""
+    acc_q_b0_from_b: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
+    acc_C_BP_start: np.ndarray = field(default_factory=lambda: np.eye(3))
+    n_updates: int = 0
+    n_rejected: int = 0
+
+    def to_dict(self) -> dict:
+        out = {}
+        for k, v in self.__dict__.items():
+            out[k] = v.tolist() if isinstance(v, np.ndarray) else v
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "PolarAttitudeState":
+        arrays = {"q_P_from_body", "x_hat", "P", "gyro_prev_rad_s", "acc_f_sum_m_s2",
+                  "acc_down_sum", "acc_q_b0_from_b", "acc_C_BP_start"}
+        kw = {k: (np.array(v, dtype=float) if (k in arrays and v is not None) else v)
+              for k, v in d.items()}
+        return cls(**kw)
+
+
+@dataclass(frozen=True)
+class PolarAttitudeDiag:
+    updated: bool = False
+    """A specific-force update was attempted at this sample."""
+    fused: bool = False
+    innovation_m_s2: np.ndarray | None = None
+    test_ratio: float = math.nan
+    """NIS / gate_chi2; > 1 means rejected."""
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class AttitudeEstimate:
+    roll_rad: float
+    pitch_rad: float
+    cov_roll_pitch_rad2: np.ndarray
+    """2x2 covariance of (roll, pitch)."""
+    gyro_bias_rad_s: np.ndarray
+    q_P_from_body: np.ndarray
+
+
+def _down_in_body(q: np.ndarray) -> np.ndarray:
+    """C_BP[:, 2] = third row of C_PB for q = q_P_from_body."""
+    w, x, y, z = q
+    return np.array([2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)])
+
+
+def _initial_covariance(C_BP: np.ndarray, p: PolarAttitudeParams) -> np.ndarray:
+    P = np.zeros((N_STATES, N_STATES))
+    # tilt/yaw prior given in P, mapped into the body-frame error: eps = C_BP psi_P
+    Pp = np.diag([p.init_tilt_sigma_rad ** 2, p.init_tilt_sigma_rad ** 2, p.init_yaw_sigma_rad ** 2])
+    P[I_ATT, I_ATT] = C_BP @ Pp @ C_BP.T
+    P[I_BG, I_BG] = np.eye(3) * p.gyro_bias_sigma_rad_s ** 2
+    P[I_AV, I_AV] = np.eye(3) * p.vehicle_accel_sigma_m_s2 ** 2
+    P[I_WIE, I_WIE] = np.eye(3) * p.earth_rate_sigma_rad_s ** 2
+    P[I_WEP, I_WEP] = np.eye(3) * p.transport_rate_sigma_rad_s ** 2
+    P[I_BA, I_BA] = np.eye(3) * p.accel_bias_sigma_m_s2 ** 2
+    P[I_DG, I_DG] = p.gravity_variation_sigma_m_s2 ** 2
+    return P
+
+
+def polar_attitude_init(params: PolarAttitudeParams = PolarAttitudeParams()) -> PolarAttitudeState:
+    """An uninitialised filter: it levels itself over ``init_period_s`` of data."""
+    return PolarAttitudeState()
+
+
+def _validate(time_s: float, gyro: np.ndarray, accel: np.ndarray) -> str:
+    if gyro.shape != (3,) or accel.shape != (3,):
+        return "gyro and accel must have shape (3,)"
+    if not (math.isfinite(time_s) and np.all(np.isfinite(gyro)) and np.all(np.isfinite(accel))):
+        return "non-finite sample"
+    return ""
+
+
+def polar_attitude_step(state: PolarAttitudeState, time_s: float, gyro_body_rad_s: np.ndarray,
+                        accel_body_m_s2: np.ndarray,
+                        params: PolarAttitudeParams = PolarAttitudeParams()
+                        ) -> tuple[PolarAttitudeState, PolarAttitudeDiag]:
+    """Process one IMU sample (body frame, FC time ``time_s``)."""
+    w = np.asarray(gyro_body_rad_s, dtype=float)
+    f = np.asarray(accel_body_m_s2, dtype=float)
+    bad = _validate(time_s, w, f)
+    if bad:
+        return state, PolarAttitudeDiag(reason=bad)
+
+    if not state.initialised:
+        return _init_step(state, time_s, w, f, params)
+
+    dt = time_s - state.time_s
+    if dt <= 0.0:
+        return state, PolarAttitudeDiag(reason=f"time not increasing (dt={dt:.6f} s)")
+    if dt > params.max_dt_s or state.gyro_prev_rad_s is None:
+        # keep attitude, restart the increments (strapdown.py's rule)
+        return replace(state, time_s=time_s, gyro_prev_rad_s=w), PolarAttitudeDiag(
+            reason=f"gap of {dt:.3f} s not integrated")
+
+    xh = state.x_hat
+    b_g = xh[0:3]
+    W_hat = xh[6:9] + xh[9:12]
+    # two-sample body increment (trapezoid) on bias-corrected rates
+    dtheta = 0.5 * ((state.gyro_prev_rad_s - b_g) + (w - b_g)) * dt
+    qb = quat_from_rotvec(dtheta)
+    q = quat_mul(quat_from_rotvec(-W_hat * dt), quat_mul(state.q_P_from_body, qb))
+    q = q / math.sqrt(float(q @ q))
+    # vehicle-acceleration estimate is a zero-mean GM: its mean decays
+    x_new = xh.copy()
+    x_new[3:6] *= math.exp(-dt / params.vehicle_accel_tau_s)
+    q_int = quat_mul(state.acc_q_b0_from_b, qb)
+    st = replace(state, time_s=time_s, q_P_from_body=q, x_hat=x_new, gyro_prev_rad_s=w,
+                 acc_n=state.acc_n + 1, acc_dt_s=state.acc_dt_s + dt,
+                 acc_f_sum_m_s2=state.acc_f_sum_m_s2 + f,
+                 acc_down_sum=state.acc_down_sum + _down_in_body(q),
+                 acc_q_b0_from_b=q_int)
+    if st.acc_dt_s + 1e-9 < params.update_period_s:
+        return st, PolarAttitudeDiag()
+    return _update(st, params)
+
+
+def _init_step(state, time_s, w, f, params):
+    st = replace(state, time_s=time_s if state.time_s is None else state.time_s,
+                 acc_n=state.acc_n + 1, acc_f_sum_m_s2=state.acc_f_sum_m_s2 + f)
+    if time_s - st.time_s + 1e-9 < params.init_period_s:
+        return st, PolarAttitudeDiag(reason="levelling")
+    fm = st.acc_f_sum_m_s2 / st.acc_n
+    roll = math.atan2(-fm[1], -fm[2])
+    pitch = math.atan2(fm[0], math.hypot(fm[1], fm[2]))
+    q = quat_from_euler(roll, pitch, 0.0)
+    C_BP = dcm_from_quat(q).T
+    return PolarAttitudeState(initialised=True, time_s=time_s, q_P_from_body=q,
+                              x_hat=np.zeros(16), P=_initial_covariance(C_BP, params),
+                              gyro_prev_rad_s=w, acc_C_BP_start=C_BP), PolarAttitudeDiag(
+        reason="levelled")
+
+
+def _gm(dt: float, tau: float, sigma: float) -> tuple[float, float]:
+    """Discrete GM transition and process-noise variance."""
+    phi = math.exp(-dt / tau)
+    return phi, sigma * sigma * (1.0 - phi * phi)
+
+
+def _update(st: PolarAttitudeState, p: PolarAttitudeParams):
+    T = st.acc_dt_s
+    R_b0_b = dcm_from_quat(st.acc_q_b0_from_b)      # body rotation over the interval
+    C_BP_end = dcm_from_quat(st.q_P_from_body).T
+    C_BP_0 = st.acc_C_BP_start
+
+    # --- covariance propagation over T (exact attitude block, trapezoid couplings) -------------
+    F = np.eye(N_STATES)
+    Rt = R_b0_b.T
+    F[I_ATT, I_ATT] = Rt
+    F[I_ATT, I_BG] = -0.5 * T * (np.eye(3) + Rt)
+    coupling = -0.5 * T * (C_BP_end + Rt @ C_BP_0)
+    F[I_ATT, I_WIE] = coupling
+    F[I_ATT, I_WEP] = coupling
+    Q = np.zeros(N_STATES)
+    Q[0:3] = p.gyro_noise_rad_s_rt_hz ** 2 * T
+    for sl, tau, sig in ((I_BG, p.gyro_bias_tau_s, p.gyro_bias_sigma_rad_s),
+                         (I_AV, p.vehicle_accel_tau_s, p.vehicle_accel_sigma_m_s2),
+                         (I_WIE, p.earth_rate_tau_s, p.earth_rate_sigma_rad_s),
+                         (I_WEP, p.transport_rate_tau_s, p.transport_rate_sigma_rad_s),
+                         (I_BA, p.accel_bias_tau_s, p.accel_bias_sigma_m_s2),
+                         (I_DG, p.gravity_variation_tau_s, p.gravity_variation_sigma_m_s2)):
+        phi, q = _gm(T, tau, sig)
+        idx = np.arange(sl.start, sl.stop)
+        F[idx, idx] = phi
+        Q[idx] = q
+    P = F @ st.P @ F.T
+    P[np.diag_indices(N_STATES)] += Q
+    # manoeuvre-adaptive vehicle acceleration: a body turning at |w| with speed V has up to
+    # |w| V of centripetal acceleration the accelerometer cannot tell from a tilt
+    w_mean = rotvec_from_quat(st.acc_q_b0_from_b) / T
+    var_man = p.vehicle_accel_sigma_m_s2 ** 2 + (float(np.linalg.norm(w_mean)) * p.manoeuvre_speed_m_s) ** 2
+    for i in range(6, 9):
+        if P[i, i] < var_man:
+            P[i, i] = var_man
+
+    # --- specific-force measurement -------------------------------------------------------------
+    xh = st.x_hat
+    g = p.gravity_m_s2 + xh[15]
+    down_mean = st.acc_down_sum / st.acc_n
+    f_mean = st.acc_f_sum_m_s2 / st.acc_n
+    f_hat = xh[12:15] + xh[3:6] - g * down_mean
+    z = f_mean - f_hat
+    gB = g * C_BP_end[:, 2]
+    H = np.zeros((3, N_STATES))
+    H[:, I_ATT] = -skew(gB)
+    H[:, I_AV] = np.eye(3)
+    H[:, I_BA] = np.eye(3)
+    H[:, 18] = -C_BP_end[:, 2]
+    r = max(p.accel_noise_m_s2 ** 2 / st.acc_n, p.accel_meas_floor_m_s2 ** 2)
+    S = H @ P @ H.T + np.eye(3) * r
+    S_inv = np.linalg.inv(S)
+    nis = float(z @ S_inv @ z)
+    ratio = nis / p.gate_chi2
+    fused = ratio <= 1.0
+    q_new = st.q_P_from_body
+    x_new = xh
+    if fused:
+        K = P @ H.T @ S_inv
+        dx = K @ z
+        I_KH = np.eye(N_STATES) - K @ H
+        P = I_KH @ P @ I_KH.T + K @ (np.eye(3) * r) @ K.T   # Joseph form
+        # inject: C_PB <- C_PB (I + [eps x])  ==  q <- q * q(eps)
+        q_new = quat_mul(st.q_P_from_body, quat_from_rotvec(dx[0:3]))
+        q_new = q_new / math.sqrt(float(q_new @ q_new))
+        x_new = xh + dx[3:]
+        # after the reset the attitude error is zero; to first order the covariance is unchanged
+    C_BP_new = dcm_from_quat(q_new).T
+    P = _cap_platform_yaw(P, C_BP_new[:, 2], p.max_platform_yaw_sigma_rad)
+    P = 0.5 * (P + P.T)
+    st2 = replace(st, q_P_from_body=q_new, x_hat=x_new, P=P, acc_n=0, acc_dt_s=0.0,
+                  acc_f_sum_m_s2=np.zeros(3), acc_down_sum=np.zeros(3),
+                  acc_q_b0_from_b=np.array([1.0, 0.0, 0.0, 0.0]), acc_C_BP_start=C_BP_new,
+                  n_updates=st.n_updates + 1, n_rejected=st.n_rejected + (0 if fused else 1))
+    return st2, PolarAttitudeDiag(updated=True, fused=fused, innovation_m_s2=z, test_ratio=ratio,
+                                  reason="" if fused else "specific-force residual gated out")
+
+
+def _cap_platform_yaw(P: np.ndarray, down_B: np.ndarray, cap_rad: float) -> np.ndarray:
+    """Scale the covariance along the P-vertical attitude-error direction down to ``cap_rad``."""
+    var = float(down_B @ P[I_ATT, I_ATT] @ down_B)
+    if var <= cap_rad * cap_rad:
+        return P
+    s = cap_rad / math.sqrt(var)
+    D = np.eye(N_STATES)
+    D[I_ATT, I_ATT] += (s - 1.0) * np.outer(down_B, down_B)
+    return D @ P @ D.T
+
+
+def roll_pitch_jacobian(q_P_from_body: np.ndarray) -> np.ndarray:
+    """d(roll, pitch)/d(eps) (2x3) for C_PB = C_PB_hat (I + [eps x]).
+
+    With C_PB = C_hat (I + [eps x]) the down direction in B is d = C_BP e3 = (I - [eps x]) d_hat
+    = d_hat + d_hat x eps.  roll = atan2(d_y, d_z), pitch = -asin(d_x) (d = [-sin th,
+    sin ph cos th, cos ph cos th]), so with the chain rule
+    d roll = (d_z dd_y - d_y dd_z) / (d_y^2 + d_z^2),  d pitch = -dd_x / sqrt(1 - d_x^2).
+    """
+    d = _down_in_body(np.asarray(q_P_from_body, float))
+    Dd = skew(d)                        # dd/deps: d x eps = skew(d) @ eps
+    den = d[1] ** 2 + d[2] ** 2
+    J_roll = (d[2] * Dd[1] - d[1] * Dd[2]) / den
+    J_pitch = -Dd[0] / math.sqrt(max(1e-12, 1.0 - d[0] ** 2))
+    return np.vstack([J_roll, J_pitch])
+
+
+def polar_attitude_estimate(state: PolarAttitudeState) -> AttitudeEstimate | None:
+    """Roll, pitch (rad) and their covariance; None before the filter has levelled."""
+    if not state.initialised:
+        return None
+    roll, pitch, _ = euler_from_dcm(dcm_from_quat(state.q_P_from_body))
+    J = roll_pitch_jacobian(state.q_P_from_body)
+    cov = J @ state.P[I_ATT, I_ATT] @ J.T
+    return AttitudeEstimate(roll_rad=roll, pitch_rad=pitch, cov_roll_pitch_rad2=cov,
+                            gyro_bias_rad_s=state.x_hat[0:3].copy(),
+                            q_P_from_body=state.q_P_from_body.copy())
+
+
+class PolarAttitudeFilter:
+    """Thin holder around the pure step (same results as calling the functions)."""
+
+    def __init__(self, params: PolarAttitudeParams = PolarAttitudeParams(),
+                 state: PolarAttitudeState | None = None) -> None:
+        self.params = params
+        self.state = state if state is not None else polar_attitude_init(params)
+
+    def step(self, time_s: float, gyro_body_rad_s, accel_body_m_s2) -> PolarAttitudeDiag:
+        self.state, diag = polar_attitude_step(self.state, time_s, gyro_body_rad_s,
+                                               accel_body_m_s2, self.params)
+        return diag
+
+    def estimate(self) -> AttitudeEstimate | None:
+        return polar_attitude_estimate(self.state)

@@ -1,0 +1,311 @@
+"""Heading filter of the polar-capable cascade (METHODS.md C, second filter).
+
+Seed: CN108627154B. Fed by the attitude filter's roll/pitch AND their covariance
+(estimators/polar_attitude.py); the heading source is the tilt-compensated magnetometer.
+
+States (4): x = [psi (true heading, rad), w_v (vertical N-frame rate, Earth + transport, rad/s,
+positive down, GM), b_y, b_z (lateral and vertical gyro biases, rad/s, GM)].
+
+Kinematics (ZYX Euler rates of B w.r.t. N, w = gyro - bias, rates in rad/s):
+
+    psi' = (w_y sin(phi) + w_z cos(phi)) / cos(theta) - w_v
+
+where w_v is the down component of w_in (Earth + transport rate; at rest in the northern
+hemisphere w_v = -W sin(L)). The exact term also has tan(theta) * (horizontal w_in along the
+nose), < 1e-4 rad/s * tan(theta); it is left to the process noise.
+Error model (first order), d = true - estimate:
+
+    d_psi' = -d_w_v - sin(phi)/cos(theta) d_b_y - cos(phi)/cos(theta) d_b_z + J [d_phi, d_theta]
+    J = [ (w_y cos(phi) - w_z sin(phi)) / cos(theta),
+          (w_y sin(phi) + w_z cos(phi)) sin(theta) / cos(theta)^2 ]
+
+The roll/pitch errors of the attitude filter are correlated over time; they enter as process
+noise 2 tau_c J P_rp J^T dt (a coloured error of variance J P J^T and correlation time tau_c
+adds ~2 sigma^2 tau_c per second of integration).
+
+Measurement: magnetic heading from the levelled magnetometer plus the site declination
+    m_lev = R_y(theta) R_x(phi) m_B,   psi_m = atan2(-m_lev_y, m_lev_x),   psi = psi_m + D
+(east-positive declination D, as the WMM). Its variance is honest about what drives it:
+    R = (sigma_m / H)^2 + sigma_D^2 + G P_rp G^T + sigma_floor^2,  G = d psi_m / d(phi, theta)
+(G grows like Z/H: near the magnetic pole a tiny tilt error is a large heading error).
+The source is declared UNAVAILABLE when the measured horizontal field H is below
+``min_horizontal_field_gauss``: no update, the heading variance then grows with the process
+noise while roll/pitch (the attitude filter) are unaffected. An innovation gate rejects
+disturbed samples; after ``reset_after_s`` of continuous rejection the heading is re-initialised
+from the source (reported in the diagnostics: ``reset=True`` with the jump).
+
+Pure: ``polar_heading_step(state, inputs, params) -> (state, diag)``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from estimators.rotations import wrap_2pi, wrap_pi
+
+EARTH_RATE_RAD_S = 7.292115e-5
+
+
+@dataclass(frozen=True)
+class PolarHeadingParams:
+    """Units in the names; defaults for a consumer MEMS IMU and magnetometer."""
+
+    gyro_noise_rad_s_rt_hz: float = math.radians(0.01)
+    """Gyro angle random walk (rad/s/sqrt(Hz))."""
+    gyro_bias_sigma_rad_s: float = math.radians(0.2)
+    """Sigma of the lateral/vertical gyro bias GM processes (rad/s) (after pre-launch levelling)."""
+    gyro_bias_tau_s: float = 3600.0
+    vertical_rate_sigma_rad_s: float = EARTH_RATE_RAD_S
+    """Sigma of the vertical N-frame rate GM process (rad/s); |W sin L| <= W at rest."""
+    vertical_rate_tau_s: float = 600.0
+    attitude_error_tau_s: float = 10.0
+    """Correlation time tau_c of the attitude filter's roll/pitch errors (s)."""
+    heading_process_floor_rad_s_rt_hz: float = math.radians(0.005)
+    """Extra heading random walk for unmodelled terms (tan(theta) w_in, scale factors)."""
+    mag_noise_gauss: float = 0.003
+    """Per-sample magnetometer noise (gauss, per axis, after deviation compensation)."""
+    mag_heading_floor_rad: float = math.radians(1.0)
+    """Floor on the heading-measurement sigma (residual deviation, local anomalies)."""
+    min_horizontal_field_gauss: float = 0.03
+    """Below this measured horizontal field the heading source is declared unavailable.
+    WMM marks H < 0.02 G as its blackout zone and H < 0.06 G as caution; between 0.03 and
+    0.06 G the measurement variance above already down-weights the source."""
+    mag_update_period_s: float = 0.1
+    """Interval between heading measurements (s)."""
+    gate_chi2: float = 11.0
+    """Innovation gate (1 dof NIS, 99.9 %)."""
+    reset_after_s: float = 10.0
+    """Continuous rejection longer than this re-initialises the heading from the source."""
+    max_abs_pitch_rad: float = math.radians(85.0)
+    """Above this |pitch| the heading kinematics are singular: no propagation of psi from the
+    gyros (variance still grows) and no measurement."""
+    max_dt_s: float = 0.1
+
+    def __post_init__(self) -> None:
+        for name, v in self.__dict__.items():
+            if not (math.isfinite(v) and v > 0.0):
+                raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+        if self.max_abs_pitch_rad >= math.pi / 2:
+            raise ValueError(f"max_abs_pitch_rad must be < pi/2, got {self.max_abs_pitch_rad}")
+
+
+@dataclass(frozen=True)
+class PolarHeadingState:
+    initialised: bool = False
+    time_s: float | None = None
+    x: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    """[psi rad in [0, 2pi), w_v rad/s, b_y rad/s, b_z rad/s]."""
+    P: np.ndarray = field(default_factory=lambda: np.zeros((4, 4)))
+    last_mag_time_s: float | None = None
+    source_available: bool = False
+    rejected_since_s: float | None = None
+    n_fused: int = 0
+    n_rejected: int = 0
+    n_resets: int = 0
+
+    def to_dict(self) -> dict:
+        return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "PolarHeadingState":
+        kw = dict(d)
+        kw["x"] = np.array(d["x"], float)
+        kw["P"] = np.array(d["P"], float)
+        return cls(**kw)
+
+
+@dataclass(frozen=True)
+class HeadingInputs:
+    """One IMU sample plus what the heading filter is fed with."""
+    time_s: float
+    gyro_body_rad_s: np.ndarray
+    roll_rad: float
+    pitch_rad: float
+    cov_roll_pitch_rad2: np.ndarray
+    """2x2 covariance of (roll, pitch) from the attitude filter."""
+    mag_body_gauss: np.ndarray | None = None
+    """Deviation-compensated magnetometer (body axes), None when no new sample."""
+    declination_rad: float = math.nan
+    """Site declination, east positive (field model at the configured site)."""
+    declination_sigma_rad: float = 0.0
+
+
+@dataclass(frozen=True)
+class HeadingDiag:
+    measured: bool = False
+    """A heading measurement was formed at this step."""
+    fused: bool = False
+    source_available: bool = False
+    horizontal_field_gauss: float = math.nan
+    heading_meas_rad: float = math.nan
+    innovation_rad: float = math.nan
+    innovation_var_rad2: float = math.nan
+    test_ratio: float = math.nan
+    reset: bool = False
+    reset_jump_rad: float = 0.0
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class HeadingEstimate:
+    heading_rad: float
+    """True heading in [0, 2pi) (nan before the first measurement or init)."""
+    variance_rad2: float
+    source_available: bool
+    initialised: bool
+
+
+def polar_heading_init(heading_rad: float | None = None, sigma_rad: float | None = None,
+                       params: PolarHeadingParams = PolarHeadingParams()) -> PolarHeadingState:
+    """A filter waiting for its first measurement, or seeded with a known heading (e.g. the
+    launcher azimuth) and its sigma."""
+    if heading_rad is None:
+        return PolarHeadingState()
+    if not (math.isfinite(heading_rad) and sigma_rad is not None and math.isfinite(sigma_rad)
+            and sigma_rad > 0.0):
+        raise ValueError(f"heading_rad and sigma_rad > 0 must be finite, got {heading_rad}, {sigma_rad}")
+    return PolarHeadingState(initialised=True, x=np.array([wrap_2pi(heading_rad), 0.0, 0.0, 0.0]),
+                             P=_prior_P(sigma_rad ** 2, params))
+
+
+def _prior_P(var_psi: float, p: PolarHeadingParams) -> np.ndarray:
+    return np.diag([var_psi, p.vertical_rate_sigma_rad_s ** 2, p.gyro_bias_sigma_rad_s ** 2,
+                    p.gyro_bias_sigma_rad_s ** 2])
+
+
+def magnetic_heading(mag_body_gauss: np.ndarray, roll_rad: float, pitch_rad: float) -> tuple[float, float]:
+    """(magnetic heading in [0, 2pi), horizontal field in gauss) of a levelled magnetometer."""
+    m = mag_body_gauss
+    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    # m_lev = R_y(theta) R_x(phi) m
+    my = cr * m[1] - sr * m[2]
+    mz1 = sr * m[1] + cr * m[2]
+    mx = cp * m[0] + sp * mz1
+    return wrap_2pi(math.atan2(-my, mx)), math.hypot(mx, my)
+
+
+def polar_heading_step(state: PolarHeadingState, u: HeadingInputs,
+                       params: PolarHeadingParams = PolarHeadingParams()
+                       ) -> tuple[PolarHeadingState, HeadingDiag]:
+    w = np.asarray(u.gyro_body_rad_s, float)
+    if (w.shape != (3,) or not np.all(np.isfinite(w)) or not math.isfinite(u.time_s)
+            or not math.isfinite(u.roll_rad) or not math.isfinite(u.pitch_rad)):
+        return state, HeadingDiag(reason="non-finite input", source_available=state.source_available)
+    Prp = np.asarray(u.cov_roll_pitch_rad2, float)
+    st = state
+    if st.time_s is not None:
+        dt = u.time_s - st.time_s
+        if dt <= 0.0:
+            return st, HeadingDiag(reason=f"time not increasing (dt={dt:.6f} s)")
+        if dt <= params.max_dt_s and st.initialised:
+            st = _predict(st, dt, w, u.roll_rad, u.pitch_rad, Prp, params)
+    st = replace(st, time_s=u.time_s)
+    if u.mag_body_gauss is None:
+        return st, HeadingDiag(source_available=st.source_available)
+    if st.last_mag_time_s is not None and u.time_s - st.last_mag_time_s + 1e-9 < params.mag_update_period_s:
+        return st, HeadingDiag(source_available=st.source_available)
+    return _measure(st, u, Prp, params)
+
+
+def _predict(st, dt, w, phi, th, Prp, p):
+    x = st.x
+    sphi, cphi = math.sin(phi), math.cos(phi)
+    cth = math.cos(th)
+    frozen = abs(th) > p.max_abs_pitch_rad
+    cth_eff = max(abs(cth), math.cos(p.max_abs_pitch_rad))
+    wy, wz = w[1] - x[2], w[2] - x[3]
+    psi_dot = 0.0 if frozen else (wy * sphi + wz * cphi) / cth_eff - x[1]
+    a_v, q_v = _gm(dt, p.vertical_rate_tau_s, p.vertical_rate_sigma_rad_s)
+    a_b, q_b = _gm(dt, p.gyro_bias_tau_s, p.gyro_bias_sigma_rad_s)
+    F = np.eye(4)
+    F[0, 1] = -dt
+    F[0, 2] = -sphi / cth_eff * dt
+    F[0, 3] = -cphi / cth_eff * dt
+    F[1, 1] = a_v
+    F[2, 2] = a_b
+    F[3, 3] = a_b
+    J = np.array([(wy * cphi - wz * sphi) / cth_eff,
+                  (wy * sphi + wz * cphi) * math.sin(th) / (cth_eff * cth_eff)])
+    q_psi = ((p.gyro_noise_rad_s_rt_hz ** 2 / (cth_eff * cth_eff)
+              + p.heading_process_floor_rad_s_rt_hz ** 2) * dt
+             + 2.0 * p.attitude_error_tau_s * float(J @ Prp @ J) * dt)
+    P = F @ st.P @ F.T
+    P[0, 0] += q_psi
+    P[1, 1] += q_v
+    P[2, 2] += q_b
+    P[3, 3] += q_b
+    xn = np.array([wrap_2pi(x[0] + psi_dot * dt), x[1] * a_v, x[2], x[3]])
+    return replace(st, x=xn, P=P)
+
+
+def _gm(dt, tau, sigma):
+    a = math.exp(-dt / tau)
+    return a, sigma * sigma * (1.0 - a * a)
+
+
+def _measure(st, u, Prp, p):
+    m = np.asarray(u.mag_body_gauss, float)
+    if m.shape != (3,) or not np.all(np.isfinite(m)):
+        return st, HeadingDiag(reason="non-finite magnetometer", source_available=st.source_available)
+    if not math.isfinite(u.declination_rad):
+        raise ValueError("declination_rad must be finite when a magnetometer sample is given")
+    st = replace(st, last_mag_time_s=u.time_s)
+    if abs(u.pitch_rad) > p.max_abs_pitch_rad:
+        return st, HeadingDiag(reason="pitch beyond max_abs_pitch_rad", source_available=st.source_available)
+    psi_m, H = magnetic_heading(m, u.roll_rad, u.pitch_rad)
+    if H < p.min_horizontal_field_gauss:
+        st = replace(st, source_available=False)
+        return st, HeadingDiag(measured=False, source_available=False, horizontal_field_gauss=H,
+                               reason=f"horizontal field {H:.4f} G < {p.min_horizontal_field_gauss} G")
+    # sensitivity of the magnetic heading to roll and pitch (central differences)
+    h = 1e-5
+    G = np.array([
+        wrap_pi(magnetic_heading(m, u.roll_rad + h, u.pitch_rad)[0]
+                - magnetic_heading(m, u.roll_rad - h, u.pitch_rad)[0]) / (2 * h),
+        wrap_pi(magnetic_heading(m, u.roll_rad, u.pitch_rad + h)[0]
+                - magnetic_heading(m, u.roll_rad, u.pitch_rad - h)[0]) / (2 * h)])
+    R = ((p.mag_noise_gauss / H) ** 2 + u.declination_sigma_rad ** 2 + float(G @ Prp @ G)
+         + p.mag_heading_floor_rad ** 2)
+    z = wrap_2pi(psi_m + u.declination_rad)
+    if not st.initialised:
+        st = replace(st, initialised=True, x=np.array([z, 0.0, 0.0, 0.0]), P=_prior_P(R, p),
+                     source_available=True)
+        return st, HeadingDiag(measured=True, fused=True, source_available=True,
+                               horizontal_field_gauss=H, heading_meas_rad=z, innovation_rad=0.0,
+                               innovation_var_rad2=R, test_ratio=0.0, reason="initialised from source")
+    nu = wrap_pi(z - st.x[0])
+    S = st.P[0, 0] + R
+    ratio = nu * nu / S / p.gate_chi2
+    diag_kw = dict(measured=True, source_available=True, horizontal_field_gauss=H,
+                   heading_meas_rad=z, innovation_rad=nu, innovation_var_rad2=S, test_ratio=ratio)
+    if ratio > 1.0:
+        since = st.rejected_since_s if st.rejected_since_s is not None else u.time_s
+        if u.time_s - since >= p.reset_after_s:
+            P = st.P.copy()
+            P[0, :] = 0.0
+            P[:, 0] = 0.0
+            P[0, 0] = R
+            st = replace(st, x=np.array([z, st.x[1], st.x[2], st.x[3]]), P=P, rejected_since_s=None,
+                         source_available=True, n_resets=st.n_resets + 1)
+            return st, HeadingDiag(**diag_kw, reset=True, reset_jump_rad=nu,
+                                   reason="re-initialised from the source after continuous rejection")
+        st = replace(st, rejected_since_s=since, source_available=True, n_rejected=st.n_rejected + 1)
+        return st, HeadingDiag(**diag_kw, reason="innovation gated out")
+    K = st.P[:, 0] / S
+    x = st.x + K * nu
+    x[0] = wrap_2pi(x[0])
+    I_KH = np.eye(4)
+    I_KH[:, 0] -= K
+    P = I_KH @ st.P @ I_KH.T + np.outer(K, K) * R
+    P = 0.5 * (P + P.T)
+    st = replace(st, x=x, P=P, rejected_since_s=None, source_available=True, n_fused=st.n_fused + 1)
+    return st, HeadingDiag(**diag_kw, fused=True)
+
+
+def polar_heading_estimate(state: PolarHeadingState) -> HeadingEstimate:
+    if not state.initialised:
+        return HeadingEstimate(math.nan, math.inf, state.source_available, False)
+    return HeadingEstimate(float(state.x[0]), float(state.P[0, 0]), state.source_available, True)
