@@ -72,3 +72,50 @@ class FcEkfStatus:
     horiz_pos_ok: bool
     flags: int
     source: str
+    # --- added by mavlink_io.link (optional, defaults keep the old constructor valid) -------------
+    time_fc_s: float | None = None
+    """FC time of the status (ESTIMATOR_STATUS carries time_usec; EKF_STATUS_REPORT has none)."""
+    velocity_variance: float | None = None
+    pos_horiz_variance: float | None = None
+    pos_vert_variance: float | None = None
+    compass_variance: float | None = None
+    """Normalised innovation test ratios as the FC reports them (EKF_STATUS_REPORT variances or
+    ESTIMATOR_STATUS *_ratio): < 0.5 good, > 1 rejected by the FC's own gate. Dimensionless."""
+
+
+@dataclass(frozen=True, slots=True)
+class FcSysStatus:
+    """SYS_STATUS: onboard sensor presence and health as the FC reports it.
+
+    The ``*_healthy`` fields are None when the sensor is not both present and enabled (a missing
+    sensor is None, never "healthy")."""
+    time_rx_s: float
+    sensors_present: int
+    sensors_enabled: int
+    sensors_health: int
+    gyro_healthy: bool | None
+    accel_healthy: bool | None
+    mag_healthy: bool | None
+    baro_healthy: bool | None
+    diff_pressure_healthy: bool | None
+    gps_healthy: bool | None
+    ahrs_healthy: bool | None
+    load_fraction: float
+    """Main loop load, 0..1 (SYS_STATUS.load is in d%)."""
+    battery_voltage_v: float | None
+    """None when the FC reports UINT16_MAX (unknown)."""
+    drop_rate_comm_fraction: float
+
+
+@dataclass(frozen=True, slots=True)
+class CommandAck:
+    """COMMAND_ACK from the autopilot addressed to us (or broadcast), for the command protocol."""
+    time_rx_s: float
+    command: int
+    result: int
+    """MAV_RESULT (0 accepted, 1 temporarily rejected, 2 denied, 3 unsupported, 4 failed,
+    5 in progress, ...)."""
+    progress: int
+    result_param2: int
+    target_system: int
+    target_component: int

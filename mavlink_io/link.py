@@ -1,0 +1,664 @@
+"""MavlinkLink: one connection to the flight controller, polled from the daemon's loop.
+
+What ``poll()`` does, in order, without ever raising on bad input:
+1. (re)open the transport if it is down and its backoff has expired;
+2. wait up to ``timeout_s`` for bytes (less if a timer is due), read everything available;
+3. parse with pymavlink (MAVLink 2, ardupilotmega dialect); bad CRC / framing / unknown ids are
+   counted in :class:`~mavlink_io.stats.LinkStats`;
+4. keep only the autopilot's messages (its system id, its component; our own echoes and other
+   components are counted and ignored), learn the autopilot from its HEARTBEAT;
+5. decode into the typed samples of :mod:`mavlink_io.samples` (SI units, FC time via
+   :mod:`mavlink_io.timebase`: unwrap, reboot, gap), rejecting non-finite values;
+6. timers: our HEARTBEAT (1 Hz), the SET_MESSAGE_INTERVAL round (mavlink_io.rates), link timeout,
+   silent-stream re-requests.
+
+Identity: HEARTBEAT type MAV_TYPE_ONBOARD_CONTROLLER, autopilot MAV_AUTOPILOT_INVALID, component
+``component_id`` (191), system id = the vehicle's (configured, or learned from the autopilot's
+heartbeat; 1 until then). MAVLink 2 framing.
+"""
+from __future__ import annotations
+
+import os
+
+os.environ["MAVLINK20"] = "1"  # before the first pymavlink import (mavutil reads it at import)
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+from mavlink_io import decode as dec
+from mavlink_io.rates import DATA_STREAM_OF, Finished, RateRequester, SendInterval, data_stream_requests
+from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcHeartbeat, FcSysStatus,
+                                ImuSample, PressureSample)
+from mavlink_io.stats import LinkStats
+from mavlink_io.timebase import FcTimebase, TimebaseParams
+from mavlink_io.transport import Transport, TransportDead, make_transport
+from mavlink_io.url import Endpoint, parse_url
+
+LINK_EVENT_KINDS = ("autopilot_detected", "rates_requested", "rates_acked", "fc_reboot", "time_gap",
+                    "time_wrap", "link_lost", "link_restored", "reconnect", "transport_error")
+
+DEFAULT_STREAM_RATES_HZ = {"RAW_IMU": 200.0, "SCALED_PRESSURE": 50.0, "ATTITUDE": 50.0,
+                           "EKF_STATUS_REPORT": 2.0, "SYS_STATUS": 2.0, "HIGHRES_IMU": 200.0}
+
+IMU_SOURCES = ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU")
+_IMU_PRIORITY = {"ardupilot": ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU"),
+                 None: ("HIGHRES_IMU", "RAW_IMU", "SCALED_IMU")}
+_PRESSURE_PRIORITY = ("SCALED_PRESSURE", "HIGHRES_IMU")
+
+# messages an autopilot family does not send: not requested from it
+_NOT_SENT_BY = {"ardupilot": {"ESTIMATOR_STATUS"},
+                "px4": {"RAW_IMU", "EKF_STATUS_REPORT"}}
+
+_MAX_SILENT_REQUESTS = 3
+_PLACEHOLDER_SYSID = 1
+"""Our system id before the vehicle's is known (the ArduPilot/PX4 default SYSID)."""
+_NOT_VEHICLE_TYPES = {mavlink2.MAV_TYPE_GCS, mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_TYPE_GIMBAL,
+                      mavlink2.MAV_TYPE_ADSB, mavlink2.MAV_TYPE_CAMERA}
+
+
+@dataclass(frozen=True, slots=True)
+class LinkEvent:
+    """Something the daemon should know about the link or the FC clock.
+
+    kind: one of LINK_EVENT_KINDS; detail: human-readable, names the values; time_rx_s: local
+    monotonic time (the link's clock)."""
+    kind: str
+    detail: str
+    time_rx_s: float
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """Link settings; validated on construction (ValueError naming the field)."""
+    url: str
+    component_id: int = 191
+    """Our MAVLink component id (191 = MAV_COMP_ID_ONBOARD_COMPUTER)."""
+    system_id: int | None = None
+    """The vehicle's system id; None = learn it from the autopilot's HEARTBEAT."""
+    heartbeat_hz: float = 1.0
+    link_timeout_s: float = 2.0
+    """No message from the autopilot for this long -> link_lost."""
+    imu_gap_s: float = 0.5
+    """IMU samples further apart than this (FC time) -> time_gap event."""
+    stream_rates_hz: dict = field(default_factory=lambda: dict(DEFAULT_STREAM_RATES_HZ))
+    """Message name -> requested rate, Hz. Names the autopilot does not send are skipped (PX4: RAW_IMU,
+    EKF_STATUS_REPORT; on PX4, EKF_STATUS_REPORT's rate is used for ESTIMATOR_STATUS)."""
+    autopilot_component_id: int | None = None
+    """The autopilot's component id; None = learn it from its HEARTBEAT (normally 1)."""
+    imu_source: str = "auto"
+    """"auto" (ArduPilot: RAW_IMU > HIGHRES_IMU > SCALED_IMU; others: HIGHRES_IMU first) or one name."""
+    imu_id: int = 0
+    """Which IMU instance (RAW_IMU/HIGHRES_IMU ``id``) to use."""
+    reboot_jump_s: float = 1.0
+    """FC time going back by more than this is a reboot; less is a reordered packet (dropped)."""
+    ack_timeout_s: float = 0.5
+    request_tries: int = 3
+    stream_recheck_s: float = 5.0
+    """A requested stream silent for link_timeout_s is re-requested, at most this often; 0 = never."""
+    reconnect_backoff_s: float = 0.5
+    reconnect_backoff_max_s: float = 5.0
+    rate_window_s: float = 2.0
+
+    def __post_init__(self) -> None:
+        parse_url(self.url)  # ValueError naming the URL
+        _check_int("component_id", self.component_id, 1, 255)
+        if self.system_id is not None:
+            _check_int("system_id", self.system_id, 1, 255)
+        if self.autopilot_component_id is not None:
+            _check_int("autopilot_component_id", self.autopilot_component_id, 1, 255)
+        _check_int("imu_id", self.imu_id, 0, 255)
+        _check_int("request_tries", self.request_tries, 1, 20)
+        for name, lo, hi in (("heartbeat_hz", 0.0, 50.0), ("link_timeout_s", 0.0, 3600.0),
+                             ("imu_gap_s", 0.0, 3600.0), ("reboot_jump_s", 0.0, 3600.0),
+                             ("ack_timeout_s", 0.0, 60.0), ("reconnect_backoff_s", 0.0, 60.0),
+                             ("reconnect_backoff_max_s", 0.0, 3600.0), ("rate_window_s", 0.0, 60.0)):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not lo < v <= hi:
+                raise ValueError(f"LinkConfig.{name} must be in ({lo:g}, {hi:g}], got {v!r}")
+        if not isinstance(self.stream_recheck_s, (int, float)) or not 0 <= self.stream_recheck_s <= 3600:
+            raise ValueError(f"LinkConfig.stream_recheck_s must be in [0, 3600], got {self.stream_recheck_s!r}")
+        if self.reconnect_backoff_max_s < self.reconnect_backoff_s:
+            raise ValueError("LinkConfig.reconnect_backoff_max_s must be >= reconnect_backoff_s, got "
+                             f"{self.reconnect_backoff_max_s} < {self.reconnect_backoff_s}")
+        if self.imu_source != "auto" and self.imu_source not in IMU_SOURCES:
+            raise ValueError(f"LinkConfig.imu_source must be 'auto' or one of {', '.join(IMU_SOURCES)}, "
+                             f"got {self.imu_source!r}")
+        if not isinstance(self.stream_rates_hz, dict):
+            raise ValueError(f"LinkConfig.stream_rates_hz must be a dict name -> Hz, got {type(self.stream_rates_hz).__name__}")
+        for name, rate in self.stream_rates_hz.items():
+            if message_id(name) is None:
+                raise ValueError(f"LinkConfig.stream_rates_hz: unknown MAVLink message {name!r}")
+            if not isinstance(rate, (int, float)) or not 0 < rate <= 1000:
+                raise ValueError(f"LinkConfig.stream_rates_hz[{name!r}] must be in (0, 1000] Hz, got {rate!r}")
+
+
+def _check_int(name: str, v, lo: int, hi: int) -> None:
+    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+        raise ValueError(f"LinkConfig.{name} must be an integer in [{lo}, {hi}], got {v!r}")
+
+
+def message_id(name: str) -> int | None:
+    """MAVLink message name -> id in the ardupilotmega dialect (None if unknown)."""
+    return getattr(mavlink2, f"MAVLINK_MSG_ID_{name}", None) if isinstance(name, str) else None
+
+
+class _Writer:
+    """The 'file' pymavlink's MAVLink object writes to: forwards to the link, never raises."""
+
+    def __init__(self, link: "MavlinkLink"):
+        self._link = link
+
+    def write(self, buf) -> None:
+        self._link._write(bytes(buf))
+
+
+Item = ImuSample | PressureSample | FcAttitude | FcHeartbeat | FcEkfStatus | FcSysStatus | CommandAck | LinkEvent
+
+
+class MavlinkLink:
+    """The FC connection. Single-threaded: call ``poll()`` from one loop.
+
+    Public state: ``fc_autopilot`` ("ardupilot" | "px4" | "other" | None), ``target_system``,
+    ``target_component`` (None until learned), ``connected``, ``stats`` (LinkStats), ``mav`` (the
+    pymavlink MAVLink object: encoders, our srcSystem/srcComponent, sequence numbers).
+    """
+
+    def __init__(self, cfg: LinkConfig, clock: Callable[[], float] = time.monotonic):
+        self.cfg = cfg
+        self.clock = clock
+        self.endpoint: Endpoint = parse_url(cfg.url)
+        self.stats = LinkStats(rate_window_s=cfg.rate_window_s)
+        self.mav = mavlink2.MAVLink(_Writer(self), srcSystem=cfg.system_id or _PLACEHOLDER_SYSID,
+                                    srcComponent=cfg.component_id)
+        self.mav.robust_parsing = True
+        self.target_system: int | None = cfg.system_id
+        self.target_component: int | None = cfg.autopilot_component_id
+        self.fc_autopilot: str | None = None
+        self.connected = False
+        self.last_error: str | None = None
+        self._ever_connected = False
+        self._last_fc_rx_s: float | None = None
+        self._timebase = FcTimebase(TimebaseParams(reboot_jump_s=cfg.reboot_jump_s))
+        self._rates = RateRequester(ack_timeout_s=cfg.ack_timeout_s, max_tries=cfg.request_tries)
+        self._wanted: list[tuple[str, int, float]] = []
+        self._last_request_s: dict[str, float] = {}
+        self._silent_requests: dict[str, int] = {}
+        self._seq: dict[tuple[int, int], int] = {}
+        self._source_seen_s: dict[str, float] = {}
+        self._pending: list[Item] = []
+        self._subscribers: list[Callable] = []
+        self._closed = False
+        now = clock()
+        self._next_heartbeat_s = now
+        self._transport: Transport = make_transport(self.endpoint)
+        self._open_ok = False
+        self._ever_opened = False
+        self._backoff_s = cfg.reconnect_backoff_s
+        self._reopen_at_s = now
+        self._try_open(now)
+
+    # --- public API -------------------------------------------------------------------------
+
+    @property
+    def local_address(self) -> tuple | None:
+        """The bound address of a listening transport (udpin/tcpin; useful with port 0)."""
+        return self._transport.local_address if self._open_ok else None
+
+    def subscribe(self, callback: Callable) -> None:
+        """Call ``callback(msg)`` with every accepted raw pymavlink message from the autopilot
+        (for the command protocol and tools that need messages the link does not decode)."""
+        self._subscribers.append(callback)
+
+    def send(self, msg) -> bool:
+        """Send an already-built pymavlink message from our identity. Never raises: a dead link
+        or a message that cannot be packed is counted in stats.send_errors; returns success."""
+        if self._closed:
+            self.stats.send_errors += 1
+            return False
+        before = self.stats.messages_sent
+        try:
+            self.mav.send(msg)
+        except Exception as exc:  # noqa: BLE001 - packing user data (struct.error, TypeError...)
+            self.stats.send_errors += 1
+            self.last_error = f"send {getattr(msg, 'get_type', lambda: '?')()}: {exc}"
+            return False
+        return self.stats.messages_sent > before
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._transport.close()
+            self._open_ok = False
+
+    def poll(self, timeout_s: float = 0.0) -> list[Item]:
+        """Wait up to ``timeout_s`` for data, process it and the timers, return what happened."""
+        if self._closed:
+            return []
+        items: list[Item] = self._pending
+        self._pending = []
+        now = self.clock()
+        if not self._open_ok and now >= self._reopen_at_s:
+            self._try_open(now, items)
+        if now >= self._next_heartbeat_s:
+            self._send_heartbeat_due(now)
+        if self._open_ok:
+            wait_s = timeout_s
+            due = self._next_due_s()
+            if due is not None:
+                wait_s = min(wait_s, max(0.0, due - now))
+            if items:
+                wait_s = 0.0
+            try:
+                self._transport.wait(wait_s)
+                chunks = self._transport.read()
+            except TransportDead as exc:
+                self._transport_dead(str(exc), self.clock(), items)
+                chunks = []
+            except OSError as exc:
+                self._transport_dead(f"read failed: {exc}", self.clock(), items)
+                chunks = []
+            if chunks:
+                rx_s = self.clock()
+                for data, peer in chunks:
+                    self.stats.bytes_received += len(data)
+                    for msg in self._parse(data):
+                        self._handle(msg, peer, rx_s, items)
+        elif timeout_s > 0:
+            time.sleep(min(timeout_s, max(0.0, self._reopen_at_s - now)))
+        now = self.clock()
+        self._service_timers(now, items)
+        items.extend(self._pending)
+        self._pending = []
+        return items
+
+    # --- transport ----------------------------------------------------------------------------
+
+    def _try_open(self, now: float, items: list | None = None) -> None:
+        try:
+            self._transport.open()
+        except OSError as exc:
+            self.stats.transport_errors += 1
+            err = f"cannot open {self.endpoint.url}: {exc}"
+            if err != self.last_error:
+                self._event("transport_error", f"{err}; retrying every <= {self.cfg.reconnect_backoff_max_s:g} s",
+                            now, items)
+            self.last_error = err
+            self._reopen_at_s = now + self._backoff_s
+            self._backoff_s = min(self._backoff_s * 2.0, self.cfg.reconnect_backoff_max_s)
+            return
+        self._open_ok = True
+        self._reset_parser()
+        self._backoff_s = self.cfg.reconnect_backoff_s
+        if self._ever_opened:
+            self.stats.reconnects += 1
+            self._event("reconnect", f"{self.endpoint.url} reopened", now, items)
+        self._ever_opened = True
+        self.last_error = None
+
+    def _transport_dead(self, reason: str, now: float, items: list | None) -> None:
+        self._transport.close()
+        self._open_ok = False
+        self.stats.transport_errors += 1
+        self.last_error = f"{self.endpoint.url}: {reason}"
+        self._event("transport_error", f"{self.last_error}; reopening in {self._backoff_s:g} s", now, items)
+        self._reopen_at_s = now + self._backoff_s
+        self._backoff_s = min(self._backoff_s * 2.0, self.cfg.reconnect_backoff_max_s)
+        if self.connected:
+            self._lose_link(now, f"transport down ({reason})", items)
+
+    def _write(self, buf: bytes) -> None:
+        if not self._open_ok:
+            self.stats.send_errors += 1
+            return
+        try:
+            ok = self._transport.write(buf)
+        except TransportDead as exc:
+            self.stats.send_errors += 1
+            self._transport_dead(str(exc), self.clock(), None)
+            return
+        except OSError as exc:
+            self.stats.send_errors += 1
+            self.last_error = f"{self.endpoint.url}: send failed: {exc}"
+            return
+        if ok:
+            self.stats.messages_sent += 1
+        else:
+            self.stats.send_errors += 1
+
+    def _reset_parser(self) -> None:
+        # a new byte stream: drop any half frame of the old one (pymavlink has no reset method)
+        self.mav.buf = bytearray()
+        self.mav.buf_index = 0
+        self.mav.expected_length = mavlink2.HEADER_LEN_V1 + 2
+        self.mav.have_prefix_error = False
+
+    def _parse(self, data: bytes) -> list:
+        out = []
+        try:
+            m = self.mav.parse_char(data)
+            while m is not None:
+                out.append(m)
+                m = self.mav.parse_char(b"")
+        except Exception as exc:  # noqa: BLE001 - the transport never dies on bad bytes
+            self.stats.parser_errors += 1
+            self.last_error = f"parser: {exc}"
+            self._reset_parser()
+        return out
+
+    # --- events and timers ------------------------------------------------------------------
+
+    def _event(self, kind: str, detail: str, now: float, items: list | None) -> None:
+        ev = LinkEvent(kind, detail, now)
+        (items if items is not None else self._pending).append(ev)
+
+    def _next_due_s(self) -> float | None:
+        dues = [self._next_heartbeat_s]
+        d = self._rates.next_due_s()
+        if d is not None:
+            dues.append(d)
+        if self.connected and self._last_fc_rx_s is not None:
+            dues.append(self._last_fc_rx_s + self.cfg.link_timeout_s)
+        return min(dues)
+
+    def _service_timers(self, now: float, items: list) -> None:
+        self.stats.set_now(now)
+        if now >= self._next_heartbeat_s:
+            self._send_heartbeat_due(now)
+        self._run_rate_actions(self._rates.poll(now), now, items)
+        if self.connected and now - self._last_fc_rx_s > self.cfg.link_timeout_s:
+            self._lose_link(now, f"no message from the autopilot for {now - self._last_fc_rx_s:.2f} s "
+                                 f"(> {self.cfg.link_timeout_s:g} s)", items)
+        self._check_silent_streams(now, items)
+
+    def _send_heartbeat_due(self, now: float) -> None:
+        self._send_heartbeat()
+        period = 1.0 / self.cfg.heartbeat_hz
+        self._next_heartbeat_s += period
+        if self._next_heartbeat_s <= now:
+            self._next_heartbeat_s = now + period
+
+    def _send_heartbeat(self) -> None:
+        if not self._open_ok:
+            return
+        msg = self.mav.heartbeat_encode(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID,
+                                        0, 0, mavlink2.MAV_STATE_ACTIVE)
+        before = self.stats.messages_sent
+        self.send(msg)
+        if self.stats.messages_sent > before:
+            self.stats.heartbeats_sent += 1
+
+    def _lose_link(self, now: float, why: str, items: list) -> None:
+        self.connected = False
+        self.stats.link_losses += 1
+        self._event("link_lost", why, now, items)
+
+    # --- rate requests ----------------------------------------------------------------------
+
+    def _wanted_rates(self) -> list[tuple[str, int, float]]:
+        rates = dict(self.cfg.stream_rates_hz)
+        if self.fc_autopilot == "px4" and "EKF_STATUS_REPORT" in rates and "ESTIMATOR_STATUS" not in rates:
+            rates["ESTIMATOR_STATUS"] = rates["EKF_STATUS_REPORT"]
+        skip = _NOT_SENT_BY.get(self.fc_autopilot, set())
+        return [(n, message_id(n), float(r)) for n, r in rates.items() if n not in skip]
+
+    def _request_rates(self, now: float, reason: str, items: list,
+                       only: list[tuple[str, int, float]] | None = None) -> None:
+        if self.target_system is None or self.target_component is None:
+            return
+        if only is None:
+            self._wanted = self._wanted_rates()
+            self._silent_requests.clear()
+        batch = self._wanted if only is None else only
+        if not batch:
+            return
+        for n, _i, _r in batch:
+            self._last_request_s[n] = now
+        listing = ", ".join(f"{n} {r:g} Hz" for n, _i, r in batch)
+        self._event("rates_requested", f"{reason}: SET_MESSAGE_INTERVAL {listing}", now, items)
+        self._run_rate_actions(self._rates.start(batch, now), now, items)
+
+    def _run_rate_actions(self, actions: list, now: float, items: list) -> None:
+        for act in actions:
+            if isinstance(act, SendInterval):
+                msg = self.mav.command_long_encode(self.target_system, self.target_component,
+                                                   mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, act.confirmation,
+                                                   float(act.msg_id), float(act.interval_us), 0, 0, 0, 0, 0)
+                self.send(msg)
+                self.stats.rate_requests_sent += 1
+            elif isinstance(act, Finished):
+                self._rates_finished(act.results, now, items)
+
+    def _rates_finished(self, results: dict, now: float, items: list) -> None:
+        self.stats.rate_results.update(results)
+        summary = ", ".join(f"{n}={r}" for n, r in results.items())
+        if any(r == "accepted" for r in results.values()):
+            self._event("rates_acked", summary, now, items)
+            return
+        # nothing accepted (no ACK at all, or SET_MESSAGE_INTERVAL unsupported): legacy streams
+        batch = [w for w in self._wanted if w[0] in results]
+        streams = data_stream_requests(batch)
+        for sid, hz in streams.items():
+            self.send(self.mav.request_data_stream_encode(self.target_system, self.target_component, sid, hz, 1))
+            self.stats.rate_requests_sent += 1
+        for n, _i, _r in batch:
+            if n in DATA_STREAM_OF and results.get(n) in ("no_ack", "unsupported"):
+                self.stats.rate_results[n] = "data_stream"
+        self._event("rates_requested", f"SET_MESSAGE_INTERVAL not accepted ({summary}); fallback "
+                                       "REQUEST_DATA_STREAM " + ", ".join(f"stream {s} at {hz} Hz"
+                                                                         for s, hz in streams.items()),
+                    now, items)
+
+    def _check_silent_streams(self, now: float, items: list) -> None:
+        """Re-request a requested stream that has gone silent (the FC dropped our interval, e.g.
+        after a reboot we did not see). At most every stream_recheck_s, and at most
+        _MAX_SILENT_REQUESTS times in a row for a stream that never comes."""
+        if (self.cfg.stream_recheck_s <= 0 or not self.connected or self._rates.active
+                or not self._wanted):
+            return
+        silent = []
+        for name, msg_id, rate in self._wanted:
+            if self.stats.rate_results.get(name) in ("denied", "unsupported", "failed"):
+                continue
+            if now - self._last_request_s.get(name, now) < max(self.cfg.stream_recheck_s, self.cfg.link_timeout_s):
+                continue
+            seen_s = self._source_seen_s.get(name)
+            if seen_s is not None and now - seen_s <= self.cfg.link_timeout_s:
+                self._silent_requests.pop(name, None)
+                continue
+            if self._silent_requests.get(name, 0) >= _MAX_SILENT_REQUESTS:
+                continue
+            self._silent_requests[name] = self._silent_requests.get(name, 0) + 1
+            silent.append((name, msg_id, rate))
+        if silent:
+            self._request_rates(now, f"stream(s) silent: {', '.join(n for n, _i, _r in silent)}", items,
+                                only=silent)
+
+    # --- receive path -----------------------------------------------------------------------
+
+    def _is_vehicle_heartbeat(self, msg) -> bool:
+        if msg.autopilot == mavlink2.MAV_AUTOPILOT_INVALID or msg.type in _NOT_VEHICLE_TYPES:
+            return False
+        src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
+        if self.target_system is not None and src_sys != self.target_system:
+            return False
+        if self.target_component is not None and src_comp != self.target_component:
+            return False
+        return True
+
+    def _learn_autopilot(self, msg, rx_s: float, items: list) -> None:
+        name = dec.autopilot_name(msg.autopilot)
+        first = self.fc_autopilot is None
+        if not first and name == self.fc_autopilot and self.target_system is not None \
+                and self.target_component is not None:
+            return
+        self.target_system = msg.get_srcSystem()
+        self.target_component = msg.get_srcComponent()
+        if self.cfg.system_id is None:
+            self.mav.srcSystem = self.target_system
+        self.fc_autopilot = name
+        self._event("autopilot_detected", f"{name} (autopilot {msg.autopilot}, vehicle type {msg.type}) "
+                                          f"system {self.target_system} component {self.target_component}",
+                    rx_s, items)
+        self._mark_alive(rx_s, items, restored_requests=False)
+        self._request_rates(rx_s, "autopilot detected", items)
+
+    def _mark_alive(self, rx_s: float, items: list, restored_requests: bool = True) -> None:
+        self._last_fc_rx_s = rx_s
+        if self.connected:
+            return
+        self.connected = True
+        if self._ever_connected:
+            self._event("link_restored", "autopilot messages are back", rx_s, items)
+            if restored_requests:
+                self._request_rates(rx_s, "link restored", items)
+        self._ever_connected = True
+
+    def _track_seq(self, src: tuple[int, int], seq: int) -> None:
+        last = self._seq.get(src)
+        if last is not None:
+            diff = (seq - last - 1) % 256
+            if diff == 255:
+                self.stats.seq_duplicates += 1
+                return
+            if diff >= 128:
+                self.stats.seq_reordered += 1
+                return
+            self.stats.seq_lost += diff
+        self._seq[src] = seq
+
+    def _handle(self, msg, peer, rx_s: float, items: list) -> None:
+        mtype = msg.get_type()
+        if mtype == "BAD_DATA":
+            if "CRC" in str(getattr(msg, "reason", "")):
+                self.stats.crc_errors += 1
+            else:
+                self.stats.framing_errors += 1
+            return
+        self.stats.messages_received += 1
+        if mtype.startswith("UNKNOWN_"):
+            self.stats.unknown_ids += 1
+            try:
+                self.stats.unknown_id_set.add(int(mtype[8:]))
+            except ValueError:
+                pass
+            return
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        if src == (self.mav.srcSystem, self.mav.srcComponent):
+            self.stats.own_echoes += 1
+            return
+        if mtype == "HEARTBEAT" and self._is_vehicle_heartbeat(msg):
+            self._learn_autopilot(msg, rx_s, items)
+        if self.target_system is None or self.target_component is None \
+                or src != (self.target_system, self.target_component):
+            self.stats.foreign_messages += 1
+            return
+        self._track_seq(src, msg.get_seq())
+        self._transport.set_peer(peer)
+        self._mark_alive(rx_s, items)
+        self.stats.count_message(mtype, rx_s)
+        self._source_seen_s[mtype] = rx_s
+        try:
+            self._decode(mtype, msg, rx_s, items)
+        except dec.NonFiniteField:
+            self.stats.count_non_finite(mtype)
+        except (AttributeError, TypeError, ValueError) as exc:
+            # a field of the wrong type from a buggy sender: count, never raise
+            self.stats.count_non_finite(mtype)
+            self.last_error = f"decode {mtype}: {exc}"
+        for cb in self._subscribers:
+            cb(msg)
+
+    def _fc_time(self, stream: str, mtype: str, msg, rx_s: float, items: list,
+                 gap_s: float | None = None) -> float | None:
+        fname, unit = dec.TIME_FIELD[mtype]
+        t, events = self._timebase.feed(stream, int(getattr(msg, fname)), unit, rx_s, gap_s)
+        for ev in events:
+            self._event(ev.kind, ev.detail, rx_s, items)
+            if ev.kind == "fc_reboot":
+                self.stats.fc_reboots += 1
+                self._request_rates(rx_s, "FC rebooted", items)
+            elif ev.kind == "time_gap":
+                self.stats.time_gaps += 1
+            elif ev.kind == "time_wrap":
+                self.stats.time_wraps += 1
+        if t is None:
+            self.stats.stale_time_drops += 1
+        return t
+
+    def _preferred(self, source: str, priority: tuple[str, ...], rx_s: float) -> bool:
+        """True if no higher-priority source of the same kind was seen within link_timeout_s."""
+        for other in priority:
+            if other == source:
+                return True
+            seen = self._source_seen_s.get(other)
+            if seen is not None and rx_s - seen <= self.cfg.link_timeout_s:
+                return False
+        return True
+
+    def _imu_wanted(self, source: str, imu_id: int, rx_s: float) -> bool:
+        if imu_id != self.cfg.imu_id:
+            return False
+        if self.cfg.imu_source != "auto":
+            return source == self.cfg.imu_source
+        prio = _IMU_PRIORITY["ardupilot" if self.fc_autopilot == "ardupilot" else None]
+        return self._preferred(source, prio, rx_s)
+
+    def _decode(self, mtype: str, msg, rx_s: float, items: list) -> None:
+        nan = float("nan")
+        if mtype in ("RAW_IMU", "SCALED_IMU"):
+            fn = dec.decode_raw_imu if mtype == "RAW_IMU" else dec.decode_scaled_imu
+            imu = fn(msg, nan, rx_s)
+            if self._imu_wanted(mtype, imu.imu_id, rx_s):
+                self._emit_imu(imu, mtype, msg, rx_s, items)
+        elif mtype == "HIGHRES_IMU":
+            opt = dec._Optional()
+            imu, press = dec.decode_highres_imu(msg, nan, rx_s, opt)
+            self.stats.non_finite_optional += opt.count
+            if self._imu_wanted(mtype, imu.imu_id, rx_s):
+                self._emit_imu(imu, mtype, msg, rx_s, items)
+            if press is not None and imu.imu_id == self.cfg.imu_id \
+                    and self._preferred("HIGHRES_IMU", _PRESSURE_PRIORITY, rx_s):
+                t = self._fc_time("PRESSURE", mtype, msg, rx_s, items)
+                if t is not None:
+                    items.append(dataclasses.replace(press, time_fc_s=t))
+        elif mtype == "SCALED_PRESSURE":
+            opt = dec._Optional()
+            press = dec.decode_scaled_pressure(msg, nan, rx_s, opt)
+            self.stats.non_finite_optional += opt.count
+            t = self._fc_time("PRESSURE", mtype, msg, rx_s, items)
+            if t is not None:
+                items.append(dataclasses.replace(press, time_fc_s=t))
+        elif mtype == "ATTITUDE":
+            att = dec.decode_attitude(msg, nan, rx_s)
+            t = self._fc_time("ATTITUDE", mtype, msg, rx_s, items)
+            if t is not None:
+                items.append(dataclasses.replace(att, time_fc_s=t))
+        elif mtype == "HEARTBEAT":
+            items.append(dec.decode_heartbeat(msg, rx_s))
+        elif mtype == "EKF_STATUS_REPORT":
+            opt = dec._Optional()
+            items.append(dec.decode_ekf_status_report(msg, rx_s, opt))
+            self.stats.non_finite_optional += opt.count
+        elif mtype == "ESTIMATOR_STATUS":
+            opt = dec._Optional()
+            st = dec.decode_estimator_status(msg, nan, rx_s, opt)
+            self.stats.non_finite_optional += opt.count
+            t = self._fc_time("ESTIMATOR_STATUS", mtype, msg, rx_s, items)
+            if t is not None:
+                items.append(dataclasses.replace(st, time_fc_s=t))
+        elif mtype == "SYS_STATUS":
+            items.append(dec.decode_sys_status(msg, rx_s))
+        elif mtype == "COMMAND_ACK":
+            ack = dec.decode_command_ack(msg, rx_s)
+            if ack.target_system in (0, self.mav.srcSystem) and ack.target_component in (0, self.mav.srcComponent):
+                self._run_rate_actions(self._rates.on_ack(ack.command, ack.result, rx_s), rx_s, items)
+                items.append(ack)
+
+    def _emit_imu(self, imu: ImuSample, mtype: str, msg, rx_s: float, items: list) -> None:
+        t = self._fc_time("IMU", mtype, msg, rx_s, items, gap_s=self.cfg.imu_gap_s)
+        if t is not None:
+            items.append(dataclasses.replace(imu, time_fc_s=t))

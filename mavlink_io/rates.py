@@ -1,0 +1,122 @@
+"""Message-rate requests: MAV_CMD_SET_MESSAGE_INTERVAL one at a time, fallback REQUEST_DATA_STREAM.
+
+The MAVLink command protocol allows one outstanding command of a given id per target, and an
+ArduPilot COMMAND_ACK for SET_MESSAGE_INTERVAL does not say which message it is about, so the
+requests go out strictly one after the other: send, wait for the COMMAND_ACK (or ``ack_timeout_s``),
+resend up to ``max_tries`` times with ``confirmation`` incremented, then move on.
+
+When no request at all was accepted (no ACK, or every ACK UNSUPPORTED: old firmware), the link falls
+back to the legacy REQUEST_DATA_STREAM (which has no ACK), one request per stream group.
+
+Pure state machine: the caller passes the time and executes the returned actions.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+MAV_CMD_SET_MESSAGE_INTERVAL = 511
+MAV_RESULT_NAMES = {0: "accepted", 1: "temporarily_rejected", 2: "denied", 3: "unsupported",
+                    4: "failed", 5: "in_progress", 6: "cancelled"}
+MAV_RESULT_IN_PROGRESS = 5
+MAV_RESULT_TEMPORARILY_REJECTED = 1
+
+# ArduPilot's legacy stream groups (GCS_MAVLink stream lists) for the REQUEST_DATA_STREAM fallback
+DATA_STREAM_OF = {
+    "RAW_IMU": 1,  # MAV_DATA_STREAM_RAW_SENSORS
+    "SCALED_IMU": 1,
+    "SCALED_PRESSURE": 1,
+    "HIGHRES_IMU": 1,
+    "SYS_STATUS": 2,  # MAV_DATA_STREAM_EXTENDED_STATUS
+    "ATTITUDE": 10,  # MAV_DATA_STREAM_EXTRA1
+    "EKF_STATUS_REPORT": 12,  # MAV_DATA_STREAM_EXTRA3
+    "ESTIMATOR_STATUS": 12,
+}
+
+
+@dataclass(frozen=True, slots=True)
+class SendInterval:
+    """Action: send COMMAND_LONG(MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, interval_us)."""
+    name: str
+    msg_id: int
+    interval_us: float
+    confirmation: int
+
+
+@dataclass(frozen=True, slots=True)
+class Finished:
+    """Action: the round is over; ``results`` maps message name -> outcome."""
+    results: dict
+
+
+@dataclass(slots=True)
+class _Pending:
+    name: str
+    msg_id: int
+    interval_us: float
+    tries: int
+    sent_at_s: float
+
+
+@dataclass(slots=True)
+class RateRequester:
+    ack_timeout_s: float = 0.5
+    max_tries: int = 3
+    active: bool = False
+    queue: list = field(default_factory=list)
+    current: _Pending | None = None
+    results: dict = field(default_factory=dict)
+    finished_at_s: float | None = None
+
+    def start(self, wanted: list[tuple[str, int, float]], now_s: float) -> list:
+        """wanted: [(message name, message id, rate Hz)]. Restarts any round in progress."""
+        self.queue = list(wanted)
+        self.results = {}
+        self.current = None
+        self.active = True
+        return self._next(now_s)
+
+    def _next(self, now_s: float) -> list:
+        if not self.queue:
+            self.active = False
+            self.current = None
+            self.finished_at_s = now_s
+            return [Finished(dict(self.results))]
+        name, msg_id, rate_hz = self.queue.pop(0)
+        self.current = _Pending(name, msg_id, 1e6 / rate_hz, 1, now_s)
+        return [SendInterval(name, msg_id, self.current.interval_us, 0)]
+
+    def on_ack(self, command: int, result: int, now_s: float) -> list:
+        if not self.active or self.current is None or command != MAV_CMD_SET_MESSAGE_INTERVAL:
+            return []
+        if result in (MAV_RESULT_IN_PROGRESS, MAV_RESULT_TEMPORARILY_REJECTED):
+            return []  # keep waiting; the timeout resends
+        self.results[self.current.name] = MAV_RESULT_NAMES.get(result, f"result_{result}")
+        return self._next(now_s)
+
+    def next_due_s(self) -> float | None:
+        if not self.active or self.current is None:
+            return None
+        return self.current.sent_at_s + self.ack_timeout_s
+
+    def poll(self, now_s: float) -> list:
+        due = self.next_due_s()
+        if due is None or now_s < due:
+            return []
+        cur = self.current
+        if cur.tries < self.max_tries:
+            cur.tries += 1
+            cur.sent_at_s = now_s
+            return [SendInterval(cur.name, cur.msg_id, cur.interval_us, cur.tries - 1)]
+        self.results[cur.name] = "no_ack"
+        return self._next(now_s)
+
+
+def data_stream_requests(wanted: list[tuple[str, int, float]]) -> dict[int, int]:
+    """REQUEST_DATA_STREAM fallback: stream id -> rate Hz (uint16, the max over its messages)."""
+    out: dict[int, int] = {}
+    for name, _msg_id, rate_hz in wanted:
+        sid = DATA_STREAM_OF.get(name)
+        if sid is None:
+            continue
+        out[sid] = max(out.get(sid, 0), max(1, min(65535, int(round(rate_hz)))))
+    return out

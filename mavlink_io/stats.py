@@ -1,0 +1,118 @@
+"""Link statistics: what arrived, how fast, and everything that went wrong (counted, never raised)."""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+
+@dataclass(slots=True)
+class RateWindow:
+    """Message rate over a sliding window of local receive times.
+
+    rate = (n - 1) / (t_newest - t_oldest) over the arrivals within ``window_s`` of the newest;
+    0 when fewer than two arrivals, or when the newest is older than ``window_s`` at ``now_s``.
+    """
+    window_s: float
+    times_s: deque = field(default_factory=deque)
+
+    def add(self, t_s: float) -> None:
+        self.times_s.append(t_s)
+        self._trim(t_s)
+
+    def _trim(self, now_s: float) -> None:
+        lo = now_s - self.window_s
+        while self.times_s and self.times_s[0] < lo:
+            self.times_s.popleft()
+
+    def rate_hz(self, now_s: float | None = None) -> float:
+        if now_s is not None:
+            self._trim(now_s)
+        n = len(self.times_s)
+        if n < 2:
+            return 0.0
+        span = self.times_s[-1] - self.times_s[0]
+        return (n - 1) / span if span > 0 else 0.0
+
+
+@dataclass(slots=True)
+class LinkStats:
+    """Counters of one MavlinkLink. ``as_dict()`` gives a JSON-ready copy; ``rates_hz()`` the
+    per-message rates over the last ``rate_window_s`` seconds (of local receive time)."""
+    rate_window_s: float = 2.0
+    bytes_received: int = 0
+    messages_received: int = 0
+    """All decoded frames (any source), bad data excluded."""
+    messages_by_type: dict[str, int] = field(default_factory=dict)
+    """Accepted messages from the autopilot, by type."""
+    accepted: int = 0
+    crc_errors: int = 0
+    framing_errors: int = 0
+    """Bytes that are not MAVLink frames (bad magic, bad length, bad flags, signature)."""
+    unknown_ids: int = 0
+    unknown_id_set: set[int] = field(default_factory=set)
+    seq_lost: int = 0
+    """Packets lost on the autopilot's stream, from gaps in the MAVLink sequence number."""
+    seq_duplicates: int = 0
+    seq_reordered: int = 0
+    non_finite_rejects: dict[str, int] = field(default_factory=dict)
+    """Samples dropped because a required field was NaN/inf, by message type."""
+    non_finite_optional: int = 0
+    """Optional fields (mag, diff pressure, temperature) that were non-finite and became None."""
+    stale_time_drops: int = 0
+    """Samples dropped because their FC time did not advance (reordered/duplicated)."""
+    own_echoes: int = 0
+    foreign_messages: int = 0
+    """Messages from other systems/components (GCS, gimbal, other companions): ignored."""
+    time_gaps: int = 0
+    time_wraps: int = 0
+    fc_reboots: int = 0
+    link_losses: int = 0
+    reconnects: int = 0
+    transport_errors: int = 0
+    parser_errors: int = 0
+    """Unexpected exceptions inside the MAVLink parser (the parser is reset, nothing raised)."""
+    messages_sent: int = 0
+    send_errors: int = 0
+    heartbeats_sent: int = 0
+    rate_requests_sent: int = 0
+    rate_results: dict[str, str] = field(default_factory=dict)
+    """Last SET_MESSAGE_INTERVAL outcome per message: accepted, denied, unsupported, failed,
+    no_ack, data_stream (fallback REQUEST_DATA_STREAM)."""
+    _rates: dict[str, RateWindow] = field(default_factory=dict)
+    _now_s: float = 0.0
+
+    def count_message(self, msg_type: str, rx_s: float) -> None:
+        self.accepted += 1
+        self.messages_by_type[msg_type] = self.messages_by_type.get(msg_type, 0) + 1
+        w = self._rates.get(msg_type)
+        if w is None:
+            w = self._rates[msg_type] = RateWindow(self.rate_window_s)
+        w.add(rx_s)
+        self._now_s = max(self._now_s, rx_s)
+
+    def set_now(self, now_s: float) -> None:
+        """Advance the clock the rates are evaluated at (rates decay to 0 when nothing arrives)."""
+        self._now_s = max(self._now_s, now_s)
+
+    def rates_hz(self) -> dict[str, float]:
+        """Message rates (Hz) over the sliding window, by type."""
+        return {k: w.rate_hz(self._now_s) for k, w in self._rates.items()}
+
+    def count_non_finite(self, msg_type: str) -> None:
+        self.non_finite_rejects[msg_type] = self.non_finite_rejects.get(msg_type, 0) + 1
+
+    def as_dict(self) -> dict:
+        out = {}
+        for name in self.__slots__:
+            if name.startswith("_"):
+                continue
+            v = getattr(self, name)
+            if isinstance(v, set):
+                v = sorted(v)
+            elif isinstance(v, dict):
+                v = dict(v)
+            out[name] = v
+        out["rates_hz"] = self.rates_hz()
+        out["bad_data"] = self.crc_errors + self.framing_errors
+        out["non_finite_rejects_total"] = sum(self.non_finite_rejects.values())
+        return out

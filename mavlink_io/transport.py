@@ -1,0 +1,409 @@
+"""Byte transports for MAVLink: UDP in/out, TCP client/server, serial (termios). Non-blocking.
+
+Our own thin transports instead of pymavlink's ``mavutil`` ones, because the link must never
+block, print or raise out of its poll loop: pymavlink's TCP client sleeps and retries inside
+``connect``, its serial port needs pyserial, and both print to stdout on errors. pymavlink is
+still what frames, parses and encodes every message (mavlink_io.link).
+
+Contract for every transport:
+- ``open()`` may raise ``OSError`` (the link retries with backoff);
+- ``read()`` returns a list of ``(bytes, peer)`` chunks available now (``[]`` if none) and raises
+  :class:`TransportDead` when the connection is gone (EOF, reset, device unplugged);
+- ``write(buf)`` returns True if handed to the OS, False if there is nobody to send to yet, and
+  may raise ``OSError``;
+- ``wait(timeout_s)`` blocks until readable (or connected) or the timeout.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import select
+import socket
+import time
+
+from mavlink_io.url import Endpoint
+
+_READ_CHUNK = 65536
+_MAX_CHUNKS_PER_READ = 512
+"""Bound the work of one read() so that a flood cannot starve the caller's timers."""
+
+
+class TransportDead(Exception):
+    """The connection is gone; the link closes the transport and reopens it with backoff."""
+
+
+class Transport:
+    endpoint: Endpoint
+
+    def __init__(self, endpoint: Endpoint):
+        self.endpoint = endpoint
+
+    def open(self) -> None:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def close(self) -> None:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def fileno(self) -> int | None:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def read(self) -> list[tuple[bytes, object]]:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def write(self, buf: bytes) -> bool:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def set_peer(self, peer: object) -> None:
+        """Tell a datagram transport where the autopilot's packets come from (reply address)."""
+
+    @property
+    def local_address(self) -> tuple | None:
+        return None
+
+    def _want_write(self) -> bool:
+        return False
+
+    def wait(self, timeout_s: float) -> None:
+        fd = self.fileno()
+        if timeout_s <= 0:
+            return
+        if fd is None:
+            time.sleep(min(timeout_s, 0.05))
+            return
+        wl = [fd] if self._want_write() else []
+        try:
+            select.select([fd], wl, [], timeout_s)
+        except (OSError, ValueError):
+            pass
+
+
+def _family(host: str) -> int:
+    return socket.AF_INET6 if ":" in host else socket.AF_INET
+
+
+def _resolve(host: str, port: int, kind: int) -> tuple:
+    infos = socket.getaddrinfo(host, port, type=kind)
+    # prefer IPv4 when the name resolves to both, like most MAVLink tools
+    infos.sort(key=lambda i: 0 if i[0] == socket.AF_INET else 1)
+    return infos[0][0], infos[0][4]
+
+
+class UdpTransport(Transport):
+    """udpin (bind and reply to the autopilot's address) or udpout (send to a fixed address)."""
+
+    def __init__(self, endpoint: Endpoint):
+        super().__init__(endpoint)
+        self.sock: socket.socket | None = None
+        self.peer: tuple | None = None
+        self._fixed_peer = endpoint.kind == "udpout"
+
+    def open(self) -> None:
+        ep = self.endpoint
+        if ep.kind == "udpin":
+            sock = socket.socket(_family(ep.host), socket.SOCK_DGRAM)
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                sock.bind((ep.host, ep.port))
+            except OSError:
+                sock.close()
+                raise
+        else:
+            fam, addr = _resolve(ep.host, ep.port, socket.SOCK_DGRAM)
+            sock = socket.socket(fam, socket.SOCK_DGRAM)
+            try:
+                sock.bind(("::" if fam == socket.AF_INET6 else "0.0.0.0", 0))
+            except OSError:
+                sock.close()
+                raise
+            self.peer = addr
+        sock.setblocking(False)
+        self.sock = sock
+
+    def close(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
+        if not self._fixed_peer:
+            self.peer = None
+
+    def fileno(self) -> int | None:
+        return None if self.sock is None else self.sock.fileno()
+
+    @property
+    def local_address(self) -> tuple | None:
+        return None if self.sock is None else self.sock.getsockname()
+
+    def set_peer(self, peer: object) -> None:
+        if not self._fixed_peer and peer is not None:
+            self.peer = peer  # type: ignore[assignment]
+
+    def read(self) -> list[tuple[bytes, object]]:
+        if self.sock is None:
+            raise TransportDead("socket closed")
+        out = []
+        for _ in range(_MAX_CHUNKS_PER_READ):
+            try:
+                data, addr = self.sock.recvfrom(_READ_CHUNK)
+            except (BlockingIOError, InterruptedError):
+                break
+            except ConnectionRefusedError:
+                continue  # ICMP port unreachable from an earlier send: the peer is not up yet
+            except OSError as exc:
+                raise TransportDead(f"UDP receive failed: {exc}") from exc
+            if self.peer is None:
+                self.peer = addr
+            out.append((data, addr))
+        return out
+
+    def write(self, buf: bytes) -> bool:
+        if self.sock is None or self.peer is None:
+            return False
+        try:
+            self.sock.sendto(buf, self.peer)
+        except ConnectionRefusedError:
+            return False
+        return True
+
+
+class TcpClientTransport(Transport):
+    """tcp:HOST:PORT, non-blocking connect."""
+
+    def __init__(self, endpoint: Endpoint):
+        super().__init__(endpoint)
+        self.sock: socket.socket | None = None
+        self.connecting = False
+
+    def open(self) -> None:
+        fam, addr = _resolve(self.endpoint.host, self.endpoint.port, socket.SOCK_STREAM)
+        sock = socket.socket(fam, socket.SOCK_STREAM)
+        sock.setblocking(False)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        rc = sock.connect_ex(addr)
+        if rc not in (0, errno.EINPROGRESS, errno.EWOULDBLOCK, errno.EALREADY):
+            sock.close()
+            raise OSError(rc, f"connect to {addr[0]}:{addr[1]} failed: {os.strerror(rc)}")
+        self.sock = sock
+        self.connecting = rc != 0
+
+    def close(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
+        self.connecting = False
+
+    def fileno(self) -> int | None:
+        return None if self.sock is None else self.sock.fileno()
+
+    def _want_write(self) -> bool:
+        return self.connecting
+
+    def _check_connected(self) -> bool:
+        if not self.connecting:
+            return True
+        _, wl, _ = select.select([], [self.sock], [], 0)
+        if not wl:
+            return False
+        err = self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
+        if err != 0:
+            raise TransportDead(f"TCP connect failed: {os.strerror(err)}")
+        self.connecting = False
+        return True
+
+    def read(self) -> list[tuple[bytes, object]]:
+        if self.sock is None:
+            raise TransportDead("socket closed")
+        if not self._check_connected():
+            return []
+        out = []
+        for _ in range(_MAX_CHUNKS_PER_READ):
+            try:
+                data = self.sock.recv(_READ_CHUNK)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError as exc:
+                raise TransportDead(f"TCP receive failed: {exc}") from exc
+            if data == b"":
+                raise TransportDead("TCP connection closed by peer")
+            out.append((data, None))
+        return out
+
+    def write(self, buf: bytes) -> bool:
+        if self.sock is None or not self._check_connected():
+            return False
+        try:
+            self.sock.sendall(buf)
+        except (BlockingIOError, InterruptedError):
+            return False  # send buffer full: drop rather than block the loop
+        except OSError as exc:
+            raise TransportDead(f"TCP send failed: {exc}") from exc
+        return True
+
+
+class TcpServerTransport(Transport):
+    """tcpin:HOST:PORT: listen, serve one client at a time (a new client replaces the old)."""
+
+    def __init__(self, endpoint: Endpoint):
+        super().__init__(endpoint)
+        self.listener: socket.socket | None = None
+        self.client: socket.socket | None = None
+
+    def open(self) -> None:
+        ep = self.endpoint
+        sock = socket.socket(_family(ep.host), socket.SOCK_STREAM)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.bind((ep.host, ep.port))
+            sock.listen(1)
+        except OSError:
+            sock.close()
+            raise
+        sock.setblocking(False)
+        self.listener = sock
+
+    def close(self) -> None:
+        self._drop_client()
+        if self.listener is not None:
+            self.listener.close()
+            self.listener = None
+
+    def _drop_client(self) -> None:
+        if self.client is not None:
+            self.client.close()
+            self.client = None
+
+    def fileno(self) -> int | None:
+        if self.client is not None:
+            return self.client.fileno()
+        return None if self.listener is None else self.listener.fileno()
+
+    @property
+    def local_address(self) -> tuple | None:
+        return None if self.listener is None else self.listener.getsockname()
+
+    def _accept(self) -> None:
+        try:
+            conn, _addr = self.listener.accept()
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:
+            raise TransportDead(f"TCP accept failed: {exc}") from exc
+        self._drop_client()
+        conn.setblocking(False)
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.client = conn
+
+    def read(self) -> list[tuple[bytes, object]]:
+        if self.listener is None:
+            raise TransportDead("listener closed")
+        self._accept()
+        if self.client is None:
+            return []
+        out = []
+        for _ in range(_MAX_CHUNKS_PER_READ):
+            try:
+                data = self.client.recv(_READ_CHUNK)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                self._drop_client()  # the client went away: keep listening
+                break
+            if data == b"":
+                self._drop_client()
+                break
+            out.append((data, None))
+        return out
+
+    def write(self, buf: bytes) -> bool:
+        if self.client is None:
+            return False
+        try:
+            self.client.sendall(buf)
+        except (BlockingIOError, InterruptedError):
+            return False
+        except OSError:
+            self._drop_client()
+            return False
+        return True
+
+
+class SerialTransport(Transport):
+    """A serial port (or pty) in raw mode via termios; no pyserial needed."""
+
+    def __init__(self, endpoint: Endpoint):
+        super().__init__(endpoint)
+        self.fd: int | None = None
+
+    def open(self) -> None:
+        import termios
+        import tty
+        speed = getattr(termios, f"B{self.endpoint.baud}", None)
+        if speed is None:
+            raise OSError(errno.EINVAL, f"baud {self.endpoint.baud} not supported on this system")
+        fd = os.open(self.endpoint.device, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        try:
+            tty.setraw(fd, termios.TCSANOW)
+            attrs = termios.tcgetattr(fd)
+            attrs[2] |= termios.CLOCAL | termios.CREAD  # cflag: ignore modem lines, enable receiver
+            attrs[2] &= ~getattr(termios, "CRTSCTS", 0)
+            attrs[4] = attrs[5] = speed  # ispeed, ospeed
+            termios.tcsetattr(fd, termios.TCSANOW, attrs)
+        except (OSError, termios.error) as exc:
+            os.close(fd)
+            raise OSError(errno.EIO, f"cannot configure {self.endpoint.device}: {exc}") from exc
+        self.fd = fd
+
+    def close(self) -> None:
+        if self.fd is not None:
+            try:
+                os.close(self.fd)
+            except OSError:
+                pass
+            self.fd = None
+
+    def fileno(self) -> int | None:
+        return self.fd
+
+    def read(self) -> list[tuple[bytes, object]]:
+        if self.fd is None:
+            raise TransportDead("serial port closed")
+        out = []
+        for _ in range(_MAX_CHUNKS_PER_READ):
+            try:
+                data = os.read(self.fd, _READ_CHUNK)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError as exc:
+                raise TransportDead(f"serial read failed: {exc}") from exc
+            if data == b"":
+                if out:
+                    break
+                # select said readable but nothing came: hangup (device unplugged, pty closed)
+                r, _, _ = select.select([self.fd], [], [], 0)
+                if r:
+                    raise TransportDead("serial port hung up")
+                break
+            out.append((data, None))
+        return out
+
+    def write(self, buf: bytes) -> bool:
+        if self.fd is None:
+            return False
+        try:
+            n = os.write(self.fd, buf)
+        except (BlockingIOError, InterruptedError):
+            return False
+        except OSError as exc:
+            raise TransportDead(f"serial write failed: {exc}") from exc
+        return n == len(buf)
+
+
+def make_transport(endpoint: Endpoint) -> Transport:
+    if endpoint.kind in ("udpin", "udpout"):
+        return UdpTransport(endpoint)
+    if endpoint.kind == "tcp":
+        return TcpClientTransport(endpoint)
+    if endpoint.kind == "tcpin":
+        return TcpServerTransport(endpoint)
+    if endpoint.kind == "serial":
+        return SerialTransport(endpoint)
+    raise ValueError(f"no transport for endpoint kind {endpoint.kind!r}")
