@@ -1,0 +1,434 @@
+"""In-flight azimuth without GNSS (METHODS.md A; seed AU2018311656B2): the incremental estimator.
+
+Phases and API (pure functions; the parameters live in the state, set once by ``azimuth_init``):
+
+    state = azimuth_init(params)                                  # AzimuthParams, frozen
+    state = azimuth_prelaunch_step(state, gyro_rad_s, accel_m_s2, time_s)   # at rest
+    state, reason = azimuth_launch(state, launch_time_s)          # freeze ISF, start propagation
+    state, out = azimuth_step(state, gyro_rad_s, accel_m_s2, mag_gauss_or_None, time_s)
+    # out: AzimuthOutput at the IMU rate (valid once the gate has passed)
+
+Pre-launch: samples go through a short delay line (``prelaunch_buffer_s``) into the levelling
+(roll, pitch of ISF, gyro bias, METHODS.md A step 2). ``azimuth_launch(t_L)`` levels on the
+samples older than t_L and replays the buffered samples from t_L on through the flight step, so
+a launch detected a few tens of ms late still starts the gyro propagation at the true start of
+motion (``launch_direction.launch_detect_step`` returns that start time).
+
+In flight, per IMU sample:
+ 1. C_ISF<-SF(t) by the coning-correct strapdown of bias-corrected rates (step 4), and
+    G(t) = int C_ISF<-SF dt (for the gyro-bias consider analysis, see azimuth_fit).
+ 2. flight direction u_SF (step 3): vertical from gravity, inclined from the first
+    ``boost.window_s`` of boost, aligned from ``C_body_from_sensor``; cross-checked against the
+    mount-aligned direction (angle in the output) and against the configured launcher elevation.
+ 3. magnetometer samples, decimated to ``mag_decimation_s`` and skipped for
+    ``mag_skip_after_launch_s`` (the launcher's own field), are kept with their attitude and weight
+       w_i = 1 / (sigma_h^2 + 2/3 |e|^2 (ARW^2 tau_i + sigma_bias^2 tau_i^2))   tau_i = t_i - t_L
+    i.e. samples whose attitude carries more gyro drift count less (beyond the seed).
+ 4. every ``resolve_period_s`` the fit of ``azimuth_fit.fit_psi`` re-solves psi_s with all samples
+    ("none" / "seed7" / "full12" distortion model) and the gate decides; an accepted solution is
+    kept until a newer one passes the gate (a later failed re-solve is reported as "holding").
+ 5. output at every sample with the current psi_s (eq. 6-8):
+       C_NF<-SF = R3(psi)^T C_AF<-ISF C_ISF<-SF(t),  azimuth = az(C_NF<-SF u_SF)
+       heading  = yaw of C_NF<-body = C_NF<-SF C_SF<-body (the body x axis, may differ from u)
+    with sigmas from the fit covariance + gyro-bias/levelling consider terms + ARW
+    (``azimuth_fit.direction_azimuth_and_sigma``), plus the configured field-model sigma.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from estimators import azimuth_fit as af
+from estimators.launch_direction import (LAUNCH_CASES, BoostParams, BoostState, boost_direction, boost_init, boost_step, elevation_rad,
+                                         u_aligned, u_vertical)
+from estimators.azimuth_fit import angle_between
+from estimators.levelling import (STANDARD_GRAVITY_M_S2, LevellingParams, LevellingResult,
+                                  LevellingState, levelling_result, levelling_step)
+from estimators.rotations import dcm_from_quat, euler_from_dcm, quat_from_dcm
+from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init, strapdown_step
+
+STATUS = ("prelaunch", "failed", "collecting", "withheld", "solved", "holding")
+
+
+@dataclass(frozen=True)
+class AzimuthParams:
+    e_ned_gauss: np.ndarray
+    """Earth field at the flight area, NED, gauss (estimators.geomag.earth_field or configured)."""
+    launch_case: str = "inclined"
+    """'vertical' | 'inclined' | 'aligned' (how u_SF is found, METHODS.md A step 3)."""
+    distortion_model: str = "seed7"
+    """'none' (psi only) | 'seed7' (3 scales, 3 biases, psi) | 'full12' (soft + hard iron, psi)."""
+    C_body_from_sensor: np.ndarray = field(default_factory=lambda: np.eye(3))
+    """Configured IMU mounting rotation (3x3). Used for 'aligned', the heading and cross-checks."""
+    mount_configured: bool = True
+    """False when C_body_from_sensor is only a placeholder: then no mount cross-check."""
+    launcher_elevation_rad: float | None = None
+    """Configured launcher elevation, for the cross-check of u_SF (None: not configured)."""
+    gate: af.GateParams = af.GateParams()
+    levelling: LevellingParams = LevellingParams()
+    strapdown: StrapdownParams = StrapdownParams()
+    boost: BoostParams = BoostParams()
+    prelaunch_buffer_s: float = 0.5
+    """Delay line before the levelling; must exceed the launch detector's latency."""
+    mag_decimation_s: float = 0.1
+    """Smallest interval between magnetometer samples entering the fit (10 Hz)."""
+    mag_skip_after_launch_s: float = 0.5
+    """Magnetometer samples this close to launch are not used (launcher/site distortion)."""
+    max_fit_samples: int = 1500
+    """Samples kept for the fit; later ones are not added (they carry the most drift)."""
+    resolve_period_s: float = 1.0
+    """Re-solve interval once solved."""
+    resolve_period_unsolved_s: float = 0.5
+    """Re-solve interval before the first accepted solution."""
+    mag_noise_sigma_gauss: float = 0.003
+    """Per-axis white noise of the magnetometer, incl. quantisation (G)."""
+    gyro_arw_rad_sqrt_s: float = math.radians(0.01)
+    """Gyro angle random walk, rad/sqrt(s) (= rad/s/sqrt(Hz))."""
+    gyro_bias_sigma_rad_s: float = math.radians(0.02)
+    """1-sigma of the gyro bias change between the rest calibration and flight (rad/s)."""
+    accel_bias_sigma_m_s2: float = 0.05
+    """1-sigma accelerometer bias: sets the levelling tilt uncertainty (m/s^2)."""
+    drift_weighting: bool = True
+    """Weight samples by the gyro drift their attitude carries (False: white noise only)."""
+    field_model_sigma_rad: float = 0.0
+    """Declination uncertainty of the field model added to the azimuth/heading variance (rad).
+    0 reports the error relative to the model; the WMM's own figure is in EarthField."""
+    cross_check_max_rad: float = math.radians(5.0)
+    """Flight-direction cross-checks above this are flagged."""
+
+    def __post_init__(self):
+        e = np.asarray(self.e_ned_gauss, float)
+        if e.shape != (3,) or not np.all(np.isfinite(e)) or math.hypot(e[0], e[1]) < 1e-3:
+            raise ValueError(f"e_ned_gauss must be a finite NED field with a horizontal part, got {self.e_ned_gauss!r}")
+        object.__setattr__(self, "e_ned_gauss", e)
+        if self.launch_case not in LAUNCH_CASES:
+            raise ValueError(f"launch_case must be one of {LAUNCH_CASES}, got {self.launch_case!r}")
+        if self.distortion_model not in af.MODELS:
+            raise ValueError(f"distortion_model must be one of {af.MODELS}, got {self.distortion_model!r}")
+        C = np.asarray(self.C_body_from_sensor, float)
+        if C.shape != (3, 3) or not np.all(np.isfinite(C)) or not np.allclose(C @ C.T, np.eye(3), atol=1e-6) \
+                or np.linalg.det(C) < 0:
+            raise ValueError("C_body_from_sensor must be a 3x3 rotation matrix")
+        object.__setattr__(self, "C_body_from_sensor", C)
+        for name in ("prelaunch_buffer_s", "mag_decimation_s", "resolve_period_s", "resolve_period_unsolved_s",
+                     "mag_noise_sigma_gauss"):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("mag_skip_after_launch_s", "gyro_arw_rad_sqrt_s", "gyro_bias_sigma_rad_s",
+                     "accel_bias_sigma_m_s2", "field_model_sigma_rad"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.max_fit_samples < self.gate.min_samples:
+            raise ValueError(f"max_fit_samples {self.max_fit_samples} < gate.min_samples {self.gate.min_samples}")
+
+
+@dataclass(frozen=True)
+class MagRecord:
+    time_s: float
+    h_sf_gauss: np.ndarray
+    C_sf_from_isf: np.ndarray
+    G_isf_s: np.ndarray
+
+
+@dataclass(frozen=True)
+class Solution:
+    """An accepted (gated) fit."""
+    time_s: float
+    fit: af.FitResult
+    psi_sigma_rad: float
+    diversity_rad: float
+
+
+@dataclass(frozen=True)
+class AzimuthState:
+    params: AzimuthParams
+    phase: str = "prelaunch"
+    reason: str = "levelling"
+    levelling: LevellingState = LevellingState()
+    pending: tuple = ()
+    """Delay line of (time_s, gyro, accel) before they enter the levelling."""
+    # frozen at launch
+    launch_time_s: float | None = None
+    levelled: LevellingResult | None = None
+    C_isf_af: np.ndarray | None = None
+    gyro_bias_rad_s: np.ndarray | None = None
+    P_consider: np.ndarray | None = None
+    # in flight
+    strapdown: StrapdownState | None = None
+    G_isf_s: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    boost: BoostState | None = None
+    u_sf: np.ndarray | None = None
+    u_reason: str = ""
+    cross_check_rad: float = math.nan
+    """Angle between the configured-case u_SF and the other available one (nan: none)."""
+    elevation_check_rad: float = math.nan
+    """Elevation of u_SF minus the configured launcher elevation (nan: not configured)."""
+    samples: tuple = ()
+    last_mag_s: float = -math.inf
+    last_solve_s: float = -math.inf
+    solution: Solution | None = None
+    last_fit: af.FitResult | None = None
+    last_diversity_rad: float = math.nan
+    last_gate_reason: str = ""
+
+
+@dataclass(frozen=True)
+class AzimuthOutput:
+    time_s: float
+    status: str
+    """prelaunch | failed | collecting | withheld | solved | holding (see STATUS)."""
+    reason: str
+    """Why not (yet) valid, or what is flagged; '' when all is well."""
+    valid: bool
+    """azimuth/heading may be used (a gated solution and a flight direction exist)."""
+    azimuth_rad: float = math.nan
+    """Azimuth of the flight direction u (true, [0, 2pi))."""
+    azimuth_sigma_rad: float = math.nan
+    launch_azimuth_rad: float = math.nan
+    """Azimuth of u at the launch instant (the launcher azimuth for a rail)."""
+    heading_rad: float = math.nan
+    """Heading (true) of the body x axis."""
+    heading_sigma_rad: float = math.nan
+    roll_rad: float = math.nan
+    pitch_rad: float = math.nan
+    q_nav_from_body: np.ndarray | None = None
+    """Full attitude (valid yaw only when ``valid``); roll/pitch are available from launch on."""
+    psi_s_rad: float = math.nan
+    psi_s_sigma_rad: float = math.nan
+    n_samples: int = 0
+    diversity_rad: float = math.nan
+    condition_number: float = math.nan
+    normalised_residual: float = math.nan
+    distortion_A: np.ndarray | None = None
+    distortion_b_gauss: np.ndarray | None = None
+    u_sf: np.ndarray | None = None
+    cross_check_rad: float = math.nan
+    elevation_check_rad: float = math.nan
+
+
+def azimuth_init(params: AzimuthParams) -> AzimuthState:
+    return AzimuthState(params=params)
+
+
+def azimuth_prelaunch_step(state: AzimuthState, gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray,
+                           time_s: float) -> AzimuthState:
+    """At rest on the launcher: feed the levelling through the delay line."""
+    if state.phase != "prelaunch":
+        raise ValueError(f"azimuth_prelaunch_step in phase {state.phase!r}")
+    g = np.asarray(gyro_rad_s, float)
+    a = np.asarray(accel_m_s2, float)
+    if g.shape != (3,) or a.shape != (3,) or not math.isfinite(time_s):
+        raise ValueError("gyro_rad_s and accel_m_s2 must have shape (3,), time_s finite")
+    if not (np.all(np.isfinite(g)) and np.all(np.isfinite(a))):
+        return state  # a bad sample is dropped, not levelled
+    pending = state.pending + ((float(time_s), g, a),)
+    lev = state.levelling
+    cut = time_s - state.params.prelaunch_buffer_s
+    k = 0
+    while k < len(pending) and pending[k][0] < cut:
+        lev = levelling_step(lev, pending[k][1], pending[k][2])
+        k += 1
+    return replace(state, levelling=lev, pending=pending[k:])
+
+
+def azimuth_levelling(state: AzimuthState) -> LevellingResult:
+    """The levelling result so far (what the daemon shows before launch)."""
+    return levelling_result(state.levelling, state.params.levelling)
+
+
+def azimuth_launch(state: AzimuthState, launch_time_s: float) -> tuple[AzimuthState, str]:
+    """Freeze ISF at the start of motion ``launch_time_s``; returns (state, '' or why it failed)."""
+    if state.phase != "prelaunch":
+        raise ValueError(f"azimuth_launch in phase {state.phase!r}")
+    p = state.params
+    lev = state.levelling
+    replay = []
+    for t, g, a in state.pending:
+        if t < launch_time_s:
+            lev = levelling_step(lev, g, a)
+        else:
+            replay.append((t, g, a))
+    res = levelling_result(lev, p.levelling)
+    if not res.ok:
+        reason = f"levelling failed: {res.reason}"
+        return replace(state, phase="failed", reason=reason, levelling=lev, pending=(),
+                       launch_time_s=float(launch_time_s)), reason
+    f_rest = res.accel_mean_m_s2
+    C_isf_af = af.C_isf_from_af(res.roll_rad, res.pitch_rad)
+    tilt_var = res.roll_sigma_rad ** 2 + (p.accel_bias_sigma_m_s2 / STANDARD_GRAVITY_M_S2) ** 2
+    P_c = np.diag([p.gyro_bias_sigma_rad_s ** 2] * 3 + [tilt_var] * 2)
+    u_sf, u_reason, cross, elev = None, "", math.nan, math.nan
+    if p.launch_case == "vertical":
+        u_sf = u_vertical(f_rest)
+    elif p.launch_case == "aligned":
+        u_sf = u_aligned(p.C_body_from_sensor)
+    else:
+        u_reason = "flight direction: waiting for boost"
+    new = replace(state, phase="flight", reason="collecting", levelling=lev, pending=(),
+                  launch_time_s=float(launch_time_s), levelled=res, C_isf_af=C_isf_af,
+                  gyro_bias_rad_s=res.gyro_bias_rad_s, P_consider=P_c,
+                  strapdown=strapdown_init(np.array([1.0, 0.0, 0.0, 0.0]), None),
+                  boost=boost_init(f_rest, launch_time_s) if p.launch_case == "inclined" else None,
+                  u_sf=u_sf, u_reason=u_reason, cross_check_rad=cross, elevation_check_rad=elev)
+    if u_sf is not None:
+        new = _with_checks(new, u_sf)
+    # the first integration interval starts at the launch instant, at rest (corrected rate 0)
+    new = replace(new, strapdown=StrapdownState(q_ref_from_sensor=new.strapdown.q_ref_from_sensor,
+                                                time_s=float(launch_time_s), gyro_prev_rad_s=np.zeros(3)))
+    for t, g, a in replay:
+        if t > launch_time_s:
+            new, _ = azimuth_step(new, g, a, None, t)
+    return new, ""
+
+
+def _with_checks(state: AzimuthState, u_sf: np.ndarray) -> AzimuthState:
+    """Cross-check u_SF with the mount-aligned direction and the launcher elevation."""
+    p = state.params
+    cross = math.nan
+    if p.mount_configured and p.launch_case != "aligned":
+        cross = angle_between(u_sf, u_aligned(p.C_body_from_sensor))
+    elev = math.nan
+    if p.launcher_elevation_rad is not None:
+        elev = elevation_rad(u_sf, state.levelled.accel_mean_m_s2) - p.launcher_elevation_rad
+    return replace(state, u_sf=u_sf, cross_check_rad=cross, elevation_check_rad=elev)
+
+
+def _solve(state: AzimuthState, time_s: float) -> AzimuthState:
+    """Re-solve with all kept samples and gate the result."""
+    p = state.params
+    recs = state.samples
+    n = len(recs)
+    e = p.e_ned_gauss
+    if n < p.gate.min_samples:
+        reason = af.gate_reason(None, n, 0.0, math.inf, p.gate)
+        return replace(state, last_solve_s=time_s, last_gate_reason=reason)
+    C = np.array([r.C_sf_from_isf for r in recs])
+    G = np.array([r.G_isf_s for r in recs])
+    h = np.array([r.h_sf_gauss for r in recs])
+    tau = np.array([r.time_s for r in recs]) - state.launch_time_s
+    e2 = float(e @ e)
+    var_white = p.mag_noise_sigma_gauss ** 2 + (2.0 / 3.0) * e2 * p.gyro_arw_rad_sqrt_s ** 2 * tau
+    var_drift = (2.0 / 3.0) * e2 * (p.gyro_bias_sigma_rad_s * tau) ** 2 if p.drift_weighting else 0.0
+    data = af.FitData(C, h, var_white, 1.0 / (var_white + var_drift), G)
+    fit = af.fit_psi(data, state.C_isf_af, e, p.distortion_model)
+    psi_for_div = fit.psi_rad if fit.ok else 0.0
+    diversity = af.orientation_diversity_rad(C @ state.C_isf_af, psi_for_div, e)
+    psi_sigma = math.sqrt(af.psi_variance(fit, state.P_consider)) if fit.ok else math.inf
+    reason = af.gate_reason(fit, n, diversity, psi_sigma, p.gate)
+    sol = state.solution
+    if reason == "":
+        sol = Solution(time_s, fit, psi_sigma, diversity)
+    return replace(state, last_solve_s=time_s, last_fit=fit, last_diversity_rad=diversity,
+                   last_gate_reason=reason, solution=sol)
+
+
+def azimuth_step(state: AzimuthState, gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray,
+                 mag_gauss: np.ndarray | None, time_s: float) -> tuple[AzimuthState, AzimuthOutput]:
+    """One IMU sample in flight (FC time ``time_s``); ``mag_gauss`` None when there is none."""
+    if state.phase == "prelaunch":
+        raise ValueError("azimuth_step before azimuth_launch")
+    if state.phase == "failed":
+        return state, AzimuthOutput(time_s, "failed", state.reason, False)
+    p = state.params
+    g = np.asarray(gyro_rad_s, float)
+    sd, diag = strapdown_step(state.strapdown, g - state.gyro_bias_rad_s, time_s, p.strapdown)
+    C_isf_sf = dcm_from_quat(sd.q_ref_from_sensor)
+    if diag.integrated:  # G = int C_ISF<-SF dt, trapezoid
+        G = state.G_isf_s + (0.5 * diag.dt_s) * (dcm_from_quat(state.strapdown.q_ref_from_sensor) + C_isf_sf)
+    else:
+        G = state.G_isf_s
+    upd = {"strapdown": sd, "G_isf_s": G}
+    st = state
+    # flight direction from the boost window (inclined case)
+    if st.boost is not None and st.u_sf is None:
+        a = np.asarray(accel_m_s2, float)
+        b = boost_step(st.boost, a, C_isf_sf.T, time_s, p.boost) if a.shape == (3,) else st.boost
+        upd["boost"] = b
+        if b.done:
+            u, why = boost_direction(b, p.boost)
+            if u is None:
+                upd["u_reason"] = "flight direction: " + why
+                upd["boost"] = None
+            else:
+                st = _with_checks(replace(st, **upd), u)
+                upd = {}
+    if upd:
+        st = replace(st, **upd)
+    # magnetometer sample into the fit
+    if mag_gauss is not None and st.launch_time_s is not None:
+        h = np.asarray(mag_gauss, float)
+        if (h.shape == (3,) and np.all(np.isfinite(h)) and time_s - st.launch_time_s >= p.mag_skip_after_launch_s
+                and time_s - st.last_mag_s >= p.mag_decimation_s - 1e-9 and len(st.samples) < p.max_fit_samples):
+            st = replace(st, samples=st.samples + (MagRecord(float(time_s), h.copy(), C_isf_sf.T.copy(), G.copy()),),
+                         last_mag_s=float(time_s))
+    period = p.resolve_period_s if st.solution is not None else p.resolve_period_unsolved_s
+    if time_s - st.last_solve_s >= period and len(st.samples) > 0:
+        st = _solve(st, time_s)
+    return st, _output(st, C_isf_sf, time_s)
+
+
+def _output(st: AzimuthState, C_isf_sf: np.ndarray, time_s: float) -> AzimuthOutput:
+    p = st.params
+    sol = st.solution
+    C_sf_body = p.C_body_from_sensor.T
+    n = len(st.samples)
+    fit_last = st.last_fit
+    diag = dict(n_samples=n, diversity_rad=st.last_diversity_rad,
+                condition_number=fit_last.condition_number if fit_last is not None else math.nan,
+                normalised_residual=fit_last.s2 if fit_last is not None else math.nan,
+                u_sf=st.u_sf, cross_check_rad=st.cross_check_rad, elevation_check_rad=st.elevation_check_rad)
+    flags = []
+    if math.isfinite(st.cross_check_rad) and st.cross_check_rad > p.cross_check_max_rad:
+        flags.append(f"flight direction cross-check {math.degrees(st.cross_check_rad):.1f} deg")
+    if math.isfinite(st.elevation_check_rad) and abs(st.elevation_check_rad) > p.cross_check_max_rad:
+        flags.append(f"launch elevation differs from the configured one by "
+                     f"{math.degrees(st.elevation_check_rad):.1f} deg")
+    psi = sol.fit.psi_rad if sol is not None else 0.0
+    C_nf_sf = af.r3(psi).T @ st.C_isf_af.T @ C_isf_sf
+    C_nf_body = C_nf_sf @ C_sf_body
+    roll, pitch, yaw = euler_from_dcm(C_nf_body)
+    if sol is None:
+        status = "collecting" if fit_last is None else "withheld"
+        reason = "; ".join([st.last_gate_reason or "no magnetometer samples yet"] + flags)
+        return AzimuthOutput(time_s, status, reason, False, roll_rad=roll, pitch_rad=pitch,
+                             q_nav_from_body=quat_from_dcm(C_nf_body), **diag)
+    status = "solved" if st.last_gate_reason == "" else "holding"
+    if status == "holding":
+        flags.insert(0, "holding last solution: " + st.last_gate_reason)
+    arw_var = p.gyro_arw_rad_sqrt_s ** 2 * max(time_s - st.launch_time_s, 0.0)
+    hd, hs, _ = af.direction_azimuth_and_sigma(C_sf_body[:, 0], psi, st.C_isf_af, C_isf_sf, st.G_isf_s,
+                                               sol.fit, st.P_consider, arw_var)
+    fm2 = p.field_model_sigma_rad ** 2
+    hs = math.sqrt(hs ** 2 + fm2)
+    out = dict(heading_rad=hd, heading_sigma_rad=hs, roll_rad=roll, pitch_rad=pitch,
+               q_nav_from_body=quat_from_dcm(C_nf_body), psi_s_rad=psi,
+               psi_s_sigma_rad=math.sqrt(sol.psi_sigma_rad ** 2 + fm2),
+               distortion_A=sol.fit.A, distortion_b_gauss=sol.fit.b_gauss)
+    if st.u_sf is None:
+        return AzimuthOutput(time_s, status, "; ".join([st.u_reason] + flags), False, **out, **diag)
+    az, az_s, _ = af.direction_azimuth_and_sigma(st.u_sf, psi, st.C_isf_af, C_isf_sf, st.G_isf_s,
+                                                 sol.fit, st.P_consider, arw_var)
+    az0, _, _ = af.direction_azimuth_and_sigma(st.u_sf, psi, st.C_isf_af, np.eye(3), np.zeros((3, 3)),
+                                               sol.fit, st.P_consider, 0.0)
+    return AzimuthOutput(time_s, status, "; ".join(flags), True, azimuth_rad=az,
+                         azimuth_sigma_rad=math.sqrt(az_s ** 2 + fm2), launch_azimuth_rad=az0, **out, **diag)
+
+
+class AzimuthEstimator:
+    """Thin holder of an ``AzimuthState`` for callers that prefer an object (same results)."""
+
+    def __init__(self, params: AzimuthParams):
+        self.state = azimuth_init(params)
+
+    def prelaunch(self, gyro_rad_s, accel_m_s2, time_s) -> None:
+        self.state = azimuth_prelaunch_step(self.state, gyro_rad_s, accel_m_s2, time_s)
+
+    def launch(self, launch_time_s) -> str:
+        self.state, reason = azimuth_launch(self.state, launch_time_s)
+        return reason
+
+    def step(self, gyro_rad_s, accel_m_s2, mag_gauss, time_s) -> AzimuthOutput:
+        self.state, out = azimuth_step(self.state, gyro_rad_s, accel_m_s2, mag_gauss, time_s)
+        return out
