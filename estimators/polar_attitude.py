@@ -82,20 +82,22 @@ class PolarAttitudeParams:
     """Specific force averaged at start to level the filter (s); the vehicle should be still."""
     gyro_noise_rad_s_rt_hz: float = math.radians(0.01)
     """Gyro angle random walk (rad/s/sqrt(Hz))."""
-    gyro_bias_sigma_rad_s: float = math.radians(0.5)
-    """Steady-state sigma of the gyro bias GM process (rad/s)."""
-    gyro_bias_tau_s: float = 3600.0
+    gyro_bias_init_sigma_rad_s: float = math.radians(0.5)
+    """Prior sigma of the gyro bias at start (turn-on bias, rad/s) unless given at init."""
+    gyro_bias_sigma_rad_s: float = math.radians(0.05)
+    """Steady-state sigma of the gyro bias GM process (in-run instability, rad/s)."""
+    gyro_bias_tau_s: float = 1800.0
     accel_noise_m_s2: float = 0.05
     """Per-sample white noise of the specific force (m/s^2); divided by the samples averaged."""
     accel_meas_floor_m_s2: float = 0.02
     """Floor on the sigma of the averaged specific-force residual (model error, vibration)."""
-    vehicle_accel_sigma_m_s2: float = 0.3
+    vehicle_accel_sigma_m_s2: float = 0.2
     """Steady-state sigma of the vehicle-acceleration GM process in straight flight (m/s^2)."""
-    vehicle_accel_tau_s: float = 2.0
+    vehicle_accel_tau_s: float = 0.5
     manoeuvre_speed_m_s: float = 25.0
-    """Speed V used to bound the centripetal acceleration |w| V a rotating vehicle can have: while
-    the gyros show a rate |w|, the vehicle-acceleration variance is raised to at least
-    sigma_av^2 + (|w| V)^2 (manoeuvre-adaptive; 0 < V, set it to the vehicle's cruise speed)."""
+    """Speed V used to bound the centripetal acceleration [0, r V, -q V] of a vehicle turning at
+    body rates (q, r): the vehicle-acceleration variance of body y/z is raised to at least
+    sigma_av^2 + (r V)^2 / (q V)^2 (manoeuvre-adaptive; set V to the vehicle's cruise speed)."""
     earth_rate_sigma_rad_s: float = EARTH_RATE_RAD_S
     """Prior sigma per axis of the Earth rate in P (rad/s): no latitude is given."""
     earth_rate_tau_s: float = 3600.0
@@ -125,7 +127,7 @@ class PolarAttitudeParams:
 
     def __post_init__(self) -> None:
         for name in ("update_period_s", "init_period_s", "gyro_noise_rad_s_rt_hz",
-                     "gyro_bias_sigma_rad_s", "gyro_bias_tau_s", "accel_noise_m_s2",
+                     "gyro_bias_init_sigma_rad_s", "gyro_bias_sigma_rad_s", "gyro_bias_tau_s", "accel_noise_m_s2",
                      "accel_meas_floor_m_s2", "vehicle_accel_sigma_m_s2", "vehicle_accel_tau_s", "manoeuvre_speed_m_s",
                      "earth_rate_sigma_rad_s", "earth_rate_tau_s", "transport_rate_sigma_rad_s",
                      "transport_rate_tau_s", "accel_bias_sigma_m_s2", "accel_bias_tau_s",
@@ -159,6 +161,8 @@ class PolarAttitudeState:
     acc_C_BP_start: np.ndarray = field(default_factory=lambda: np.eye(3))
     n_updates: int = 0
     n_rejected: int = 0
+    bias_prior_sigma_rad_s: float | None = None
+    """Sigma of the gyro-bias prior given at init (None: params.gyro_bias_init_sigma_rad_s)."""
 
     def to_dict(self) -> dict:
         out = {}
@@ -202,12 +206,14 @@ def _down_in_body(q: np.ndarray) -> np.ndarray:
     return np.array([2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)])
 
 
-def _initial_covariance(C_BP: np.ndarray, p: PolarAttitudeParams) -> np.ndarray:
+def _initial_covariance(C_BP: np.ndarray, p: PolarAttitudeParams,
+                        bias_sigma_rad_s: float | None = None) -> np.ndarray:
     P = np.zeros((N_STATES, N_STATES))
     # tilt/yaw prior given in P, mapped into the body-frame error: eps = C_BP psi_P
     Pp = np.diag([p.init_tilt_sigma_rad ** 2, p.init_tilt_sigma_rad ** 2, p.init_yaw_sigma_rad ** 2])
     P[I_ATT, I_ATT] = C_BP @ Pp @ C_BP.T
-    P[I_BG, I_BG] = np.eye(3) * p.gyro_bias_sigma_rad_s ** 2
+    sb = p.gyro_bias_init_sigma_rad_s if bias_sigma_rad_s is None else bias_sigma_rad_s
+    P[I_BG, I_BG] = np.eye(3) * sb ** 2
     P[I_AV, I_AV] = np.eye(3) * p.vehicle_accel_sigma_m_s2 ** 2
     P[I_WIE, I_WIE] = np.eye(3) * p.earth_rate_sigma_rad_s ** 2
     P[I_WEP, I_WEP] = np.eye(3) * p.transport_rate_sigma_rad_s ** 2
@@ -216,9 +222,25 @@ def _initial_covariance(C_BP: np.ndarray, p: PolarAttitudeParams) -> np.ndarray:
     return P
 
 
-def polar_attitude_init(params: PolarAttitudeParams = PolarAttitudeParams()) -> PolarAttitudeState:
-    """An uninitialised filter: it levels itself over ``init_period_s`` of data."""
-    return PolarAttitudeState()
+def polar_attitude_init(params: PolarAttitudeParams = PolarAttitudeParams(),
+                        gyro_bias_rad_s: np.ndarray | None = None,
+                        gyro_bias_sigma_rad_s: float | None = None) -> PolarAttitudeState:
+    """An uninitialised filter: it levels itself over ``init_period_s`` of data.
+
+    ``gyro_bias_rad_s``/``gyro_bias_sigma_rad_s``: optional prior of the gyro bias (body axes),
+    e.g. the pre-launch mean rate at rest (estimators/levelling.py) and its uncertainty. The
+    vertical-axis bias is otherwise only observed through tilt while the vehicle is banked.
+    """
+    x = np.zeros(16)
+    if gyro_bias_rad_s is not None:
+        b = np.asarray(gyro_bias_rad_s, float)
+        if b.shape != (3,) or not np.all(np.isfinite(b)):
+            raise ValueError(f"gyro_bias_rad_s must be 3 finite numbers, got {gyro_bias_rad_s!r}")
+        x[0:3] = b
+    if gyro_bias_sigma_rad_s is not None and not (math.isfinite(gyro_bias_sigma_rad_s)
+                                                  and gyro_bias_sigma_rad_s > 0.0):
+        raise ValueError(f"gyro_bias_sigma_rad_s must be finite and > 0, got {gyro_bias_sigma_rad_s!r}")
+    return PolarAttitudeState(x_hat=x, bias_prior_sigma_rad_s=gyro_bias_sigma_rad_s)
 
 
 def _validate(time_s: float, gyro: np.ndarray, accel: np.ndarray) -> str:
@@ -284,8 +306,10 @@ def _init_step(state, time_s, w, f, params):
     q = quat_from_euler(roll, pitch, 0.0)
     C_BP = dcm_from_quat(q).T
     return PolarAttitudeState(initialised=True, time_s=time_s, q_P_from_body=q,
-                              x_hat=np.zeros(16), P=_initial_covariance(C_BP, params),
-                              gyro_prev_rad_s=w, acc_C_BP_start=C_BP), PolarAttitudeDiag(
+                              x_hat=state.x_hat.copy(),
+                              P=_initial_covariance(C_BP, params, state.bias_prior_sigma_rad_s),
+                              gyro_prev_rad_s=w, acc_C_BP_start=C_BP,
+                              bias_prior_sigma_rad_s=state.bias_prior_sigma_rad_s), PolarAttitudeDiag(
         reason="levelled")
 
 
@@ -323,11 +347,13 @@ def _update(st: PolarAttitudeState, p: PolarAttitudeParams):
         Q[idx] = q
     P = F @ st.P @ F.T
     P[np.diag_indices(N_STATES)] += Q
-    # manoeuvre-adaptive vehicle acceleration: a body turning at |w| with speed V has up to
-    # |w| V of centripetal acceleration the accelerometer cannot tell from a tilt
+    # manoeuvre-adaptive vehicle acceleration: flying along body x at speed V while turning at
+    # w, the centripetal acceleration is w x [V, 0, 0] = [0, r V, -q V] (roll rate adds none);
+    # the accelerometer cannot tell it from a tilt, so its variance is raised to cover it
     w_mean = rotvec_from_quat(st.acc_q_b0_from_b) / T
-    var_man = p.vehicle_accel_sigma_m_s2 ** 2 + (float(np.linalg.norm(w_mean)) * p.manoeuvre_speed_m_s) ** 2
-    for i in range(6, 9):
+    s0 = p.vehicle_accel_sigma_m_s2 ** 2
+    V = p.manoeuvre_speed_m_s
+    for i, var_man in ((6, s0), (7, s0 + (w_mean[2] * V) ** 2), (8, s0 + (w_mean[1] * V) ** 2)):
         if P[i, i] < var_man:
             P[i, i] = var_man
 
