@@ -34,6 +34,9 @@ class LevellingParams:
     """Largest per-axis standard deviation of the rate that still counts as at rest."""
     gravity_tolerance_m_s2: float = 0.8
     """| |f| - g | above this means the vehicle is not at rest (or the accel is mis-scaled)."""
+    accel_bias_sigma_m_s2: float = 0.1
+    """1-sigma accelerometer bias left after the FC's calibration; it tilts the levelling by
+    about bias/g and no averaging removes it (0.1 m/s^2 -> 0.6 deg: consumer MEMS)."""
 
 
 @dataclass(frozen=True)
@@ -92,8 +95,9 @@ def levelling_result(state: LevellingState, params: LevellingParams = LevellingP
     if abs(norm - STANDARD_GRAVITY_M_S2) > params.gravity_tolerance_m_s2:
         return LevellingResult(False, f"|f| = {norm:.2f} m/s^2 is not gravity", samples=state.n)
     roll, pitch = roll_pitch_from_specific_force(f)
-    # sigma of the mean tilt: accelerometer noise of the mean over |g|
-    tilt_sigma = float(np.linalg.norm(accel_std[:2])) / math.sqrt(state.n) / norm
+    # sigma of the tilt: accelerometer noise of the mean and the accelerometer bias, over |g|
+    noise = float(np.linalg.norm(accel_std[:2])) / math.sqrt(state.n)
+    tilt_sigma = math.hypot(noise, params.accel_bias_sigma_m_s2) / norm
     return LevellingResult(True, "", roll, pitch, state.gyro_mean_rad_s.copy(), f.copy(),
                            tilt_sigma, tilt_sigma, state.n)
 

@@ -117,6 +117,8 @@ SPEC: dict[str, dict[str, Key]] = {
         "mount_pitch_deg": Key(_F, 0.0, "IMU mounting: pitch of the sensor axes in the body frame", _range(-90, 90)),
         "mount_yaw_deg": Key(_F, 0.0, "IMU mounting: yaw of the sensor axes in the body frame", _range(-180, 180)),
         "still_seconds": Key(_F, 2.0, "at-rest data needed for levelling and gyro bias", _range(0.2, 600)),
+        "accel_bias_sigma_m_s2": Key(_F, 0.1, "1-sigma accelerometer bias after the FC's calibration (tilt error ~ bias/g)", _range(0, 5)),
+        "gyro_bias_sigma_deg_s": Key(_F, 0.01, "1-sigma gyro bias left after the at-rest estimate (in-run drift + Earth rate)", _range(0, 10)),
     },
     "launch": {
         "case": Key(str, "inclined", "how the flight direction is found: vertical | inclined | aligned", _choice("vertical", "inclined", "aligned")),
@@ -193,10 +195,10 @@ def validate(raw: dict[str, Any]) -> dict[str, dict[str, Any]]:
             values[key] = v
         out[section] = values
     site = out["site"]
-    if site["earth_field_ned_gauss"] is None and (site["lat_deg"] is None or site["lon_deg"] is None):
-        raise ConfigError("site.lat_deg: required (with site.lon_deg) unless site.earth_field_ned_gauss is given")
     if (site["lat_deg"] is None) != (site["lon_deg"] is None):
         raise ConfigError("site.lon_deg: lat_deg and lon_deg go together")
+    if site["earth_field_ned_gauss"] is None and site["lat_deg"] is None:
+        raise ConfigError("site.lat_deg: required (with site.lon_deg) unless site.earth_field_ned_gauss is given")
     return out
 
 

@@ -20,15 +20,13 @@ import numpy as np
 
 from estimators.rotations import (dcm_from_quat, euler_from_quat, quat_conj, quat_from_euler,
                                   quat_mul)
+from estimators.levelling import LevellingParams
 from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init, strapdown_step
 from mavlink_io.samples import FcAttitude, ImuSample, PressureSample
 from service.phases import IN_FLIGHT, LAUNCH, PRE_LAUNCH, PhaseParams, PhaseState, phase_step
 from service.solution import NavSolution
 
 log = logging.getLogger("azimuthd.pipeline")
-
-RESIDUAL_BIAS_RAD_S = math.radians(0.01)
-"""Gyro bias left after the at-rest estimate (consumer MEMS in-run drift + Earth rate), rad/s."""
 
 
 @dataclass
@@ -52,7 +50,9 @@ class Pipeline:
         self.cfg = cfg
         imu = cfg["imu"]
         launch = cfg["launch"]
+        self.gyro_bias_sigma_rad_s = math.radians(imu["gyro_bias_sigma_deg_s"])
         self.phase_params = PhaseParams(still_seconds=imu["still_seconds"],
+                                        levelling=LevellingParams(accel_bias_sigma_m_s2=imu["accel_bias_sigma_m_s2"]),
                                         detect_accel_m_s2=launch["detect_accel_m_s2"],
                                         detect_hold_s=launch["detect_hold_s"],
                                         boost_window_s=launch["boost_window_s"])
@@ -143,8 +143,8 @@ class Pipeline:
     def _tilt_sigma_rad(self, time_s: float) -> float | None:
         """1-sigma roll/pitch: levelling error, then growing with the residual gyro bias.
 
-        The bias left after levelling is ``RESIDUAL_BIAS_RAD_S`` (the turn-on bias is gone, in-run
-        drift and Earth rate are not); its tilt error grows linearly with time since launch.
+        The bias left after levelling is ``imu.gyro_bias_sigma_deg_s`` (the turn-on bias is gone,
+        in-run drift and Earth rate are not); its tilt error grows linearly with time since launch.
         """
         level = self.phase.level
         if level is None:
@@ -152,7 +152,7 @@ class Pipeline:
         sigma0 = level.roll_sigma_rad
         if self.phase.launch_time_s is None:
             return sigma0
-        return math.hypot(sigma0, RESIDUAL_BIAS_RAD_S * (time_s - self.phase.launch_time_s))
+        return math.hypot(sigma0, self.gyro_bias_sigma_rad_s * (time_s - self.phase.launch_time_s))
 
     def _solution(self, s: ImuSample) -> NavSolution:
         q_ns = self._q_nav_from_sensor()

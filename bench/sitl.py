@@ -1,0 +1,213 @@
+"""SITL harness: the simulator and the daemon as separate OS processes over UDP on loopback.
+
+Used by `make run` (bench/live_demo.py), the end-to-end tests and the benches. The harness, not
+the daemon, reads the simulator's truth (its truth log): the daemon sees only MAVLink.
+
+    with Sitl(scenario="inclined_rail", speed=1.0) as s:
+        s.wait_for(lambda: len(s.listener.attitude) > 100, 30)
+        ...
+    truth = s.truth()          # after exit: the truth log the simulator wrote
+"""
+from __future__ import annotations
+
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE_CONFIG = ROOT / "systemd" / "azimuthd.toml"
+OUR_COMPONENT = 191
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return repr(v)
+
+
+def write_config(path: Path, overrides: dict[str, dict]) -> Path:
+    """The example config with some keys replaced (a config a user would write for this flight)."""
+    with open(EXAMPLE_CONFIG, "rb") as f:
+        cfg = tomllib.load(f)
+    for section, keys in overrides.items():
+        cfg.setdefault(section, {}).update(keys)
+    lines = []
+    for section, keys in cfg.items():
+        lines.append(f"[{section}]")
+        lines.extend(f"{k} = {_toml_value(v)}" for k, v in keys.items() if v is not None)
+        lines.append("")
+    path.write_text("\n".join(lines))
+    return path
+
+
+LAUNCH_CASE = {"rail": "inclined", "tube": "vertical", "runway": "aligned"}
+
+
+def scenario_site(scenario: str) -> dict:
+    """The config an operator would write for this flight: site, date, launcher, IMU mount.
+
+    The harness may read the scenario file (it is the operator's knowledge of the launch); the
+    daemon gets only this config and MAVLink.
+    """
+    from sim.earth import decimal_year_from_date
+    from sim.scenario import load_scenario
+    sc = load_scenario(scenario)
+    roll, pitch, yaw = sc["imu"]["mount_euler_deg"]
+    launcher = sc["launcher"]["type"]
+    out = {"site": {"lat_deg": float(sc["site"]["lat_deg"]), "lon_deg": float(sc["site"]["lon_deg"]),
+                    "alt_m": float(sc["site"]["alt_m"]),
+                    "decimal_year": float(decimal_year_from_date(sc["scenario"]["date"]))},
+           "imu": {"mount_roll_deg": float(roll), "mount_pitch_deg": float(pitch), "mount_yaw_deg": float(yaw)},
+           "launch": {"case": LAUNCH_CASE[launcher]}}
+    if launcher == "runway":
+        # a take-off roll accelerates at a few m/s^2, not a boost
+        out["launch"].update({"detect_accel_m_s2": 0.3 * float(sc["launcher"]["takeoff_accel_m_s2"]),
+                              "detect_hold_s": 0.5})
+    return out
+
+
+@dataclass
+class OutputListener:
+    """Receives what the daemon sends to an extra output URL (as a ground station would)."""
+    port: int
+    attitude: list = field(default_factory=list)   # (time_boot_s, roll, pitch, yaw, rx_monotonic)
+    named: list = field(default_factory=list)      # (name, value, rx_monotonic)
+    heartbeats: int = 0
+    messages: dict = field(default_factory=dict)
+
+    def start(self) -> "OutputListener":
+        from pymavlink import mavutil
+        self._conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{self.port}", dialect="ardupilotmega")
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            msg = self._conn.recv_match(blocking=True, timeout=0.2)
+            if msg is None or msg.get_srcComponent() != OUR_COMPONENT:
+                continue
+            t = msg.get_type()
+            self.messages[t] = self.messages.get(t, 0) + 1
+            now = time.monotonic()
+            if t == "ATTITUDE":
+                self.attitude.append((msg.time_boot_ms / 1000.0, msg.roll, msg.pitch, msg.yaw, now))
+            elif t == "NAMED_VALUE_FLOAT":
+                self.named.append((msg.name, msg.value, now))
+            elif t == "HEARTBEAT":
+                self.heartbeats += 1
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self._conn.close()
+
+
+class Sitl:
+    """Simulator + daemon as two processes; outputs mirrored to a local listener."""
+
+    def __init__(self, scenario: str = "inclined_rail", speed: float = 1.0, seed: int = 1,
+                 workdir: Path | None = None, config_overrides: dict | None = None,
+                 sim_args: list[str] | None = None, daemon_args: list[str] | None = None,
+                 status_interval_s: float = 0.0, capture_output: bool = True):
+        import tempfile
+        self.scenario = scenario
+        self.workdir = Path(workdir or tempfile.mkdtemp(prefix="azimuthd-sitl-"))
+        self.fc_port = free_udp_port()
+        self.out_port = free_udp_port()
+        self.truth_log = self.workdir / "truth.npz"
+        overrides = {"mavlink": {"url": f"udpin:127.0.0.1:{self.fc_port}"},
+                     "outputs": {"extra_mavlink_urls": [f"udpout:127.0.0.1:{self.out_port}"],
+                                 "status_interval_s": status_interval_s},
+                     "service": {"state_dir": str(self.workdir / "state")},
+                     "zenoh": {"enabled": False}}
+        for section, keys in scenario_site(scenario).items():
+            overrides.setdefault(section, {}).update(keys)
+        for section, keys in (config_overrides or {}).items():
+            overrides.setdefault(section, {}).update(keys)
+        self.config_path = write_config(self.workdir / "azimuthd.toml", overrides)
+        self.sim_cmd = [sys.executable, "-m", "service.cli", "sim", "--scenario", scenario,
+                        "--mavlink", f"udpout:127.0.0.1:{self.fc_port}", "--speed", str(speed),
+                        "--seed", str(seed), "--truth-log", str(self.truth_log), *(sim_args or [])]
+        self.daemon_cmd = [sys.executable, "-m", "service.cli", "run", "--config", str(self.config_path),
+                           *(daemon_args or [])]
+        self.capture_output = capture_output
+        self.listener = OutputListener(self.out_port)
+        self.sim: subprocess.Popen | None = None
+        self.daemon: subprocess.Popen | None = None
+
+    def __enter__(self) -> "Sitl":
+        self.listener.start()
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        out = (lambda name: open(self.workdir / name, "w")) if self.capture_output else (lambda name: None)
+        self._daemon_out = out("daemon.log")
+        self._sim_out = out("sim.log")
+        self.daemon = subprocess.Popen(self.daemon_cmd, cwd=ROOT, env=env, stdout=self._daemon_out or None,
+                                       stderr=subprocess.STDOUT if self._daemon_out else None)
+        self.sim = subprocess.Popen(self.sim_cmd, cwd=ROOT, env=env, stdout=self._sim_out or None,
+                                    stderr=subprocess.STDOUT if self._sim_out else None)
+        return self
+
+    def wait_for(self, cond, timeout_s: float, poll_s: float = 0.05) -> bool:
+        t_end = time.monotonic() + timeout_s
+        while time.monotonic() < t_end:
+            if cond():
+                return True
+            for p, name in ((self.sim, "simulator"), (self.daemon, "daemon")):
+                if p is not None and p.poll() is not None:
+                    raise RuntimeError(f"{name} exited with {p.returncode}; see {self.workdir}")
+            time.sleep(poll_s)
+        return cond()
+
+    def stop(self) -> None:
+        for p in (self.daemon, self.sim):
+            if p is not None and p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        for p in (self.daemon, self.sim):
+            if p is not None:
+                try:
+                    p.wait(15)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait(5)
+        self.listener.stop()
+        for f in (self._daemon_out, self._sim_out):
+            if f:
+                f.close()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def log(self, which: str) -> str:
+        p = self.workdir / f"{which}.log"
+        return p.read_text() if p.exists() else ""
+
+    def truth(self) -> dict[str, np.ndarray]:
+        with np.load(self.truth_log) as z:
+            return {k: z[k] for k in z.files}
+
+
+def angle_diff_rad(a, b):
+    """a - b wrapped to (-pi, pi]."""
+    return (np.asarray(a) - np.asarray(b) + math.pi) % (2 * math.pi) - math.pi
