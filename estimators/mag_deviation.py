@@ -38,6 +38,7 @@ from estimators.rotations import dcm_from_euler, wrap_2pi
 from estimators.polar_heading import magnetic_heading
 
 N_PER_AXIS = 7
+RESID_BURN_IN = 3 * N_PER_AXIS
 COEFF_NAMES = ("A", "B", "C", "D", "E", "F", "G")
 AXES = ("x", "y", "z")
 
@@ -81,7 +82,9 @@ class DeviationState:
     """(7, 7) RLS gain matrix (coefficient covariance / residual variance)."""
     n: int = 0
     resid_sq_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    """Sum of squared normalised a-priori residuals per axis (gauss^2)."""
+    """Sum of squared normalised a-priori residuals per axis (gauss^2), after the burn-in."""
+    n_resid: int = 0
+    """Residuals in that sum (the first RESID_BURN_IN are left out: they measure the prior)."""
     heading_counts: np.ndarray | None = None
     roll_counts: np.ndarray | None = None
     pitch_counts: np.ndarray | None = None
@@ -93,7 +96,7 @@ class DeviationState:
     def from_dict(cls, d: dict) -> "DeviationState":
         kw = {}
         for k, v in d.items():
-            if k == "n":
+            if k in ("n", "n_resid"):
                 kw[k] = int(v)
             elif v is None:
                 kw[k] = None
@@ -182,8 +185,10 @@ def deviation_step(state: DeviationState, mag_body_gauss: np.ndarray, field_ned_
     if b is not None:
         pc[b] += 1
     # e^2 / s is the a-priori residual normalised by its own variance factor (1 + h^T P h)
+    burn = state.n < RESID_BURN_IN
     st = replace(state, coeffs=coeffs, P=P, n=state.n + 1,
-                 resid_sq_sum=state.resid_sq_sum + e * e / s,
+                 resid_sq_sum=state.resid_sq_sum + (0.0 if burn else e * e / s),
+                 n_resid=state.n_resid + (0 if burn else 1),
                  heading_counts=hc, roll_counts=rc, pitch_counts=pc)
     return st, DeviationDiag(True, residual_gauss=e)
 
@@ -195,8 +200,7 @@ def deviation_model(state: DeviationState, heading_rad: float, roll_rad: float, 
 
 def residual_sigma_gauss(state: DeviationState) -> np.ndarray:
     """Per-axis residual sigma (gauss) estimated from the a-priori residuals."""
-    dof = max(1, state.n - N_PER_AXIS)
-    return np.sqrt(state.resid_sq_sum / dof)
+    return np.sqrt(state.resid_sq_sum / max(1, state.n_resid))
 
 
 def coefficient_covariance(state: DeviationState) -> np.ndarray:
