@@ -197,6 +197,8 @@ class MavlinkLink:
         self._transport: Transport = make_transport(self.endpoint)
         self._open_ok = False
         self._ever_opened = False
+        self._announce_reconnect = False
+        self._had_peer = False
         self._backoff_s = cfg.reconnect_backoff_s
         self._reopen_at_s = now
         self._try_open(now)
@@ -261,12 +263,20 @@ class MavlinkLink:
             except OSError as exc:
                 self._transport_dead(f"read failed: {exc}", self.clock(), items)
                 chunks = []
+            if self._announce_reconnect and self._open_ok:
+                self._check_up(self.clock(), items)
             if chunks:
                 rx_s = self.clock()
                 for data, peer in chunks:
                     self.stats.bytes_received += len(data)
                     for msg in self._parse(data):
                         self._handle(msg, peer, rx_s, items)
+            has_peer = self._open_ok and self._transport.has_peer
+            if has_peer and not self._had_peer:
+                # a listener just got its peer (udpin: the FC talked; tcpin: a client connected):
+                # introduce ourselves now rather than at the next 1 Hz tick
+                self._next_heartbeat_s = self.clock()
+            self._had_peer = has_peer
         elif timeout_s > 0:
             time.sleep(min(timeout_s, max(0.0, self._reopen_at_s - now)))
         now = self.clock()
@@ -292,19 +302,31 @@ class MavlinkLink:
             return
         self._open_ok = True
         self._reset_parser()
+        self._announce_reconnect = self._ever_opened
+        self._ever_opened = True
+        self._check_up(now, items)
+
+    def _check_up(self, now: float, items: list | None) -> None:
+        """Once the reopened transport is really up (TCP connect done): reset the backoff and
+        report the reconnection."""
+        if not self._transport.connected:
+            return
         self._backoff_s = self.cfg.reconnect_backoff_s
-        if self._ever_opened:
+        if self._announce_reconnect:
+            self._announce_reconnect = False
             self.stats.reconnects += 1
             self._event("reconnect", f"{self.endpoint.url} reopened", now, items)
-        self._ever_opened = True
         self.last_error = None
 
     def _transport_dead(self, reason: str, now: float, items: list | None) -> None:
         self._transport.close()
         self._open_ok = False
         self.stats.transport_errors += 1
-        self.last_error = f"{self.endpoint.url}: {reason}"
-        self._event("transport_error", f"{self.last_error}; reopening in {self._backoff_s:g} s", now, items)
+        err = f"{self.endpoint.url}: {reason}"
+        if err != self.last_error:  # report each new failure once, not every retry
+            self._event("transport_error", f"{err}; reopening with backoff (<= "
+                                           f"{self.cfg.reconnect_backoff_max_s:g} s)", now, items)
+        self.last_error = err
         self._reopen_at_s = now + self._backoff_s
         self._backoff_s = min(self._backoff_s * 2.0, self.cfg.reconnect_backoff_max_s)
         if self.connected:
@@ -313,6 +335,9 @@ class MavlinkLink:
     def _write(self, buf: bytes) -> None:
         if not self._open_ok:
             self.stats.send_errors += 1
+            return
+        if not self._transport.has_peer:
+            self.stats.send_no_peer += 1  # udpin/tcpin before anyone talked: nothing to send to
             return
         try:
             ok = self._transport.write(buf)

@@ -73,6 +73,8 @@ class LinkStats:
     """Unexpected exceptions inside the MAVLink parser (the parser is reset, nothing raised)."""
     messages_sent: int = 0
     send_errors: int = 0
+    send_no_peer: int = 0
+    """Sends skipped because a listening transport has no peer yet (not an error)."""
     heartbeats_sent: int = 0
     rate_requests_sent: int = 0
     rate_results: dict[str, str] = field(default_factory=dict)

@@ -60,6 +60,16 @@ class Transport:
     def local_address(self) -> tuple | None:
         return None
 
+    @property
+    def connected(self) -> bool:
+        """The byte stream is up (TCP connect finished; serial open; UDP socket open)."""
+        return self.fileno() is not None
+
+    @property
+    def has_peer(self) -> bool:
+        """There is somebody to send to (udpin: a peer has talked; tcpin: a client is connected)."""
+        return self.connected
+
     def _want_write(self) -> bool:
         return False
 
@@ -133,6 +143,10 @@ class UdpTransport(Transport):
     def local_address(self) -> tuple | None:
         return None if self.sock is None else self.sock.getsockname()
 
+    @property
+    def has_peer(self) -> bool:
+        return self.sock is not None and self.peer is not None
+
     def set_peer(self, peer: object) -> None:
         if not self._fixed_peer and peer is not None:
             self.peer = peer  # type: ignore[assignment]
@@ -196,6 +210,10 @@ class TcpClientTransport(Transport):
 
     def _want_write(self) -> bool:
         return self.connecting
+
+    @property
+    def connected(self) -> bool:
+        return self.sock is not None and not self.connecting
 
     def _check_connected(self) -> bool:
         if not self.connecting:
@@ -279,6 +297,10 @@ class TcpServerTransport(Transport):
     @property
     def local_address(self) -> tuple | None:
         return None if self.listener is None else self.listener.getsockname()
+
+    @property
+    def has_peer(self) -> bool:
+        return self.client is not None
 
     def _accept(self) -> None:
         try:

@@ -41,6 +41,7 @@ class FakeFc:
         self.autopilot = autopilot
         self.ack_result = ack_result  # None: never ACK
         self.received: list = []
+        self.rx_times: dict = {}
 
     def heartbeat(self, armed=False):
         self.mav.heartbeat_send(mavlink2.MAV_TYPE_FIXED_WING, self.autopilot,
@@ -55,6 +56,7 @@ class FakeFc:
                 return
             for m in self.parser.parse_buffer(data) or []:
                 self.received.append(m)
+                self.rx_times[id(m)] = time.monotonic()
                 if (m.get_type() == "COMMAND_LONG" and m.command == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL
                         and self.ack_result is not None):
                     self.mav.command_ack_send(m.command, self.ack_result, 0, 0, m.get_srcSystem(), m.get_srcComponent())
@@ -139,7 +141,9 @@ def test_heartbeat_at_1hz_with_our_identity(pair):
     fc.heartbeat()  # udpin: the link can only answer once the FC has talked
     _run(link, fc, 2.25)
     hbs = fc.of_type("HEARTBEAT")
-    assert len(hbs) in (2, 3)  # t = 0 (after learning the peer), 1, 2 s
+    assert len(hbs) == 3  # t = 0 (as soon as the FC's address is known), 1, 2 s
+    dt = np.diff([fc.rx_times[id(h)] for h in hbs])
+    np.testing.assert_allclose(dt, [1.0, 1.0], atol=0.03)
     for hb in hbs:
         assert hb.type == mavlink2.MAV_TYPE_ONBOARD_CONTROLLER
         assert hb.autopilot == mavlink2.MAV_AUTOPILOT_INVALID
@@ -319,10 +323,15 @@ def test_send_never_raises_on_dead_link():
     link = _link()
     msg = link.mav.attitude_encode(0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     assert link.send(msg) is False  # udpin: nobody to send to yet
+    assert link.stats.send_no_peer >= 1 and link.stats.send_errors == 0
     link.close()
     assert link.send(msg) is False
     assert link.poll(0.01) == []
-    assert link.stats.send_errors >= 2
+    assert link.stats.send_errors == 1
+    bad = link.mav.attitude_encode(0, "not a number", 0.0, 0.0, 0.0, 0.0, 0.0)
+    link2 = _link()
+    assert link2.send(bad) is False and link2.stats.send_errors == 1  # cannot pack: counted
+    link2.close()
 
 
 def test_rates_hz_over_window():

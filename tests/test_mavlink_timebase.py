@@ -1,0 +1,106 @@
+"""FC clock reconstruction: uint32 ms wrap, reboot (backward jump), gaps, stale packets."""
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mavlink_io.timebase import MS_WRAP, FcTimebase, TimebaseParams
+
+WRAP_S = MS_WRAP / 1000.0  # 4294967.296 s = 49.71 days
+
+
+def _feed_all(tb, seq, gap_s=None):
+    out, events = [], []
+    for stream, raw, unit, rx in seq:
+        t, ev = tb.feed(stream, raw, unit, rx, gap_s)
+        out.append(t)
+        events += ev
+    return out, events
+
+
+def test_ms_wrap_is_unwrapped_and_reported_once():
+    tb = FcTimebase()
+    raws = [MS_WRAP - 20, MS_WRAP - 10, 0, 10, 20]  # 20 ms steps across the wrap
+    out, events = _feed_all(tb, [("ATTITUDE", r, "ms", 1.0 + i) for i, r in enumerate(raws)])
+    assert out == pytest.approx([WRAP_S - 0.020, WRAP_S - 0.010, WRAP_S, WRAP_S + 0.010, WRAP_S + 0.020], abs=1e-9)
+    assert [e.kind for e in events] == ["time_wrap"]
+
+
+def test_ms_stream_unwrapped_against_us_stream():
+    # RAW_IMU (uint64 us) is past 2^32 ms; SCALED_PRESSURE (uint32 ms) has wrapped: same FC clock
+    tb = FcTimebase()
+    t_imu, _ = tb.feed("IMU", int((WRAP_S + 5.0) * 1e6), "us", 0.0)
+    t_p, ev = tb.feed("PRESSURE", 5000 - 20, "ms", 0.0)
+    assert t_imu == pytest.approx(WRAP_S + 5.0)
+    assert t_p == pytest.approx(WRAP_S + 4.98, abs=1e-9)
+    assert [e.kind for e in ev] == ["time_wrap"]
+
+
+def test_late_pre_wrap_packet_is_dropped_not_jumped_forward():
+    tb = FcTimebase()
+    _feed_all(tb, [("A", MS_WRAP - 10, "ms", 0.0), ("A", 5, "ms", 0.01)])
+    t, ev = tb.feed("A", MS_WRAP - 5, "ms", 0.02)  # reordered: belongs before the wrap
+    assert t is None and ev == [] and tb.stale == 1
+
+
+def test_reboot_detected_and_output_stays_monotonic():
+    tb = FcTimebase(TimebaseParams(reboot_jump_s=1.0))
+    out, ev = _feed_all(tb, [("IMU", 100_000_000, "us", 50.0), ("IMU", 100_005_000, "us", 50.005),
+                             ("ATTITUDE", 100_010, "ms", 50.01)])
+    assert out == pytest.approx([100.0, 100.005, 100.010])
+    # FC rebooted: 3 s of local time later it says 0.5 s since boot
+    t, ev = tb.feed("IMU", 500_000, "us", 53.005)
+    assert [e.kind for e in ev] == ["fc_reboot"]
+    assert t == pytest.approx(100.010 + (53.005 - 50.01))  # continued with elapsed local time
+    t2, _ = tb.feed("IMU", 505_000, "us", 53.010)
+    assert t2 - t == pytest.approx(0.005, abs=1e-9)
+    t3, ev3 = tb.feed("ATTITUDE", 510, "ms", 53.011)  # other streams follow the new boot silently
+    assert ev3 == [] and t3 == pytest.approx(t + 0.010)
+    assert tb.reboots == 1
+
+
+def test_small_backward_step_is_dropped_not_a_reboot():
+    tb = FcTimebase(TimebaseParams(reboot_jump_s=1.0))
+    out, ev = _feed_all(tb, [("IMU", 10_000_000, "us", 0), ("IMU", 10_005_000, "us", 0),
+                             ("IMU", 10_005_000, "us", 0), ("IMU", 9_500_000, "us", 0),
+                             ("IMU", 10_010_000, "us", 0)])
+    assert out == [pytest.approx(10.0), pytest.approx(10.005), None, None, pytest.approx(10.010)]
+    assert ev == [] and tb.stale == 2
+
+
+def test_gap_reported_only_above_threshold():
+    tb = FcTimebase()
+    out, ev = _feed_all(tb, [("IMU", 1_000_000, "us", 0), ("IMU", 1_500_000, "us", 0),  # 0.5 s: not > 0.5
+                             ("IMU", 2_000_001, "us", 0)], gap_s=0.5)  # 0.500001 s: a gap
+    assert [e.kind for e in ev] == ["time_gap"] and "0.500 s" in ev[0].detail
+    assert out[2] == pytest.approx(2.000001)
+
+
+def test_params_validated():
+    with pytest.raises(ValueError, match="reboot_jump_s"):
+        TimebaseParams(reboot_jump_s=0.0)
+    with pytest.raises(ValueError, match="unit"):
+        FcTimebase().feed("A", 1, "s", 0.0)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from(["IMU", "PRESSURE", "ATTITUDE"]),
+                          st.integers(min_value=-3000, max_value=3000),
+                          st.booleans()), min_size=1, max_size=60),
+       st.integers(min_value=0, max_value=MS_WRAP - 1))
+def test_output_never_goes_backwards_per_stream(steps, start_ms):
+    """Whatever the FC clock does (steps, wraps, restarts), each stream's output increases."""
+    tb = FcTimebase()
+    raw_ms = start_ms
+    rx = 0.0
+    last: dict[str, float] = {}
+    for stream, step_ms, reboot in steps:
+        raw_ms = 7 if reboot else (raw_ms + step_ms) % MS_WRAP
+        rx += 0.01
+        if stream == "IMU":
+            t, _ = tb.feed(stream, raw_ms * 1000, "us", rx)
+        else:
+            t, _ = tb.feed(stream, raw_ms, "ms", rx)
+        if t is not None:
+            if stream in last:
+                assert t > last[stream]
+            last[stream] = t
