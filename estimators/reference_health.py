@@ -1,0 +1,173 @@
+"""Health of the trusted attitude reference: the flight controller's own estimate (METHODS.md B).
+
+The synthetic AHRS learns (gyro zero correction, KF1 magnetometer errors) and aligns only while
+the FC's attitude is trusted. Trusted means all of:
+
+1. signalled health: the last HEARTBEAT system_status is STANDBY or ACTIVE (not CRITICAL /
+   EMERGENCY / booting), and the last estimator status says attitude_ok and, with
+   ``require_horiz_pos_ok`` (default), horiz_pos_ok: losing GNSS (the simulator's "GNSS lost /
+   degraded" switch) clears horiz_pos_ok in EKF_STATUS_REPORT, and the FC's attitude then
+   degrades slowly, so the loss of the position solution is the signal to stop trusting it;
+2. freshness: an FC ATTITUDE sample no older than ``max_attitude_age_s`` (FC time);
+3. agreement with our gyros (silent divergence): the FC's attitude change since an anchor is
+   compared with the change of our bias-corrected, gyro-only attitude over the same interval.
+   Anchors are laid every ``anchor_period_s`` and kept up to ``window_s``; for each anchor
+   taken at t_a the discrepancy angle
+
+       delta = angle( (C_fc(t_a) C_gyro(t_a)^T C_gyro(t)) ^T C_fc(t) )
+
+   must stay below  n_sigma * sqrt(2 sigma_fc^2 + (sigma_bias (t - t_a))^2) + margin.
+   This is the rate-agreement test integrated over the window (a mean rate disagreement
+   w over T shows as w T), so a slow drift that a sample-by-sample rate test misses is caught.
+   Its threshold is set by the FC's normal error (sigma_fc): a silent drift is detected once it
+   exceeds a few sigma_fc; a signalled loss is detected at once.
+
+Losing trust latches: trust returns only after ``retrust_hold_s`` of continuous good signals and
+agreement (the anchors are re-laid after a loss).
+
+Clocks: every event carries ``time_s`` on the estimator's (FC) clock; the service maps
+HEARTBEAT/EKF receive times onto it.
+
+Pure: ``health_on_heartbeat``, ``health_on_ekf_status``, ``health_on_attitude`` return a new
+state; ``health_trusted(state, time_s, params) -> (bool, reason)``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+MAV_STATE_STANDBY = 3
+MAV_STATE_ACTIVE = 4
+HEALTHY_SYSTEM_STATUS = (MAV_STATE_STANDBY, MAV_STATE_ACTIVE)
+
+
+@dataclass(frozen=True)
+class ReferenceHealthParams:
+    require_horiz_pos_ok: bool = True
+    """Stop trusting the FC attitude when its position solution (GNSS) is lost."""
+    max_attitude_age_s: float = 0.5
+    """An FC ATTITUDE older than this (s) is stale."""
+    anchor_period_s: float = 5.0
+    """A new agreement anchor every this many seconds (s)."""
+    window_s: float = 60.0
+    """Anchors are kept this long (s): the longest interval over which drift is compared."""
+    sigma_fc_rad: float = math.radians(1.0)
+    """1-sigma of the FC attitude error that is normal (its yaw is the worst axis)."""
+    sigma_bias_rad_s: float = math.radians(0.01)
+    """1-sigma of our residual gyro bias (rad/s) after the zero correction."""
+    n_sigma: float = 4.0
+    margin_rad: float = math.radians(0.5)
+    retrust_hold_s: float = 10.0
+    """Continuous good time (s) needed to trust again after a loss."""
+
+    def __post_init__(self):
+        for name in ("max_attitude_age_s", "anchor_period_s", "window_s", "sigma_fc_rad",
+                     "sigma_bias_rad_s", "n_sigma", "retrust_hold_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0.0):
+                raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+        if self.margin_rad < 0.0:
+            raise ValueError(f"margin_rad must be >= 0, got {self.margin_rad!r}")
+
+
+@dataclass(frozen=True)
+class ReferenceHealthState:
+    system_status: int | None = None
+    attitude_ok: bool | None = None
+    horiz_pos_ok: bool | None = None
+    fc_time_s: float | None = None
+    """FC time of the last ATTITUDE sample."""
+    anchors: tuple = ()
+    """((t_a, C_fc(t_a), C_gyro(t_a)), ...), oldest first."""
+    max_discrepancy_rad: float = 0.0
+    """Largest anchor test ratio seen at the last attitude sample (delta / threshold)."""
+    diverged: bool = False
+    good_since_s: float | None = None
+    """Start of the current run of good signals + agreement (None while bad)."""
+    ever_trusted: bool = False
+    latched_out: bool = False
+    """True after a loss until retrust_hold_s of good time."""
+    reason: str = "no FC attitude yet"
+
+
+def health_init() -> ReferenceHealthState:
+    return ReferenceHealthState()
+
+
+def health_on_heartbeat(state: ReferenceHealthState, system_status: int) -> ReferenceHealthState:
+    return replace(state, system_status=int(system_status))
+
+
+def health_on_ekf_status(state: ReferenceHealthState, attitude_ok: bool,
+                         horiz_pos_ok: bool) -> ReferenceHealthState:
+    return replace(state, attitude_ok=bool(attitude_ok), horiz_pos_ok=bool(horiz_pos_ok))
+
+
+def _signals_bad(state: ReferenceHealthState, params: ReferenceHealthParams) -> str:
+    if state.system_status is not None and state.system_status not in HEALTHY_SYSTEM_STATUS:
+        return f"FC system_status {state.system_status}"
+    if state.attitude_ok is False:
+        return "FC EKF attitude not ok"
+    if params.require_horiz_pos_ok and state.horiz_pos_ok is False:
+        return "FC EKF horizontal position lost (GNSS)"
+    return ""
+
+
+def _angle_between(C_a: np.ndarray, C_b: np.ndarray) -> float:
+    """Rotation angle of C_a^T C_b (rad)."""
+    c = 0.5 * (float(np.trace(C_a.T @ C_b)) - 1.0)
+    return math.acos(max(-1.0, min(1.0, c)))
+
+
+def health_on_attitude(state: ReferenceHealthState, C_nav_from_body_fc: np.ndarray,
+                       C_nav_from_body_gyro: np.ndarray, time_s: float,
+                       params: ReferenceHealthParams = ReferenceHealthParams()) -> ReferenceHealthState:
+    """An FC ATTITUDE sample at FC time ``time_s`` with our gyro-only attitude at that time."""
+    C_fc = np.asarray(C_nav_from_body_fc, dtype=float)
+    C_g = np.asarray(C_nav_from_body_gyro, dtype=float)
+    if not (np.all(np.isfinite(C_fc)) and np.all(np.isfinite(C_g)) and math.isfinite(time_s)):
+        raise ValueError("health_on_attitude: non-finite input")
+    worst = 0.0
+    for t_a, C_fc_a, C_g_a in state.anchors:
+        predicted = C_fc_a @ C_g_a.T @ C_g          # FC attitude carried forward by our gyros
+        delta = _angle_between(predicted, C_fc)
+        dt = time_s - t_a
+        thr = params.n_sigma * math.sqrt(2.0 * params.sigma_fc_rad ** 2
+                                         + (params.sigma_bias_rad_s * dt) ** 2) + params.margin_rad
+        worst = max(worst, delta / thr)
+    diverged = worst > 1.0
+    signals = _signals_bad(state, params)
+    anchors = tuple(a for a in state.anchors if time_s - a[0] <= params.window_s)
+    if diverged or signals:
+        anchors = ()                                 # re-lay after the reference recovers
+    elif not anchors or time_s - anchors[-1][0] >= params.anchor_period_s:
+        anchors = anchors + ((time_s, C_fc.copy(), C_g.copy()),)
+    good = not (diverged or signals)
+    good_since = (state.good_since_s if state.good_since_s is not None else time_s) if good else None
+    latched = state.latched_out or diverged or bool(signals)
+    if latched and good and time_s - good_since >= params.retrust_hold_s:
+        latched = False
+    reason = signals or ("FC attitude disagrees with gyros" if diverged else "")
+    return replace(state, fc_time_s=time_s, anchors=anchors, max_discrepancy_rad=worst,
+                   diverged=diverged, good_since_s=good_since, latched_out=latched,
+                   ever_trusted=state.ever_trusted or (good and not latched),
+                   reason=reason if reason else ("re-trust hold" if latched else ""))
+
+
+def health_trusted(state: ReferenceHealthState, time_s: float,
+                   params: ReferenceHealthParams = ReferenceHealthParams()) -> tuple[bool, str]:
+    """Is the FC attitude trusted at FC time ``time_s``? (trusted, reason when not)."""
+    if state.fc_time_s is None:
+        return False, "no FC attitude yet"
+    if time_s - state.fc_time_s > params.max_attitude_age_s:
+        return False, f"FC attitude stale ({time_s - state.fc_time_s:.2f} s)"
+    signals = _signals_bad(state, params)
+    if signals:
+        return False, signals
+    if state.diverged:
+        return False, "FC attitude disagrees with gyros"
+    if state.latched_out:
+        return False, "re-trust hold"
+    return True, ""

@@ -1,0 +1,473 @@
+"""Synthetic AHRS (METHODS.md B): one pure step for whatever input arrived.
+
+    state = synthetic_ahrs_init(params, kf1_learn=None, kf1_applied=None)
+    state, out = synthetic_ahrs_step(state, event, params)
+
+Events (FC clock ``time_s`` on every one):
+- ``ImuEvent``       gyro (rad/s) and magnetometer (gauss, or None), SENSOR axes; rotated here to
+                     body axes by ``params.C_body_from_sensor`` (the configured mount).
+- ``AirEvent``       SCALED_PRESSURE: press_abs_pa, press_diff_pa (None: no pitot), temperature_k.
+- ``FcAttitudeEvent`` the FC's ATTITUDE (roll, pitch, yaw rad), the candidate trusted reference.
+- ``FcStatusEvent``  HEARTBEAT system_status and/or EKF attitude_ok / horiz_pos_ok (None: unchanged).
+- ``HeadingEvent``   an external heading (rad, true) with its sigma: B1's heading source.
+
+Variants (``params.variant``):
+- "b1": heading known (HeadingEvent); roll/pitch by Euler kinematics + air-data references +
+  gyro zero correction from the trusted FC (ahrs_b1).
+- "b2": heading computed: KF2 (ahrs_kf2) integrates the gyros and fuses the magnetometer
+  (corrected by KF1's estimate that is at least one flight old, ``kf1_applied``) and the
+  air-data roll/pitch; while the FC is trusted it also fuses the FC attitude (gyro zero
+  correction = KF2's bias states, plus alignment), KF1 (``kf1_learn``) learns the magnetometer
+  errors and the angle-of-attack coefficient is learnt. When the FC is not trusted: KF1 and the
+  alpha learning stop, and the gyro-bias estimate is set back to its value from
+  ``bias_revert_age_s`` before the loss was detected (a silently failing reference may have
+  pulled it during the detection delay).
+
+Reference health: reference_health (signalled status + agreement of the FC attitude with our
+gyro-only attitude, which is integrated here with the current bias estimate and never reset).
+
+The model field ``params.field_nav_gauss`` (NED, gauss, e.g. estimators.geomag at the site) is
+needed by B2. Output: roll, pitch, heading (rad, heading [0, 2pi)), 1-sigma of each, the variant
+and flags (``SyntheticAhrsOutput``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from estimators.ahrs_b1 import (B1Params, B1State, b1_air_step, b1_heading_step, b1_imu_step,
+                                b1_init, b1_output, b1_reference_step)
+from estimators.ahrs_kf2 import (Kf2Params, Kf2State, kf2_euler_and_cov, kf2_init, kf2_predict,
+                                 kf2_update_air, kf2_update_mag, kf2_update_reference)
+from estimators.air_data import AirData, AirDataParams, AirDataState, air_data_step
+from estimators.euler_kinematics import euler_rates
+from estimators.mag_error_kf import Kf1Params, Kf1State, kf1_correct_mag, kf1_init, kf1_step
+from estimators.reference_health import (ReferenceHealthParams, ReferenceHealthState,
+                                         health_on_attitude, health_on_ekf_status,
+                                         health_on_heartbeat, health_trusted)
+from estimators.rotations import dcm_from_euler, dcm_from_quat, quat_from_euler
+from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init, strapdown_step
+
+G_M_S2 = 9.80665
+VARIANTS = ("b1", "b2")
+
+
+# --- events ---------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class ImuEvent:
+    time_s: float
+    gyro_sensor_rad_s: np.ndarray
+    mag_sensor_gauss: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class AirEvent:
+    time_s: float
+    press_abs_pa: float
+    press_diff_pa: float | None
+    temperature_k: float | None = None
+
+
+@dataclass(frozen=True)
+class FcAttitudeEvent:
+    time_s: float
+    euler_rad: np.ndarray
+    """[roll, pitch, yaw] as the FC reports them (yaw in (-pi, pi] is fine)."""
+
+
+@dataclass(frozen=True)
+class FcStatusEvent:
+    time_s: float
+    system_status: int | None = None
+    attitude_ok: bool | None = None
+    horiz_pos_ok: bool | None = None
+
+
+@dataclass(frozen=True)
+class HeadingEvent:
+    time_s: float
+    heading_rad: float
+    sigma_rad: float
+
+
+# --- params / state / output ----------------------------------------------------------------
+
+def _as_tuple33(m) -> tuple:
+    a = np.asarray(m, dtype=float)
+    if a.shape != (3, 3) or not np.all(np.isfinite(a)):
+        raise ValueError(f"C_body_from_sensor must be a finite 3x3 matrix, got {m!r}")
+    if not np.allclose(a @ a.T, np.eye(3), atol=1e-6) or np.linalg.det(a) < 0:
+        raise ValueError("C_body_from_sensor must be a rotation matrix")
+    return tuple(tuple(float(v) for v in row) for row in a)
+
+
+@dataclass(frozen=True)
+class SyntheticAhrsParams:
+    variant: str = "b2"
+    """"b1" (heading from another source) or "b2" (heading computed)."""
+    C_body_from_sensor: tuple = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    """IMU mount (3x3, rows); applied here to gyro and magnetometer."""
+    field_nav_gauss: tuple | None = None
+    """Model Earth field at the site, NED, gauss (needed by b2)."""
+    fc_sigma_tilt_rad: float = math.radians(0.5)
+    """1-sigma of the trusted FC roll/pitch as a KF2 measurement."""
+    fc_sigma_yaw_rad: float = math.radians(1.5)
+    ref_update_interval_s: float = 0.1
+    mag_update_interval_s: float = 0.1
+    air_update_interval_s: float = 0.2
+    air_roll_limit_rad: float = math.radians(35.0)
+    air_pitch_limit_rad: float = math.radians(20.0)
+    air_rate_limit_rad_s: float = math.radians(5.0)
+    """|phi_dot| and |theta_dot| above this: no air-data update (transients)."""
+    air_sigma_roll_rad: float = math.radians(2.0)
+    air_sigma_pitch_rad: float = math.radians(1.5)
+    air_sigma_alt_rate_m_s: float = 0.3
+    """Altitude-rate noise used in the pitch-reference sigma (seed eq. 37 sensitivity)."""
+    alpha_tau_s: float = 20.0
+    rate_lp_tau_s: float = 0.2
+    """Low-pass of the body rate used for the turn rate in phi_ref and the gates."""
+    bias_revert_age_s: float = 30.0
+    bias_snapshot_period_s: float = 5.0
+    air: AirDataParams = AirDataParams()
+    b1: B1Params = B1Params()
+    kf1: Kf1Params = Kf1Params()
+    kf2: Kf2Params = Kf2Params()
+    health: ReferenceHealthParams = ReferenceHealthParams()
+
+    def __post_init__(self):
+        if self.variant not in VARIANTS:
+            raise ValueError(f"variant must be one of {VARIANTS}, got {self.variant!r}")
+        object.__setattr__(self, "C_body_from_sensor", _as_tuple33(self.C_body_from_sensor))
+        if self.field_nav_gauss is not None:
+            f = np.asarray(self.field_nav_gauss, dtype=float)
+            if f.shape != (3,) or not np.all(np.isfinite(f)) or not np.linalg.norm(f) > 0:
+                raise ValueError(f"field_nav_gauss must be 3 finite values, not all 0, got {self.field_nav_gauss!r}")
+            object.__setattr__(self, "field_nav_gauss", tuple(float(v) for v in f))
+        elif self.variant == "b2":
+            raise ValueError("variant b2 needs field_nav_gauss (the model field at the site, NED gauss)")
+        for name in ("fc_sigma_tilt_rad", "fc_sigma_yaw_rad", "air_roll_limit_rad", "air_pitch_limit_rad",
+                     "air_rate_limit_rad_s", "air_sigma_roll_rad", "air_sigma_pitch_rad",
+                     "air_sigma_alt_rate_m_s", "alpha_tau_s", "rate_lp_tau_s", "bias_revert_age_s",
+                     "bias_snapshot_period_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0.0):
+                raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+        for name in ("ref_update_interval_s", "mag_update_interval_s", "air_update_interval_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0.0):
+                raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
+
+
+@dataclass(frozen=True)
+class SyntheticAhrsState:
+    air: AirDataState = field(default_factory=AirDataState)
+    air_last: AirData | None = None
+    health: ReferenceHealthState = field(default_factory=ReferenceHealthState)
+    gyro_free: StrapdownState | None = None
+    """Gyro-only attitude (never reset), for the reference agreement test."""
+    b1: B1State | None = None
+    kf2: Kf2State | None = None
+    kf1_learn: Kf1State | None = None
+    kf1_applied: Kf1State | None = None
+    k_alpha_pa: float | None = None
+    omega_lp_rad_s: np.ndarray | None = None
+    fc_last: tuple | None = None
+    """(time_s, euler) of the last FC ATTITUDE."""
+    time_s: float | None = None
+    last_mag_update_s: float = -math.inf
+    last_air_update_s: float = -math.inf
+    last_ref_update_s: float = -math.inf
+    trusted: bool = False
+    trust_reason: str = "no FC attitude yet"
+    bias_snapshots: tuple = ()
+    """((time_s, gyro_bias_rad_s), ...) for the revert on a detected loss."""
+    air_active: bool = False
+    air_off_reason: str = "no air data yet"
+    kf1_learning: bool = False
+    n_kf1_rejected: int = 0
+
+
+@dataclass(frozen=True)
+class SyntheticAhrsOutput:
+    time_s: float
+    variant: str
+    valid: bool
+    """False until the first trusted reference (or explicit start) initialised the attitude."""
+    roll_rad: float
+    pitch_rad: float
+    heading_rad: float
+    roll_sigma_rad: float
+    pitch_sigma_rad: float
+    heading_sigma_rad: float
+    reference_trusted: bool
+    reference_reason: str
+    air_correction_active: bool
+    air_off_reason: str
+    kf1_learning: bool
+    kf1_applied_flights: int | None
+    """flight_count of the KF1 estimate in use (None: no calibration applied)."""
+    gyro_bias_rad_s: np.ndarray
+    mag_fused: int = 0
+    mag_rejected: int = 0
+    air_fused: int = 0
+    air_rejected: int = 0
+    ref_fused: int = 0
+    kf1_rejected: int = 0
+
+
+def synthetic_ahrs_init(params: SyntheticAhrsParams, kf1_learn: Kf1State | None = None,
+                        kf1_applied: Kf1State | None = None) -> SyntheticAhrsState:
+    """``kf1_learn``: where this flight's KF1 starts (calibration_store.learning_start);
+    ``kf1_applied``: the estimate at least one flight old (calibration_store.estimate_for_flight)."""
+    return SyntheticAhrsState(b1=b1_init(params.b1) if params.variant == "b1" else None,
+                              kf1_learn=kf1_init(params.kf1) if kf1_learn is None else kf1_learn,
+                              kf1_applied=kf1_applied)
+
+
+# --- helpers --------------------------------------------------------------------------------
+
+def _C_bs(params: SyntheticAhrsParams) -> np.ndarray:
+    return np.array(params.C_body_from_sensor)
+
+
+def _gyro_bias(state: SyntheticAhrsState) -> np.ndarray:
+    if state.kf2 is not None:
+        return state.kf2.gyro_bias_rad_s
+    if state.b1 is not None:
+        return -state.b1.zero_corr_rad_s
+    return np.zeros(3)
+
+
+def air_references(air: AirData, roll_rad: float, pitch_rad: float, omega_body_rad_s: np.ndarray,
+                   k_alpha_pa: float | None, params: SyntheticAhrsParams):
+    """(ok, reason, phi_ref, theta_ref, sigma_phi, sigma_theta, turn_gain_s), eq. 22, 24, 37."""
+    if not air.usable:
+        return False, air.unusable_reason, 0.0, 0.0, 0.0, 0.0, 0.0
+    if abs(roll_rad) > params.air_roll_limit_rad:
+        return False, "roll beyond limit", 0.0, 0.0, 0.0, 0.0, 0.0
+    if abs(pitch_rad) > params.air_pitch_limit_rad:
+        return False, "pitch beyond limit", 0.0, 0.0, 0.0, 0.0, 0.0
+    ed = euler_rates(roll_rad, pitch_rad, omega_body_rad_s)
+    if max(abs(ed[0]), abs(ed[1])) > params.air_rate_limit_rad_s:
+        return False, "attitude rate beyond limit", 0.0, 0.0, 0.0, 0.0, 0.0
+    v = air.tas_m_s
+    x = v * ed[2] / G_M_S2
+    phi_ref = math.atan(x)                                            # eq. 24
+    turn_gain = (v / G_M_S2) / (1.0 + x * x)
+    s = max(-0.99, min(0.99, air.alt_rate_m_s / v))
+    gamma = math.asin(s)
+    sig_alpha = math.radians(3.0)
+    alpha = 0.0
+    if k_alpha_pa is not None:
+        n = 1.0 / max(0.3, math.cos(roll_rad))
+        alpha = k_alpha_pa * n / (0.5 * air.density_kg_m3 * v * v)
+        sig_alpha = 0.0
+    theta_ref = gamma + alpha * math.cos(roll_rad)                    # eq. 22 (beta = 0)
+    # eq. 37 analogue: sensitivity of asin(h_dot / v) to the altitude-rate noise
+    sig_gamma = params.air_sigma_alt_rate_m_s / (v * math.sqrt(1.0 - s * s))
+    sig_theta = math.sqrt(params.air_sigma_pitch_rad ** 2 + sig_gamma ** 2 + sig_alpha ** 2)
+    return True, "", phi_ref, theta_ref, params.air_sigma_roll_rad, sig_theta, turn_gain
+
+
+def _learn_alpha(k: float | None, euler_fc: np.ndarray, air: AirData | None, dt: float,
+                 params: SyntheticAhrsParams) -> float | None:
+    """alpha_meas = (theta_fc - asin(h_dot/v)) / cos(phi); k = alpha q_dyn / n, low-passed."""
+    if air is None or not air.usable or dt <= 0.0:
+        return k
+    roll, pitch = float(euler_fc[0]), float(euler_fc[1])
+    if abs(roll) > params.air_roll_limit_rad or abs(pitch) > params.air_pitch_limit_rad:
+        return k
+    v = air.tas_m_s
+    gamma = math.asin(max(-0.99, min(0.99, air.alt_rate_m_s / v)))
+    n = 1.0 / math.cos(roll)
+    k_meas = (pitch - gamma) / math.cos(roll) * (0.5 * air.density_kg_m3 * v * v) / n
+    if k is None:
+        return k_meas
+    return k + dt / (params.alpha_tau_s + dt) * (k_meas - k)
+
+
+def _trust(state: SyntheticAhrsState, time_s: float, params: SyntheticAhrsParams) -> SyntheticAhrsState:
+    trusted, why = health_trusted(state.health, time_s, params.health)
+    if state.trusted and not trusted and state.kf2 is not None:
+        # revert the gyro bias to a snapshot taken before the reference could have failed
+        old = [b for (t, b) in state.bias_snapshots if time_s - t >= params.bias_revert_age_s]
+        if old:
+            state = replace(state, kf2=replace(state.kf2, gyro_bias_rad_s=old[-1].copy()))
+    return replace(state, trusted=trusted, trust_reason=why)
+
+
+# --- the step -------------------------------------------------------------------------------
+
+def synthetic_ahrs_step(state: SyntheticAhrsState, event, params: SyntheticAhrsParams
+                        ) -> tuple[SyntheticAhrsState, SyntheticAhrsOutput | None]:
+    """Process one event; returns the new state and the output after it (None until the first
+    IMU sample)."""
+    t = float(event.time_s)
+    if not math.isfinite(t):
+        raise ValueError(f"event time_s must be finite, got {event.time_s!r}")
+    if isinstance(event, ImuEvent):
+        state = _on_imu(state, event, params)
+    elif isinstance(event, AirEvent):
+        state = _on_air(state, event, params)
+    elif isinstance(event, FcAttitudeEvent):
+        state = _on_fc_attitude(state, event, params)
+    elif isinstance(event, FcStatusEvent):
+        h = state.health
+        if event.system_status is not None:
+            h = health_on_heartbeat(h, event.system_status)
+        if event.attitude_ok is not None or event.horiz_pos_ok is not None:
+            h = health_on_ekf_status(h, h.attitude_ok if event.attitude_ok is None else event.attitude_ok,
+                                     h.horiz_pos_ok if event.horiz_pos_ok is None else event.horiz_pos_ok)
+        state = _trust(replace(state, health=h), t if state.time_s is None else state.time_s, params)
+    elif isinstance(event, HeadingEvent):
+        if state.b1 is not None:
+            state = replace(state, b1=b1_heading_step(state.b1, event.heading_rad, event.sigma_rad, t, params.b1))
+    else:
+        raise ValueError(f"unknown event type {type(event).__name__}")
+    return state, synthetic_ahrs_output(state, params)
+
+
+def _on_imu(state: SyntheticAhrsState, ev: ImuEvent, params: SyntheticAhrsParams) -> SyntheticAhrsState:
+    C_bs = _C_bs(params)
+    g_s = np.asarray(ev.gyro_sensor_rad_s, dtype=float)
+    if g_s.shape != (3,) or not np.all(np.isfinite(g_s)):
+        return state                                     # a dropped/NaN sample is skipped
+    gyro_b = C_bs @ g_s
+    t = float(ev.time_s)
+    if state.time_s is not None and t <= state.time_s:
+        return state
+    bias = _gyro_bias(state)
+    w = gyro_b - bias
+    # gyro-only attitude for the agreement test (body frame, started level-north; only its
+    # changes are used)
+    gf = state.gyro_free if state.gyro_free is not None else strapdown_init(np.array([1.0, 0, 0, 0]))
+    gf, _ = strapdown_step(gf, w, t, StrapdownParams())
+    if state.omega_lp_rad_s is None or state.time_s is None:
+        wlp = w
+    else:
+        dt = t - state.time_s
+        wlp = state.omega_lp_rad_s + dt / (params.rate_lp_tau_s + dt) * (w - state.omega_lp_rad_s)
+    state = replace(state, gyro_free=gf, omega_lp_rad_s=wlp, time_s=t)
+    state = _trust(state, t, params)
+    if state.b1 is not None:
+        return replace(state, b1=b1_imu_step(state.b1, gyro_b, t, params.b1))
+    if state.kf2 is None:
+        return state
+    kf2, _ = kf2_predict(state.kf2, gyro_b, t, params.kf2)
+    state = replace(state, kf2=kf2)
+    if state.trusted and (not state.bias_snapshots or t - state.bias_snapshots[-1][0] >= params.bias_snapshot_period_s):
+        keep = tuple(s for s in state.bias_snapshots if t - s[0] <= 3.0 * params.bias_revert_age_s)
+        state = replace(state, bias_snapshots=keep + ((t, kf2.gyro_bias_rad_s.copy()),))
+    if ev.mag_sensor_gauss is None:
+        return state
+    m_s = np.asarray(ev.mag_sensor_gauss, dtype=float)
+    if m_s.shape != (3,) or not np.all(np.isfinite(m_s)):
+        return state
+    mag_b = C_bs @ m_s
+    Bn = np.array(params.field_nav_gauss)
+    kf1_learning = False
+    if state.trusted and state.fc_last is not None:
+        C_fc = dcm_from_euler(*state.fc_last[1])
+        kf1, d1 = kf1_step(state.kf1_learn, mag_b, C_fc, Bn, wlp, t, params.kf1)
+        kf1_learning = True
+        state = replace(state, kf1_learn=kf1,
+                        n_kf1_rejected=state.n_kf1_rejected + (d1.reason in ("chi2 gate", "rate gate")))
+    state = replace(state, kf1_learning=kf1_learning)
+    if t - state.last_mag_update_s >= params.mag_update_interval_s - 1e-6:
+        m = mag_b
+        if state.kf1_applied is not None and state.kf1_applied.field_norm_gauss is not None:
+            m = kf1_correct_mag(state.kf1_applied, mag_b)
+        kf2, _ = kf2_update_mag(state.kf2, m, Bn, params.kf2)
+        state = replace(state, kf2=kf2, last_mag_update_s=t)
+    return state
+
+
+def _on_air(state: SyntheticAhrsState, ev: AirEvent, params: SyntheticAhrsParams) -> SyntheticAhrsState:
+    if state.air.time_s is not None and ev.time_s <= state.air.time_s:
+        return state
+    if not (math.isfinite(ev.press_abs_pa) and ev.press_abs_pa > 0.0):
+        return replace(state, air_active=False, air_off_reason="no valid static pressure")
+    diff = ev.press_diff_pa if ev.press_diff_pa is not None and math.isfinite(ev.press_diff_pa) else None
+    temp = ev.temperature_k if ev.temperature_k is not None and math.isfinite(ev.temperature_k) else None
+    air_st, air = air_data_step(state.air, ev.press_abs_pa, diff, temp, ev.time_s, params.air)
+    state = replace(state, air=air_st, air_last=air)
+    if state.b1 is not None:
+        if state.trusted:
+            return replace(state, air_active=False, air_off_reason="reference trusted")
+        b1 = b1_air_step(state.b1, air, params.b1)
+        return replace(state, b1=b1, air_active=b1.air_active, air_off_reason=b1.air_off_reason)
+    if state.kf2 is None:
+        return replace(state, air_active=False, air_off_reason="not initialised")
+    if state.trusted:
+        return replace(state, air_active=False, air_off_reason="reference trusted")
+    if ev.time_s - state.last_air_update_s < params.air_update_interval_s - 1e-6:
+        return state
+    e, _ = kf2_euler_and_cov(state.kf2)
+    w = state.omega_lp_rad_s if state.omega_lp_rad_s is not None else np.zeros(3)
+    ok, why, phi_ref, theta_ref, s_phi, s_theta, gain = air_references(air, e[0], e[1], w, state.k_alpha_pa, params)
+    if not ok:
+        return replace(state, air_active=False, air_off_reason=why)
+    kf2, d = kf2_update_air(state.kf2, phi_ref, theta_ref, s_phi, s_theta, gain, params.kf2)
+    return replace(state, kf2=kf2, last_air_update_s=ev.time_s, air_active=d.fused,
+                   air_off_reason="" if d.fused else "gated")
+
+
+def _on_fc_attitude(state: SyntheticAhrsState, ev: FcAttitudeEvent, params: SyntheticAhrsParams) -> SyntheticAhrsState:
+    e = np.asarray(ev.euler_rad, dtype=float)
+    if e.shape != (3,) or not np.all(np.isfinite(e)):
+        return state
+    t = float(ev.time_s)
+    prev = state.fc_last
+    if state.gyro_free is not None:
+        C_fc = dcm_from_euler(*e)
+        h = health_on_attitude(state.health, C_fc, dcm_from_quat(state.gyro_free.q_ref_from_sensor), t, params.health)
+        state = replace(state, health=h)
+    state = replace(state, fc_last=(t, e.copy()))
+    state = _trust(state, t if state.time_s is None else max(t, state.time_s), params)
+    if state.b1 is not None:
+        return replace(state, b1=b1_reference_step(state.b1, e, t, state.trusted, state.air_last, params.b1))
+    if not state.trusted:
+        return state
+    dt = 0.0 if prev is None else t - prev[0]
+    state = replace(state, k_alpha_pa=_learn_alpha(state.k_alpha_pa, e, state.air_last, dt, params))
+    if state.kf2 is None:
+        if state.time_s is None:
+            return state
+        kf2 = kf2_init(quat_from_euler(*e), params.kf2, sigma_tilt_rad=params.fc_sigma_tilt_rad,
+                       sigma_heading_rad=params.fc_sigma_yaw_rad)
+        kf2 = replace(kf2, time_s=None)
+        return replace(state, kf2=kf2, last_ref_update_s=t)
+    if t - state.last_ref_update_s < params.ref_update_interval_s - 1e-6:
+        return state
+    kf2, _ = kf2_update_reference(state.kf2, e, t, params.fc_sigma_tilt_rad, params.fc_sigma_yaw_rad, params.kf2)
+    return replace(state, kf2=kf2, last_ref_update_s=t)
+
+
+def synthetic_ahrs_output(state: SyntheticAhrsState, params: SyntheticAhrsParams) -> SyntheticAhrsOutput | None:
+    if state.time_s is None:
+        return None
+    common = dict(time_s=state.time_s, variant=params.variant, reference_trusted=state.trusted,
+                  reference_reason=state.trust_reason, air_correction_active=state.air_active,
+                  air_off_reason=state.air_off_reason, kf1_learning=state.kf1_learning,
+                  kf1_applied_flights=None if state.kf1_applied is None else state.kf1_applied.flight_count,
+                  gyro_bias_rad_s=_gyro_bias(state).copy(), kf1_rejected=state.n_kf1_rejected)
+    nan = math.nan
+    if state.b1 is not None:
+        o = b1_output(state.b1, params.b1)
+        return SyntheticAhrsOutput(valid=state.b1.initialised, roll_rad=o.roll_rad, pitch_rad=o.pitch_rad,
+                                   heading_rad=o.heading_rad, roll_sigma_rad=o.roll_sigma_rad,
+                                   pitch_sigma_rad=o.pitch_sigma_rad, heading_sigma_rad=o.heading_sigma_rad,
+                                   **common)
+    if state.kf2 is None:
+        return SyntheticAhrsOutput(valid=False, roll_rad=nan, pitch_rad=nan, heading_rad=nan,
+                                   roll_sigma_rad=nan, pitch_sigma_rad=nan, heading_sigma_rad=nan, **common)
+    e, cov = kf2_euler_and_cov(state.kf2)
+    k = state.kf2
+    return SyntheticAhrsOutput(valid=True, roll_rad=float(e[0]), pitch_rad=float(e[1]), heading_rad=float(e[2]),
+                               roll_sigma_rad=math.sqrt(cov[0, 0]), pitch_sigma_rad=math.sqrt(cov[1, 1]),
+                               heading_sigma_rad=math.sqrt(cov[2, 2]), mag_fused=k.n_mag_fused,
+                               mag_rejected=k.n_mag_rejected, air_fused=k.n_air_fused,
+                               air_rejected=k.n_air_rejected, ref_fused=k.n_ref_fused, **common)
