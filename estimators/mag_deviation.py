@@ -49,6 +49,10 @@ class DeviationParams:
     """RLS forgetting factor lambda in (0.9, 1]; 1 = plain least squares."""
     init_coeff_sigma_gauss: float = 1.0
     """Prior sigma of every coefficient (gauss per unit regressor); large = uninformative."""
+    mag_noise_gauss: float = 0.002
+    """Nominal magnetometer noise (gauss). P is kept normalised by the noise variance (standard
+    RLS), so its prior is (init_coeff_sigma / mag_noise)^2 I; the residual sigma actually used
+    for the covariance is estimated from the data."""
     roll_limit_rad: float = math.radians(30.0)
     """Roll range of the manoeuvre (coverage bins span +-roll_limit_rad)."""
     pitch_limit_rad: float = math.radians(20.0)
@@ -62,7 +66,7 @@ class DeviationParams:
     def __post_init__(self) -> None:
         if not 0.9 < self.forgetting_factor <= 1.0:
             raise ValueError(f"forgetting_factor must be in (0.9, 1], got {self.forgetting_factor}")
-        for name in ("init_coeff_sigma_gauss", "roll_limit_rad", "pitch_limit_rad"):
+        for name in ("init_coeff_sigma_gauss", "mag_noise_gauss", "roll_limit_rad", "pitch_limit_rad"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
@@ -79,7 +83,7 @@ class DeviationState:
     coeffs: np.ndarray
     """(7, 3): column i = [A_i .. G_i] of body axis i (gauss; per rad / rad^2 for D..G)."""
     P: np.ndarray
-    """(7, 7) RLS gain matrix (coefficient covariance / residual variance)."""
+    """(7, 7) RLS matrix = coefficient covariance / residual variance (normalised)."""
     n: int = 0
     resid_sq_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
     """Sum of squared normalised a-priori residuals per axis (gauss^2), after the burn-in."""
@@ -127,7 +131,7 @@ class Coverage:
 
 def deviation_init(params: DeviationParams = DeviationParams()) -> DeviationState:
     return DeviationState(coeffs=np.zeros((N_PER_AXIS, 3)),
-                          P=np.eye(N_PER_AXIS) * params.init_coeff_sigma_gauss ** 2,
+                          P=np.eye(N_PER_AXIS) * (params.init_coeff_sigma_gauss / params.mag_noise_gauss) ** 2,
                           heading_counts=np.zeros(params.heading_bins, np.int64),
                           roll_counts=np.zeros(params.roll_bins, np.int64),
                           pitch_counts=np.zeros(params.pitch_bins, np.int64))
