@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 import socket
+import sys
 import threading
 import time
 
@@ -164,3 +165,71 @@ def test_mavsdk_reads_our_encoders():
         if m["name"] == "hdg_deg":
             k = round((m["time_boot_ms"] / 1e3 - 10.0) / 0.005)
             assert m["value"] == pytest.approx(math.degrees(make_sol(k).heading_rad), abs=0.01)
+
+
+# --- the running daemon ----------------------------------------------------------------------
+
+def _sitl_module():
+    import importlib.util
+    from pathlib import Path
+    path = Path(__file__).resolve().parents[1] / "bench" / "sitl.py"
+    spec = importlib.util.spec_from_file_location("azimuthd_bench_sitl", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # its dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def start_sitl(mavsdk_port: int, zenoh_listen: str | None = None, rest_s: float = 3.0):
+    """Simulator + daemon (bench/sitl.py) with the daemon's outputs mirrored to the harness's
+    pymavlink listener AND to MAVSDK's port; optionally Zenoh on a loopback endpoint."""
+    import tomllib
+    sitl = _sitl_module()
+    s = sitl.Sitl(scenario="inclined_rail", speed=1.0,
+                  sim_args=["--set", f"launcher.rest_s={rest_s}"])
+    with open(s.config_path, "rb") as f:
+        cfg = tomllib.load(f)
+    cfg["outputs"]["extra_mavlink_urls"] = [f"udpout:127.0.0.1:{s.out_port}",
+                                            f"udpout:127.0.0.1:{mavsdk_port}"]
+    if zenoh_listen is not None:
+        cfg["zenoh"].update({"enabled": True, "mode": "peer", "listen": [zenoh_listen],
+                             "connect": []})
+    sitl.write_config(s.config_path, cfg)
+    return s
+
+
+def test_mavsdk_reads_the_running_daemon():
+    """MAVSDK's attitude_euler equals, sample for sample (same time_boot_ms), the ATTITUDE the
+    daemon sent to a second endpoint; yaw is NaN in both while the daemon has no heading."""
+    port = free_udp_port()
+    client = MavsdkClient(port)
+    s = start_sitl(port)
+    try:
+        with s:
+            client.attach(20.0)
+            # levelled (roll/pitch sent), launched, and some in-flight samples
+            assert s.wait_for(lambda: "in-flight" in s.log("daemon") and len(client.euler) > 100,
+                              30.0), s.log("daemon")[-2000:]
+            s.wait_for(lambda: False, 2.0)
+            listener_att = {round(t * 1000): (r, p, y) for t, r, p, y, _ in s.listener.attitude}
+            euler = list(client.euler)
+            ids = (client.system.get_system_id(), client.system.component_ids())
+    finally:
+        client.close()
+    assert ids == (1, [191])  # the simulated FC's system id, our component
+    matched = 0
+    for ts_us, roll_deg, pitch_deg, yaw_deg, _ in euler:
+        key = ts_us // 1000
+        if key not in listener_att:  # the listener may have started a moment later
+            continue
+        r, p, y = listener_att[key]
+        assert roll_deg == pytest.approx(math.degrees(r), abs=2e-4)
+        assert pitch_deg == pytest.approx(math.degrees(p), abs=2e-4)
+        if math.isnan(y):
+            assert math.isnan(yaw_deg)
+        else:
+            assert wrap180(yaw_deg - math.degrees(y)) == pytest.approx(0.0, abs=2e-4)
+        matched += 1
+    assert matched >= 0.9 * len(euler) and matched > 100
+    # the rail points the nose 15 deg up; MAVSDK sees that pitch before the launch
+    assert any(abs(e[2] - 15.0) < 1.0 for e in euler)
