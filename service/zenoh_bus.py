@@ -146,6 +146,10 @@ def health_payload(link_up: bool, phase: str, uptime_s: float, rates_hz: Mapping
             "status": status}
 
 
+class ZenohBusError(RuntimeError):
+    """The Zenoh session could not be opened (e.g. the listen port is taken); names the endpoints."""
+
+
 @dataclass
 class BusStats:
     published: dict[str, int] = field(default_factory=dict)
@@ -192,7 +196,11 @@ class ZenohBus:
             if value := (tls or {})[ours]:
                 conf.insert_json5(f"transport/link/tls/{TLS_KEYS[ours]}", json.dumps(value))
         self._zenoh = zenoh
-        self.session = zenoh.open(conf)
+        try:
+            self.session = zenoh.open(conf)
+        except zenoh.ZError as exc:
+            raise ZenohBusError(f"zenoh: cannot open a {mode} session with listen={listen} "
+                                f"connect={connect}: {str(exc).split(' at /')[0]}") from None
         enc = zenoh.Encoding.APPLICATION_JSON
         self._publishers = {
             topic: self.session.declare_publisher(

@@ -21,7 +21,8 @@ from estimators.rotations import quat_from_euler
 from service import schema
 from service.solution import NavSolution
 from service.zenoh_bus import (ZenohBus, attitude_payload, azimuth_payload, event_payload,
-                               heading_payload, health_payload, json_safe)
+                               heading_payload, health_payload, json_safe,
+                               ZenohBusError)
 
 SUBSCRIBER = r"""
 import json, sys, time, zenoh
@@ -211,8 +212,11 @@ def test_publish_validation_and_defaults():
         ZenohBus("uav1", "client", [], [])
     with pytest.raises(ValueError, match="tls: unknown key"):
         ZenohBus("uav1", "peer", [f"tcp/127.0.0.1:{free_port()}"], [], {"pem": "x"})
-    bus = ZenohBus("uav1", "peer", [f"tcp/127.0.0.1:{free_port()}"], [])
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    bus = ZenohBus("uav1", "peer", [endpoint], [])
     try:
+        with pytest.raises(ZenohBusError, match="listen=.*Address already in use"):
+            ZenohBus("uav2", "peer", [endpoint], [])  # a second daemon on the same port
         with pytest.raises(ValueError, match="unknown topic"):
             bus.publish("gps", {})
         with pytest.raises(ValueError, match="must be a dict"):
