@@ -118,11 +118,12 @@ ODOMETRY_PROFILES: dict[str, OdometryProfile] = {
 }
 
 
-def odometry_profile_for_autopilot(autopilot: int | None) -> OdometryProfile:
-    """Profile for the FC's HEARTBEAT.autopilot (MAV_AUTOPILOT_*); unknown/None -> ``mavlink``."""
-    if autopilot == mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA:
+def odometry_profile_for_autopilot(autopilot: int | str | None) -> OdometryProfile:
+    """Profile for the FC's autopilot: HEARTBEAT.autopilot (MAV_AUTOPILOT_*) or FcHeartbeat's
+    "ardupilot" / "px4" / "other"; anything else or None -> ``mavlink``."""
+    if autopilot in (mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, "ardupilot"):
         return ODOMETRY_PROFILES["ardupilot"]
-    if autopilot == mavlink2.MAV_AUTOPILOT_PX4:
+    if autopilot in (mavlink2.MAV_AUTOPILOT_PX4, "px4"):
         return ODOMETRY_PROFILES["px4"]
     return ODOMETRY_PROFILES["mavlink"]
 

@@ -216,6 +216,9 @@ def test_profile_for_autopilot():
         mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA).name == "ardupilot"
     assert outputs.odometry_profile_for_autopilot(mavlink2.MAV_AUTOPILOT_PX4).name == "px4"
     assert outputs.odometry_profile_for_autopilot(None).name == "mavlink"
+    assert outputs.odometry_profile_for_autopilot("ardupilot").name == "ardupilot"
+    assert outputs.odometry_profile_for_autopilot("px4").name == "px4"
+    assert outputs.odometry_profile_for_autopilot("other").name == "mavlink"
 
 
 def test_time_validation():
