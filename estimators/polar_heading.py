@@ -26,8 +26,10 @@ adds ~2 sigma^2 tau_c per second of integration).
 Measurement: magnetic heading from the levelled magnetometer plus the site declination
     m_lev = R_y(theta) R_x(phi) m_B,   psi_m = atan2(-m_lev_y, m_lev_x),   psi = psi_m + D
 (east-positive declination D, as the WMM). Its variance is honest about what drives it:
-    R = (sigma_m / H)^2 + sigma_D^2 + G P_rp G^T + sigma_floor^2,  G = d psi_m / d(phi, theta)
-(G grows like Z/H: near the magnetic pole a tiny tilt error is a large heading error).
+    R = (sigma_m / H)^2 + (sigma_D^2 + G P_rp G^T + sigma_floor^2) * tau_m / dt_m,
+    G = d psi_m / d(phi, theta)
+(G grows like Z/H: near the magnetic pole a tiny tilt error is a large heading error; the
+bracket is correlated over tau_m, so it is counted once per correlation time, not per sample).
 The source is declared UNAVAILABLE when the measured horizontal field H is below
 ``min_horizontal_field_gauss``: no update, the heading variance then grows with the process
 noise while roll/pitch (the attitude filter) are unaffected. An innovation gate rejects
@@ -46,6 +48,20 @@ import numpy as np
 from estimators.rotations import wrap_2pi, wrap_pi
 
 EARTH_RATE_RAD_S = 7.292115e-5
+EARTH_RADIUS_M = 6.371e6
+
+
+def vertical_rate_sigma_for_site(lat_rad: float, speed_m_s: float) -> float:
+    """A sigma (rad/s) for the vertical N-frame rate near a configured site: Earth rate plus the
+    vertical transport rate v_E tan(L) / R that a vehicle flying at ``speed_m_s`` east/west can
+    have (this is the polar singularity of a north-referenced heading: at 89.9 deg and 22 m/s it
+    is ~0.1 deg/s). |L| is capped at 89.99 deg."""
+    if not (math.isfinite(lat_rad) and abs(lat_rad) <= math.pi / 2):
+        raise ValueError(f"lat_rad must be in [-pi/2, pi/2], got {lat_rad}")
+    if not (math.isfinite(speed_m_s) and speed_m_s >= 0.0):
+        raise ValueError(f"speed_m_s must be finite and >= 0, got {speed_m_s}")
+    tan_l = math.tan(min(abs(lat_rad), math.radians(89.99)))
+    return math.hypot(EARTH_RATE_RAD_S, speed_m_s * tan_l / EARTH_RADIUS_M)
 
 
 @dataclass(frozen=True)
@@ -58,7 +74,8 @@ class PolarHeadingParams:
     """Sigma of the lateral/vertical gyro bias GM processes (rad/s) (after pre-launch levelling)."""
     gyro_bias_tau_s: float = 3600.0
     vertical_rate_sigma_rad_s: float = EARTH_RATE_RAD_S
-    """Sigma of the vertical N-frame rate GM process (rad/s); |W sin L| <= W at rest."""
+    """Sigma of the vertical N-frame rate GM process (rad/s); |W sin L| <= W at rest. In flight
+    near the pole the transport rate dominates: see ``vertical_rate_sigma_for_site``."""
     vertical_rate_tau_s: float = 600.0
     attitude_error_tau_s: float = 10.0
     """Correlation time tau_c of the attitude filter's roll/pitch errors (s)."""
@@ -74,6 +91,9 @@ class PolarHeadingParams:
     0.06 G the measurement variance above already down-weights the source."""
     mag_update_period_s: float = 0.1
     """Interval between heading measurements (s)."""
+    mag_error_tau_s: float = 10.0
+    """Correlation time of the non-white heading-measurement errors (tilt error, declination,
+    residual deviation) (s); their variance is inflated by tau / mag_update_period_s."""
     gate_chi2: float = 11.0
     """Innovation gate (1 dof NIS, 99.9 %)."""
     reset_after_s: float = 10.0
@@ -267,8 +287,12 @@ def _measure(st, u, Prp, p):
                 - magnetic_heading(m, u.roll_rad - h, u.pitch_rad)[0]) / (2 * h),
         wrap_pi(magnetic_heading(m, u.roll_rad, u.pitch_rad + h)[0]
                 - magnetic_heading(m, u.roll_rad, u.pitch_rad - h)[0]) / (2 * h)])
-    R = ((p.mag_noise_gauss / H) ** 2 + u.declination_sigma_rad ** 2 + float(G @ Prp @ G)
-         + p.mag_heading_floor_rad ** 2)
+    # white part (magnetometer noise) + correlated part (tilt error, declination, residual
+    # deviation): the latter does not average out over the 1/mag_update_period_s samples fused
+    # per second, so it is inflated by tau_c / dt (one independent sample per correlation time)
+    r_white = (p.mag_noise_gauss / H) ** 2
+    r_corr = u.declination_sigma_rad ** 2 + float(G @ Prp @ G) + p.mag_heading_floor_rad ** 2
+    R = r_white + r_corr * max(1.0, p.mag_error_tau_s / p.mag_update_period_s)
     z = wrap_2pi(psi_m + u.declination_rad)
     if not st.initialised:
         st = replace(st, initialised=True, x=np.array([z, 0.0, 0.0, 0.0]), P=_prior_P(R, p),

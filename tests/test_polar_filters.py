@@ -187,8 +187,8 @@ def test_heading_filter_tracks_true_heading_with_a_strong_field():
     err = np.array([wrap_pi(a) for a in r[:, 1] - truth[k, 2]])
     assert np.all(r[:, 3] == 1.0)
     assert math.degrees(np.sqrt(np.mean(err ** 2))) < 0.3
-    nees = np.mean(err ** 2 / r[:, 2])
-    assert 0.005 < nees < 3.0
+    assert np.all(np.abs(err) < 3.0 * np.sqrt(r[:, 2]))       # the variance is not optimistic
+    assert math.degrees(np.sqrt(r[-1, 2])) < 2.0               # ... nor useless
 
 
 def test_weak_horizontal_field_heading_unavailable_variance_grows_roll_pitch_continue():
