@@ -1,0 +1,284 @@
+"""The live simulated autopilot, as users run it: `python -m sim ...` in its own process, a
+pymavlink client on the other end of UDP."""
+from __future__ import annotations
+
+import math
+import os
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink import mavutil  # noqa: E402
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+G0 = 9.80665
+
+
+def _free_udp_port() -> int:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+class SimProc:
+    def __init__(self, *args: str):
+        self.port = _free_udp_port()
+        self.proc = subprocess.Popen([sys.executable, "-m", "sim", "--mavlink", f"udpin:127.0.0.1:{self.port}", *args],
+                                     cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.c = mavutil.mavlink_connection(f"udpout:127.0.0.1:{self.port}", source_system=255,
+                                            source_component=190, dialect="ardupilotmega")
+        deadline = time.monotonic() + 15.0
+        self.hb = None
+        while self.hb is None and time.monotonic() < deadline:  # udpin: the sim waits for us to speak
+            self.c.mav.heartbeat_send(18, 8, 0, 0, 0)
+            self.hb = self.c.recv_match(type="HEARTBEAT", blocking=True, timeout=0.3)
+        if self.hb is None:
+            self.close()
+            raise RuntimeError(f"simulator did not answer: {self.proc.stdout.read() if self.proc.stdout else ''}")
+
+    def command(self, cmd: int, *params: float, timeout: float = 3.0):
+        p = list(params) + [0.0] * (7 - len(params))
+        self.c.mav.command_long_send(1, 1, cmd, 0, *p)
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            m = self.c.recv_match(type="COMMAND_ACK", blocking=True, timeout=0.2)
+            if m is not None and m.command == cmd:
+                return m.result
+        return None
+
+    def set_rate(self, msg_id: int, hz: float):
+        return self.command(511, msg_id, 1e6 / hz if hz > 0 else -1)
+
+    def close(self):
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+        self.c.close()
+
+
+@pytest.fixture
+def sim_factory():
+    procs = []
+
+    def make(*args):
+        p = SimProc(*args)
+        procs.append(p)
+        return p
+    yield make
+    for p in procs:
+        p.close()
+
+
+def _count(c, seconds: float, types=None) -> dict:
+    out: dict[str, list] = {}
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        m = c.recv_match(blocking=True, timeout=0.05)
+        if m is None:
+            continue
+        t = m.get_type()
+        if types is None or t in types:
+            out.setdefault(t, []).append((time.monotonic(), m))
+    return out
+
+
+def test_raw_imu_rates_50_200_400_hz_within_5_percent_real_time(sim_factory):
+    """GIVEN the real-time simulator WHEN a client requests RAW_IMU at 50, 200, 400 Hz THEN it
+    receives them within 5 % of the rate (wall clock), and time_usec advances at the same rate."""
+    s = sim_factory("--scenario", "inclined_rail", "--duration", "0")
+    assert s.hb.autopilot == mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA and s.hb.type == 1
+    # nothing but HEARTBEAT/SIMSTATE before a request
+    pre = _count(s.c, 0.6)
+    assert "RAW_IMU" not in pre and ("HEARTBEAT" in pre or "SIMSTATE" in pre)
+    for hz in (50.0, 200.0, 400.0):
+        assert s.set_rate(27, hz) == 0
+        _count(s.c, 0.3, {"RAW_IMU"})  # settle
+        got = _count(s.c, 2.0, {"RAW_IMU"})["RAW_IMU"]
+        wall = got[-1][0] - got[0][0]
+        rate_wall = (len(got) - 1) / wall
+        tus = [m.time_usec for _, m in got]
+        rate_fc = (len(got) - 1) / ((tus[-1] - tus[0]) * 1e-6)
+        assert rate_wall == pytest.approx(hz, rel=0.05), (hz, rate_wall)
+        assert rate_fc == pytest.approx(hz, rel=0.01)
+        assert np.all(np.diff(tus) > 0)
+
+
+def test_live_raw_imu_matches_truth_within_configured_errors(sim_factory, tmp_path):
+    """Lockstep-fast run (x10) through rest, boost and climb with known gyro/accel biases, zero
+    scale/misalignment, a 20 deg yawed IMU mount and an error-free magnetometer: every RAW_IMU
+    matches the truth log (rate, specific force, field, rotated into the sensor frame and averaged
+    over the message interval) within bias + 5 sigma noise + half an LSB."""
+    log = tmp_path / "truth.npz"
+    gb, ab = [0.004, -0.003, 0.002], [0.05, -0.04, 0.03]
+    s = sim_factory("--scenario", "inclined_rail", "--speed", "10", "--duration", "75", "--imu-grade", "tactical",
+                    "--truth-log", str(log), "--truth-log-rate", "1000",
+                    "--set", "launcher.rest_s=20", "--set", f"imu.gyro_bias_rad_s={gb}",
+                    "--set", f"imu.accel_bias_m_s2={ab}", "--set", "imu.gyro_scale=[0,0,0]",
+                    "--set", "imu.accel_scale=[0,0,0]", "--set", "imu.gyro_misalignment=[[0,0,0],[0,0,0],[0,0,0]]",
+                    "--set", "imu.accel_misalignment=[[0,0,0],[0,0,0],[0,0,0]]",
+                    "--set", "imu.mount_euler_deg=[0,0,20]", "--set", "mag.hard_iron_gauss=[0,0,0]",
+                    "--set", "mag.soft_iron=[[1,0,0],[0,1,0],[0,0,1]]", "--set", "mag.site_distortion_ned_gauss=[0,0,0]",
+                    "--set", "imu.mag_noise_gauss=0.0")
+    assert s.set_rate(27, 50) == 0
+    msgs = []
+    end = time.monotonic() + 30
+    while s.proc.poll() is None and time.monotonic() < end:
+        m = s.c.recv_match(type="RAW_IMU", blocking=True, timeout=0.2)
+        if m is not None:
+            msgs.append(m)
+    s.proc.wait(10)
+    z = np.load(log)
+    t = z["time_s"]
+    C_sb = z["site_C_body_from_sensor"].T
+    q = np.column_stack([z["qw"], z["qx"], z["qy"], z["qz"]])
+    w_b = np.column_stack([z["omega_x_rad_s"], z["omega_y_rad_s"], z["omega_z_rad_s"]])
+    f_b = np.column_stack([z["f_x_m_s2"], z["f_y_m_s2"], z["f_z_m_s2"]])
+    B_n = np.column_stack([z["field_n_gauss"], z["field_e_gauss"], z["field_d_gauss"]])
+    assert len(msgs) > 2500
+    tact_gyro_sigma = 0.15 * math.pi / 180 / 60 * math.sqrt(1000)  # per base sample at 1 kHz
+    tact_acc_sigma = 30e-6 * G0 * math.sqrt(1000)
+    worst = np.zeros(3)
+    moved = False
+    for m in msgs[::7]:
+        k = int(round(m.time_usec * 1e-6 * 1000))
+        if k < 21 or k >= len(t):
+            continue
+        sl = slice(k - 19, k + 1)  # the 20 base samples the 50 Hz message averages
+        w_s = (w_b[sl] @ C_sb.T).mean(0)
+        f_s = (f_b[sl] @ C_sb.T).mean(0)
+        w_, x, y, zq = q[k]
+        C_nb = np.array([[1 - 2 * (y * y + zq * zq), 2 * (x * y - w_ * zq), 2 * (x * zq + w_ * y)],
+                         [2 * (x * y + w_ * zq), 1 - 2 * (x * x + zq * zq), 2 * (y * zq - w_ * x)],
+                         [2 * (x * zq - w_ * y), 2 * (y * zq + w_ * x), 1 - 2 * (x * x + y * y)]])
+        b_s = C_sb @ C_nb.T @ B_n[k]
+        g_err = np.array([m.xgyro, m.ygyro, m.zgyro]) / 1000.0 - (w_s + gb)
+        a_err = np.array([m.xacc, m.yacc, m.zacc]) * G0 / 1000.0 - (f_s + ab)
+        m_err = np.array([m.xmag, m.ymag, m.zmag]) / 1000.0 - b_s
+        lim_g = 5 * tact_gyro_sigma / math.sqrt(20) + 0.5e-3 + 1e-5
+        lim_a = 5 * tact_acc_sigma / math.sqrt(20) + 0.5e-3 * G0 + 2e-3
+        assert np.all(np.abs(g_err) < lim_g), (m.time_usec, g_err)
+        assert np.all(np.abs(a_err) < lim_a), (m.time_usec, a_err)
+        assert np.all(np.abs(m_err) < 0.5e-3 + 1e-6), (m.time_usec, m_err)
+        worst = np.maximum(worst, [np.abs(g_err).max(), np.abs(a_err).max(), np.abs(m_err).max()])
+        moved |= np.linalg.norm(f_s) > 20.0
+    assert moved  # the boost was inside the compared window
+
+
+def test_rtl_turns_true_heading_toward_home(sim_factory):
+    """GIVEN the vehicle climbing away from home on heading 060 WHEN MAV_CMD_NAV_RETURN_TO_LAUNCH
+    is sent THEN it is ACCEPTED, HEARTBEAT shows RTL (11), and within 20 s of simulated time the
+    true ground track (SIMSTATE) points within 15 deg of home and the distance to home decreases."""
+    s = sim_factory("--scenario", "inclined_rail", "--speed", "20", "--duration", "0",
+                    "--set", "launcher.rest_s=5", "--set", "wind.gust_sigma_m_s=0.0")
+    assert s.set_rate(30, 10) == 0
+    home = None
+    t_boot = 0.0
+    while t_boot < 40.0:  # launched at 5 s, climbing out toward 060
+        m = s.c.recv_match(type=["SIMSTATE", "ATTITUDE"], blocking=True, timeout=1.0)
+        assert m is not None
+        if m.get_type() == "SIMSTATE" and home is None:
+            home = (m.lat * 1e-7, m.lng * 1e-7)
+        if m.get_type() == "ATTITUDE":
+            t_boot = m.time_boot_ms / 1000.0
+    assert s.command(20) == 0
+    t_cmd = t_boot
+    track = []
+    mode = None
+    while t_boot < t_cmd + 30.0:
+        m = s.c.recv_match(type=["SIMSTATE", "ATTITUDE", "HEARTBEAT"], blocking=True, timeout=1.0)
+        assert m is not None
+        if m.get_type() == "ATTITUDE":
+            t_boot = m.time_boot_ms / 1000.0
+        elif m.get_type() == "HEARTBEAT":
+            mode = m.custom_mode
+        else:
+            track.append((t_boot, m.lat * 1e-7, m.lng * 1e-7))
+    assert mode == 11
+
+    def brg_dist(lat1, lon1, lat2, lon2):
+        la1, la2, dl = math.radians(lat1), math.radians(lat2), math.radians(lon2 - lon1)
+        b = math.atan2(math.sin(dl) * math.cos(la2), math.cos(la1) * math.sin(la2) - math.sin(la1) * math.cos(la2) * math.cos(dl))
+        d = 6371e3 * math.hypot(la2 - la1, dl * math.cos(la1))
+        return math.degrees(b) % 360, d
+
+    ok_after = None
+    for (t0, a0, b0), (t1, a1, b1) in zip(track[:-1], track[1:]):
+        if t1 - t0 <= 0:
+            continue
+        course, _ = brg_dist(a0, b0, a1, b1)
+        to_home, _ = brg_dist(a1, b1, *home)
+        err = (course - to_home + 180) % 360 - 180
+        if abs(err) < 15 and ok_after is None:
+            ok_after = t1 - t_cmd
+    d_start = brg_dist(*home, *track[0][1:])[1]
+    d_end = brg_dist(*home, *track[-1][1:])[1]
+    assert ok_after is not None and ok_after < 20.0, ok_after
+    assert d_end < d_start - 100.0
+
+
+def test_px4_personality_sends_highres_imu_and_no_raw_imu(sim_factory):
+    s = sim_factory("--scenario", "vertical_launch", "--personality", "px4", "--duration", "0")
+    assert s.hb.autopilot == mavutil.mavlink.MAV_AUTOPILOT_PX4
+    assert s.set_rate(27, 100) == 4  # RAW_IMU: FAILED, this autopilot does not have it
+    assert s.set_rate(105, 100) == 0
+    got = _count(s.c, 1.5)
+    assert "RAW_IMU" not in got
+    hr = [m for _, m in got["HIGHRES_IMU"]]
+    assert len(hr) > 100
+    m = hr[-1]
+    # nose-up on the tube at rest: x axis up -> specific force +g along x
+    assert m.xacc == pytest.approx(9.81, abs=0.3) and abs(m.zacc) < 0.5
+    assert m.fields_updated & 0x1FFF == 0x1FFF
+
+
+def test_reboot_fault_restarts_time_boot_and_forgets_stream_rates(sim_factory):
+    """GIVEN an FC reboot at 5 s (1 s silence) WHEN it happens THEN the streams stop (rates back to
+    defaults), and after a new request time_usec has restarted near zero."""
+    s = sim_factory("--scenario", "inclined_rail", "--duration", "0", "--speed", "2",
+                    "--set", "faults.reboot_at_s=5.0", "--set", "faults.reboot_silence_s=1.0")
+    assert s.set_rate(27, 50) == 0
+    before = 0
+    last_rx = time.monotonic()
+    end = time.monotonic() + 6.0
+    while time.monotonic() < end and time.monotonic() - last_rx < 0.6:
+        m = s.c.recv_match(type="RAW_IMU", blocking=True, timeout=0.1)
+        if m is not None:
+            before, last_rx = max(before, m.time_usec), time.monotonic()
+    assert before > 4.5e6  # we saw the pre-reboot clock, then the stream stopped
+    assert s.set_rate(27, 50) == 0
+    m = s.c.recv_match(type="RAW_IMU", blocking=True, timeout=2.0)
+    assert m is not None and m.time_usec < 3.0e6  # time_boot restarted near zero
+
+
+def test_gnss_loss_is_signalled_in_sys_status_and_ekf_flags(sim_factory):
+    s = sim_factory("--scenario", "runway_gnss_denied", "--duration", "0", "--speed", "5",
+                    "--set", "gnss.lost_at_s=4.0")
+    assert s.set_rate(1, 5) == 0 and s.set_rate(193, 5) == 0
+    seen = {"gps_ok": False, "gps_lost": False, "ekf_ok": False, "ekf_degraded": False}
+    end = time.monotonic() + 3.0
+    while time.monotonic() < end:
+        m = s.c.recv_match(type=["SYS_STATUS", "EKF_STATUS_REPORT"], blocking=True, timeout=0.2)
+        if m is None:
+            continue
+        if m.get_type() == "SYS_STATUS":
+            seen["gps_ok" if m.onboard_control_sensors_health & 32 else "gps_lost"] = True
+        else:
+            seen["ekf_ok" if m.flags & 16 else "ekf_degraded"] = True
+    assert all(seen.values()), seen
+
+
+def test_cli_bad_arguments_and_listing():
+    from sim.cli import main
+    assert main(["--imu-grade", "navigation"]) == 2
+    assert main(["--scenario", "no_such_scenario", "--mavlink", "udpin:127.0.0.1:0"]) == 2
+    assert main(["--list-scenarios"]) == 0
