@@ -86,7 +86,8 @@ class LinkConfig:
     """IMU samples further apart than this (FC time) -> time_gap event."""
     stream_rates_hz: dict = field(default_factory=lambda: dict(DEFAULT_STREAM_RATES_HZ))
     """Message name -> requested rate, Hz. Names the autopilot does not send are skipped (PX4: RAW_IMU,
-    EKF_STATUS_REPORT; on PX4, EKF_STATUS_REPORT's rate is used for ESTIMATOR_STATUS)."""
+    EKF_STATUS_REPORT; on PX4, EKF_STATUS_REPORT's rate is used for ESTIMATOR_STATUS; ArduPilot:
+    ESTIMATOR_STATUS, and HIGHRES_IMU when RAW_IMU is requested)."""
     autopilot_component_id: int | None = None
     """The autopilot's component id; None = learn it from its HEARTBEAT (normally 1)."""
     imu_source: str = "auto"
@@ -167,7 +168,12 @@ class MavlinkLink:
     pymavlink MAVLink object: encoders, our srcSystem/srcComponent, sequence numbers).
     """
 
-    def __init__(self, cfg: LinkConfig, clock: Callable[[], float] = time.monotonic):
+    def __init__(self, cfg: LinkConfig, clock: Callable[[], float] = time.monotonic,
+                 transport: Transport | None = None):
+        """cfg: LinkConfig; clock: monotonic seconds (injectable for tests and replay);
+        transport: override the transport made from cfg.url (e.g. NullTransport for replay).
+        Never raises for an unreachable port or device (it is retried with backoff and reported
+        as a "transport_error" LinkEvent); raises ValueError only for a bad configuration."""
         self.cfg = cfg
         self.clock = clock
         self.endpoint: Endpoint = parse_url(cfg.url)
@@ -194,7 +200,7 @@ class MavlinkLink:
         self._closed = False
         now = clock()
         self._next_heartbeat_s = now
-        self._transport: Transport = make_transport(self.endpoint)
+        self._transport: Transport = transport if transport is not None else make_transport(self.endpoint)
         self._open_ok = False
         self._ever_opened = False
         self._announce_reconnect = False
@@ -229,6 +235,22 @@ class MavlinkLink:
             self.last_error = f"send {getattr(msg, 'get_type', lambda: '?')()}: {exc}"
             return False
         return self.stats.messages_sent > before
+
+    def feed(self, data: bytes, rx_s: float | None = None, peer: object = None) -> list[Item]:
+        """Process bytes as if they had just been received (rx_s: receive time, default the clock).
+
+        The receive path of poll() without the transport: for replaying recorded streams (tlog)
+        and for tests. Timers (heartbeat, link timeout, rate retries) run in poll(), not here."""
+        items: list[Item] = []
+        if self._closed:
+            return items
+        rx = self.clock() if rx_s is None else rx_s
+        self.stats.bytes_received += len(data)
+        for msg in self._parse(data):
+            self._handle(msg, peer, rx, items)
+        items.extend(self._pending)
+        self._pending = []
+        return items
 
     def close(self) -> None:
         if not self._closed:
@@ -427,7 +449,9 @@ class MavlinkLink:
         rates = dict(self.cfg.stream_rates_hz)
         if self.fc_autopilot == "px4" and "EKF_STATUS_REPORT" in rates and "ESTIMATOR_STATUS" not in rates:
             rates["ESTIMATOR_STATUS"] = rates["EKF_STATUS_REPORT"]
-        skip = _NOT_SENT_BY.get(self.fc_autopilot, set())
+        skip = set(_NOT_SENT_BY.get(self.fc_autopilot, set()))
+        if self.fc_autopilot == "ardupilot" and "RAW_IMU" in rates:
+            skip.add("HIGHRES_IMU")  # one IMU stream is enough: RAW_IMU is ArduPilot's native one
         return [(n, message_id(n), float(r)) for n, r in rates.items() if n not in skip]
 
     def _request_rates(self, now: float, reason: str, items: list,
@@ -470,7 +494,7 @@ class MavlinkLink:
             self.send(self.mav.request_data_stream_encode(self.target_system, self.target_component, sid, hz, 1))
             self.stats.rate_requests_sent += 1
         for n, _i, _r in batch:
-            if n in DATA_STREAM_OF and results.get(n) in ("no_ack", "unsupported"):
+            if n in DATA_STREAM_OF and results.get(n) in ("no_ack", "unsupported", "not_tried"):
                 self.stats.rate_results[n] = "data_stream"
         self._event("rates_requested", f"SET_MESSAGE_INTERVAL not accepted ({summary}); fallback "
                                        "REQUEST_DATA_STREAM " + ", ".join(f"stream {s} at {hz} Hz"

@@ -61,7 +61,12 @@ class _Pending:
 class RateRequester:
     ack_timeout_s: float = 0.5
     max_tries: int = 3
+    give_up_after: int = 2
+    """End the round early when this many messages in a row got no ACK at all and none was
+    accepted yet: the FC does not speak SET_MESSAGE_INTERVAL, go to the fallback without waiting
+    for every message's timeouts (the rest are marked "not_tried")."""
     active: bool = False
+    no_ack_streak: int = 0
     queue: list = field(default_factory=list)
     current: _Pending | None = None
     results: dict = field(default_factory=dict)
@@ -73,6 +78,7 @@ class RateRequester:
         self.results = {}
         self.current = None
         self.active = True
+        self.no_ack_streak = 0
         return self._next(now_s)
 
     def _next(self, now_s: float) -> list:
@@ -91,6 +97,7 @@ class RateRequester:
         if result in (MAV_RESULT_IN_PROGRESS, MAV_RESULT_TEMPORARILY_REJECTED):
             return []  # keep waiting; the timeout resends
         self.results[self.current.name] = MAV_RESULT_NAMES.get(result, f"result_{result}")
+        self.no_ack_streak = 0
         return self._next(now_s)
 
     def next_due_s(self) -> float | None:
@@ -108,6 +115,11 @@ class RateRequester:
             cur.sent_at_s = now_s
             return [SendInterval(cur.name, cur.msg_id, cur.interval_us, cur.tries - 1)]
         self.results[cur.name] = "no_ack"
+        self.no_ack_streak += 1
+        if self.no_ack_streak >= self.give_up_after and "accepted" not in self.results.values():
+            for name, _msg_id, _rate in self.queue:
+                self.results[name] = "not_tried"
+            self.queue = []
         return self._next(now_s)
 
 

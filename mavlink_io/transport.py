@@ -419,6 +419,38 @@ class SerialTransport(Transport):
         return n == len(buf)
 
 
+class NullTransport(Transport):
+    """No wire: nothing to read, writes are accepted and dropped. For replaying recorded bytes
+    through the link's receive path (:meth:`MavlinkLink.feed`, mavlink_io.tlog)."""
+
+    def __init__(self, endpoint: Endpoint):
+        super().__init__(endpoint)
+        self.written = 0
+
+    def open(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def fileno(self) -> int | None:
+        return None
+
+    @property
+    def connected(self) -> bool:
+        return True
+
+    def read(self) -> list[tuple[bytes, object]]:
+        return []
+
+    def wait(self, timeout_s: float) -> None:
+        pass
+
+    def write(self, buf: bytes) -> bool:
+        self.written += 1
+        return True
+
+
 def make_transport(endpoint: Endpoint) -> Transport:
     if endpoint.kind in ("udpin", "udpout"):
         return UdpTransport(endpoint)

@@ -117,6 +117,7 @@ def test_detects_autopilot_learns_sysid_and_requests_rates(pair):
     assert asked[mavlink2.MAVLINK_MSG_ID_ATTITUDE] == pytest.approx(20000.0)
     assert asked[mavlink2.MAVLINK_MSG_ID_EKF_STATUS_REPORT] == pytest.approx(500000.0)
     assert mavlink2.MAVLINK_MSG_ID_ESTIMATOR_STATUS not in asked
+    assert mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU not in asked  # RAW_IMU is enough on ArduPilot
     for m in reqs:
         assert (m.target_system, m.target_component) == (42, 1)
         assert (m.get_srcSystem(), m.get_srcComponent()) == (42, 191)
@@ -275,7 +276,9 @@ def test_fallback_to_request_data_stream_without_ack():
         fc.heartbeat()
         items = _run(link, fc, 0.9)
         sets = [m for m in fc.of_type("COMMAND_LONG") if m.command == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL]
-        assert len(sets) == 2 * 6  # the 6 default messages (all requested from ArduPilot), 2 tries each
+        # two messages in a row without any ACK (2 tries each): the FC does not speak it, give up
+        assert [int(m.param1) for m in sets] == [mavlink2.MAVLINK_MSG_ID_RAW_IMU] * 2 + \
+            [mavlink2.MAVLINK_MSG_ID_SCALED_PRESSURE] * 2
         assert sorted({m.confirmation for m in sets}) == [0, 1]
         rds = {m.req_stream_id: m.req_message_rate for m in fc.of_type("REQUEST_DATA_STREAM")}
         assert rds == {1: 200, 2: 2, 10: 50, 12: 2}
@@ -348,6 +351,89 @@ def test_rates_hz_over_window():
             clock.t += 0.010
         assert link.stats.rates_hz()["RAW_IMU"] == pytest.approx(100.0, rel=0.05)
         assert link.stats.as_dict()["messages_by_type"]["RAW_IMU"] == 21
+    finally:
+        link.close()
+        fc.close()
+
+
+def test_time_wrap_and_gap_reported_through_the_link(pair):
+    link, fc = pair
+    fc.heartbeat()
+    _run(link, fc, 0.1)
+    wrap = 1 << 32
+    for t_ms in (wrap - 40, wrap - 20, 0, 20):
+        fc.mav.scaled_pressure_send(t_ms, 1000.0, 0.0, 2000)
+    fc.mav.raw_imu_send(1_000_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0)
+    fc.mav.raw_imu_send(1_005_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0)
+    fc.mav.raw_imu_send(1_705_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0)  # 0.7 s later: > imu_gap_s 0.5
+    items = _run(link, fc, 0.15)
+    kinds = [e.kind for e in _events(items)]
+    assert kinds.count("time_wrap") == 1 and kinds.count("time_gap") == 1
+    tp = [p.time_fc_s for p in items if isinstance(p, PressureSample)]
+    np.testing.assert_allclose(np.diff(tp), [0.02, 0.02, 0.02], atol=1e-9)
+    assert tp[2] == pytest.approx(wrap / 1000.0)
+    assert link.stats.time_wraps == 1 and link.stats.time_gaps == 1
+
+
+def test_reordered_imu_sample_dropped_never_backwards(pair):
+    link, fc = pair
+    fc.heartbeat()
+    _run(link, fc, 0.1)
+    for t_us in (1_000_000, 1_010_000, 1_005_000, 1_015_000):
+        fc.mav.raw_imu_send(t_us, 0, 0, -1000, 0, 0, 0, 0, 0, 0)
+    items = _run(link, fc, 0.1)
+    t = [i.time_fc_s for i in items if isinstance(i, ImuSample)]
+    assert t == pytest.approx([1.0, 1.01, 1.015])
+    assert link.stats.stale_time_drops == 1 and not _events(items, "fc_reboot")
+
+
+def test_one_imu_source_only(pair):
+    link, fc = pair
+    fc.heartbeat()
+    _run(link, fc, 0.1)
+    for k in range(3):
+        fc.mav.raw_imu_send(1_000_000 + 5000 * k, 0, 0, -1000, 0, 0, 0, 0, 0, 0)
+        fc.mav.scaled_imu_send(1000 + 5 * k, 0, 0, -1000, 0, 0, 0, 0, 0, 0)
+    items = _run(link, fc, 0.1)
+    assert [i.source for i in items if isinstance(i, ImuSample)] == ["RAW_IMU"] * 3
+
+
+def test_px4_highres_imu_and_pressure_source(pair):
+    link, fc = pair
+    fc.autopilot = mavlink2.MAV_AUTOPILOT_PX4
+    fc.heartbeat()
+    _run(link, fc, 0.1)
+    fc.mav.highres_imu_send(1_000_000, 0, 0, -9.8, 0, 0, 0.1, 0.2, 0, 0.4, 1000.0, 1.0, 0, 20.0, 0x1FFF)
+    items = _run(link, fc, 0.05)
+    p = [i for i in items if isinstance(i, PressureSample)]
+    assert [x.source for x in p] == ["HIGHRES_IMU"] and p[0].press_abs_pa == pytest.approx(1e5)
+    fc.mav.scaled_pressure_send(1010, 1000.5, 0.0, 2000)  # once SCALED_PRESSURE flows it wins
+    fc.mav.highres_imu_send(1_020_000, 0, 0, -9.8, 0, 0, 0.1, 0.2, 0, 0.4, 1000.0, 1.0, 0, 20.0, 0x1FFF)
+    items = _run(link, fc, 0.05)
+    assert [x.source for x in items if isinstance(x, PressureSample)] == ["SCALED_PRESSURE"]
+    imu = [x for x in items if isinstance(x, ImuSample)]
+    assert imu[0].source == "HIGHRES_IMU" and imu[0].gyro_rad_s[2] == pytest.approx(0.1)
+
+
+def test_silent_stream_is_rerequested_a_few_times():
+    clock = FakeClock()
+    link = _link(clock=clock, stream_recheck_s=5.0)
+    fc = FakeFc(("127.0.0.1", link.local_address[1]))
+    try:
+        fc.heartbeat()
+        _run(link, fc, 0.1)
+        assert link.stats.rate_results["RAW_IMU"] == "accepted"
+        n0 = len(fc.of_type("COMMAND_LONG"))
+        rerequests = []
+        for _ in range(8):  # 8 x 5.5 s with heartbeats but no RAW_IMU at all
+            clock.t += 5.5
+            fc.heartbeat()
+            fc.mav.sys_status_send(0, 0, 0, 0, 0, -1, -1, 0, 0, 0, 0, 0, 0)
+            items = _run(link, fc, 0.06)
+            rerequests += [e for e in _events(items, "rates_requested") if "silent" in e.detail]
+        assert len(rerequests) == 3 and "RAW_IMU" in rerequests[0].detail
+        assert "SYS_STATUS" not in rerequests[0].detail  # that one is flowing
+        assert len(fc.of_type("COMMAND_LONG")) > n0
     finally:
         link.close()
         fc.close()
