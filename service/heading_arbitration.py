@@ -1,0 +1,268 @@
+"""Heading arbitration: one published heading, its sigma and its source, from the available
+heading sources (azimuth method A, synthetic AHRS B, heading filter C, the FC's own when trusted).
+
+Pure (no I/O, no clock): ``arbitrate(state, readings, time_s, params, heading_rate_rad_s=None)
+-> (state, output)``; the daemon calls it once per output cycle.
+
+The rule
+--------
+1. Candidates: readings that are ``valid``, finite, with 0 < sigma <= ``max_sigma_rad`` and no
+   older than ``max_age_s``.
+2. Reference: the previous fused heading propagated to now with the heading rate (from the
+   gyros, when the caller gives it; variance + (rate_sigma dt)^2), else held with the variance
+   grown by (max_turn_rate dt)^2. On the first call (or after every source was lost) the
+   reference is the best candidate (smallest sigma, then ``priority``).
+3. Gate: a candidate passes if its normalised innovation against the reference,
+   wrap(h_i - ref)^2 / (sigma_i^2 + sigma_ref^2), is <= ``gate_chi2`` (chi-square, 1 dof).
+4. Correlated sources: readings that share a ``group`` (e.g. B and C both use the magnetometer)
+   are not independent; per group only the smallest-sigma passing reading is fused.
+5. Fusion: inverse-variance weighting in the circular domain about the reference,
+       h = ref + sum(w_i wrap(h_i - ref)) / sum(w_i),  w_i = 1/sigma_i^2,  var = 1/sum(w_i).
+6. No silent jumps: when the set of fused sources changes, the jump between the new fusion and
+   the old set (evaluated now) is reported as an event and absorbed into an offset; the
+   published heading is fused + offset, and the offset decays to zero at no more than
+   ``blend_rate_rad_s``. The published sigma is sqrt(var + offset^2) while blending.
+7. If candidates exist but none passes the gate, the output coasts on the reference (source
+   "coast") for up to ``reinit_after_s``; then it re-anchors on the best candidate: a 'reset'
+   event with the jump, blended like any other change.
+8. No candidates: the output is invalid (heading None), event 'lost'.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+TWO_PI = 2.0 * math.pi
+
+
+def _wrap_pi(a: float) -> float:
+    return (a + math.pi) % TWO_PI - math.pi
+
+
+def _wrap_2pi(a: float) -> float:
+    a = a % TWO_PI
+    return 0.0 if a >= TWO_PI else a
+
+
+@dataclass(frozen=True)
+class SourceReading:
+    name: str
+    """'azimuth' | 'synthetic_ahrs' | 'heading_filter' | 'fc' | any other source name."""
+    heading_rad: float
+    sigma_rad: float
+    valid: bool
+    time_s: float
+    """Time of the reading, same clock as the ``time_s`` given to ``arbitrate``."""
+    group: str = ""
+    """Readings with the same non-empty group share an error source (fully correlated)."""
+
+
+@dataclass(frozen=True)
+class ArbitrationParams:
+    gate_chi2: float = 9.0
+    """Gate on the normalised innovation against the reference (3 sigma)."""
+    max_age_s: float = 0.5
+    """Older readings are not candidates."""
+    max_sigma_rad: float = math.radians(45.0)
+    """Readings less certain than this are not candidates."""
+    blend_rate_rad_s: float = math.radians(2.0)
+    """Largest rate at which a source-change offset is bled off (rad/s)."""
+    rate_sigma_rad_s: float = math.radians(0.5)
+    """Sigma of the caller's heading rate (rad/s), for propagating the reference."""
+    max_turn_rate_rad_s: float = math.radians(60.0)
+    """Without a heading rate, the reference variance grows by (this * dt)^2."""
+    reinit_after_s: float = 2.0
+    """Continuous rejection of every candidate for this long re-anchors (a 'reset' event)."""
+    priority: tuple = ("azimuth", "heading_filter", "synthetic_ahrs", "fc")
+    """Tie-break between equally certain sources (first wins)."""
+
+    def __post_init__(self) -> None:
+        for name in ("gate_chi2", "max_age_s", "max_sigma_rad", "blend_rate_rad_s", "rate_sigma_rad_s",
+                     "max_turn_rate_rad_s", "reinit_after_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0.0):
+                raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+
+
+@dataclass(frozen=True)
+class ArbitrationEvent:
+    time_s: float
+    kind: str
+    """'acquired' | 'source_change' | 'reset' | 'lost'."""
+    from_sources: tuple
+    to_sources: tuple
+    jump_rad: float
+    """New fusion minus the old one at the same instant (what the offset absorbs)."""
+    message: str
+
+
+@dataclass(frozen=True)
+class ArbitrationState:
+    time_s: float | None = None
+    fused_rad: float | None = None
+    fused_var_rad2: float = math.inf
+    offset_rad: float = 0.0
+    sources: tuple = ()
+    gated_since_s: float | None = None
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__, sources=list(self.sources))
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ArbitrationState":
+        return cls(**dict(d, sources=tuple(d["sources"])))
+
+
+@dataclass(frozen=True)
+class ArbitrationOutput:
+    heading_rad: float | None
+    """Published heading in [0, 2pi), None when no source is available."""
+    sigma_rad: float
+    source: str
+    """'+'-joined names of the fused sources, 'coast', or 'none'."""
+    valid: bool
+    offset_rad: float = 0.0
+    per_source: dict = field(default_factory=dict)
+    """name -> {'candidate': bool, 'nis': float, 'used': bool, 'reason': str}."""
+    events: tuple = ()
+
+
+def _rank(r: SourceReading, params: ArbitrationParams) -> tuple:
+    pri = params.priority.index(r.name) if r.name in params.priority else len(params.priority)
+    return (r.sigma_rad, pri, r.name)
+
+
+def _fuse(readings: list, ref: float) -> tuple[float, float]:
+    sw = 0.0
+    s = 0.0
+    for r in readings:
+        w = 1.0 / (r.sigma_rad * r.sigma_rad)
+        sw += w
+        s += w * _wrap_pi(r.heading_rad - ref)
+    return _wrap_2pi(ref + s / sw), 1.0 / sw
+
+
+def _decorrelate(readings: list, params: ArbitrationParams) -> list:
+    best = {}
+    for r in readings:
+        key = r.group or f"__{r.name}"
+        if key not in best or _rank(r, params) < _rank(best[key], params):
+            best[key] = r
+    return sorted(best.values(), key=lambda r: r.name)
+
+
+def arbitrate(state: ArbitrationState, readings: list, time_s: float,
+              params: ArbitrationParams = ArbitrationParams(),
+              heading_rate_rad_s: float | None = None) -> tuple[ArbitrationState, ArbitrationOutput]:
+    if not math.isfinite(time_s):
+        raise ValueError(f"time_s must be finite, got {time_s}")
+    dt = 0.0 if state.time_s is None else max(0.0, time_s - state.time_s)
+    per = {}
+    cands = []
+    for r in readings:
+        reason = ""
+        if not r.valid:
+            reason = "not valid"
+        elif not (math.isfinite(r.heading_rad) and math.isfinite(r.sigma_rad) and math.isfinite(r.time_s)):
+            reason = "non-finite"
+        elif not 0.0 < r.sigma_rad <= params.max_sigma_rad:
+            reason = f"sigma {math.degrees(r.sigma_rad):.1f} deg out of range"
+        elif time_s - r.time_s > params.max_age_s:
+            reason = f"stale ({time_s - r.time_s:.2f} s)"
+        per[r.name] = {"candidate": not reason, "nis": math.nan, "used": False, "reason": reason}
+        if not reason:
+            cands.append(r)
+    events = []
+
+    if not cands:
+        if state.sources or state.fused_rad is not None:
+            events.append(ArbitrationEvent(time_s, "lost", state.sources, (), 0.0,
+                                           "no heading source available"))
+        st = ArbitrationState(time_s=time_s)
+        return st, ArbitrationOutput(None, math.inf, "none", False, 0.0, per, tuple(events))
+
+    # --- reference -----------------------------------------------------------------------------
+    anchored = state.fused_rad is None
+    if anchored:
+        best = min(cands, key=lambda r: _rank(r, params))
+        ref, ref_var = best.heading_rad, best.sigma_rad ** 2
+    elif heading_rate_rad_s is not None and math.isfinite(heading_rate_rad_s):
+        ref = _wrap_2pi(state.fused_rad + heading_rate_rad_s * dt)
+        ref_var = state.fused_var_rad2 + (params.rate_sigma_rad_s * dt) ** 2
+    else:
+        ref = state.fused_rad
+        ref_var = state.fused_var_rad2 + (params.max_turn_rate_rad_s * dt) ** 2
+
+    def gate(ref_h, ref_v, anchor_name=None):
+        ok = []
+        for r in cands:
+            if r.name == anchor_name:
+                nis = 0.0
+            else:
+                nis = _wrap_pi(r.heading_rad - ref_h) ** 2 / (r.sigma_rad ** 2 + ref_v)
+            per[r.name]["nis"] = nis
+            if nis <= params.gate_chi2:
+                ok.append(r)
+            else:
+                per[r.name]["reason"] = f"gated out (NIS {nis:.1f})"
+        return ok
+
+    passing = gate(ref, ref_var, best.name if anchored else None)
+    gated_since = None
+    kind = "source_change"
+    if not passing:
+        gated_since = state.gated_since_s if state.gated_since_s is not None else time_s
+        if time_s - gated_since < params.reinit_after_s:
+            # coast on the propagated reference
+            for r in cands:
+                per[r.name]["used"] = False
+            st = ArbitrationState(time_s=time_s, fused_rad=ref, fused_var_rad2=ref_var,
+                                  offset_rad=_bleed(state.offset_rad, dt, params), sources=state.sources,
+                                  gated_since_s=gated_since)
+            pub = _wrap_2pi(ref + st.offset_rad)
+            return st, ArbitrationOutput(pub, math.sqrt(ref_var + st.offset_rad ** 2), "coast", True,
+                                         st.offset_rad, per, ())
+        # re-anchor on the best candidate
+        best = min(cands, key=lambda r: _rank(r, params))
+        for r in cands:
+            per[r.name]["reason"] = ""
+        passing = gate(best.heading_rad, best.sigma_rad ** 2, best.name)
+        gated_since = None
+        kind = "reset"
+
+    used = _decorrelate(passing, params)
+    fused, var = _fuse(used, ref)
+    names = tuple(r.name for r in used)
+    for r in passing:
+        if r in used:
+            per[r.name]["used"] = True
+        else:
+            per[r.name]["reason"] = f"correlated with a better source in group {r.group!r}"
+
+    offset = _bleed(state.offset_rad, dt, params)
+    if anchored:
+        events.append(ArbitrationEvent(time_s, "acquired", (), names, 0.0,
+                                       f"heading from {'+'.join(names)}"))
+    elif names != state.sources or kind == "reset":
+        # the old set evaluated now: its readings if still finite and fresh, else the reference
+        old = [r for r in readings if r.name in state.sources and math.isfinite(r.heading_rad)
+               and math.isfinite(r.sigma_rad) and r.sigma_rad > 0 and time_s - r.time_s <= params.max_age_s]
+        old_now = _fuse(_decorrelate(old, params), ref)[0] if old and kind != "reset" else ref
+        jump = _wrap_pi(fused - old_now)
+        offset = _wrap_pi(offset - jump)
+        events.append(ArbitrationEvent(
+            time_s, kind, state.sources, names, jump,
+            f"heading source {'+'.join(state.sources) or 'none'} -> {'+'.join(names)}: "
+            f"jump {math.degrees(jump):+.2f} deg, blended at <= "
+            f"{math.degrees(params.blend_rate_rad_s):.1f} deg/s"))
+    st = ArbitrationState(time_s=time_s, fused_rad=fused, fused_var_rad2=var, offset_rad=offset,
+                          sources=names, gated_since_s=gated_since)
+    return st, ArbitrationOutput(_wrap_2pi(fused + offset), math.sqrt(var + offset * offset),
+                                 "+".join(names), True, offset, per, tuple(events))
+
+
+def _bleed(offset: float, dt: float, params: ArbitrationParams) -> float:
+    step = params.blend_rate_rad_s * dt
+    if abs(offset) <= step:
+        return 0.0
+    return offset - math.copysign(step, offset)
