@@ -194,6 +194,7 @@ class MavlinkLink:
         self._last_request_s: dict[str, float] = {}
         self._silent_requests: dict[str, int] = {}
         self._seq: dict[tuple[int, int], int] = {}
+        self._seq_back: dict[tuple[int, int], int] = {}
         self._source_seen_s: dict[str, float] = {}
         self._pending: list[Item] = []
         self._subscribers: list[Callable] = []
@@ -285,6 +286,11 @@ class MavlinkLink:
             except OSError as exc:
                 self._transport_dead(f"read failed: {exc}", self.clock(), items)
                 chunks = []
+            if self._open_ok:
+                try:
+                    self._transport.flush()  # queued output of a slow stream transport
+                except TransportDead as exc:
+                    self._transport_dead(str(exc), self.clock(), items)
             if self._announce_reconnect and self._open_ok:
                 self._check_up(self.clock(), items)
             if chunks:
@@ -567,16 +573,23 @@ class MavlinkLink:
         self._ever_connected = True
 
     def _track_seq(self, src: tuple[int, int], seq: int) -> None:
+        """Lost packets from MAVLink sequence gaps: a jump of 1..127 counts as lost packets; a step
+        back is a duplicate or a reordered packet (not lost). Three steps back in a row mean the
+        sender restarted its counter (FC reboot): resynchronise."""
         last = self._seq.get(src)
         if last is not None:
             diff = (seq - last - 1) % 256
-            if diff == 255:
-                self.stats.seq_duplicates += 1
-                return
             if diff >= 128:
-                self.stats.seq_reordered += 1
-                return
+                self._seq_back[src] = self._seq_back.get(src, 0) + 1
+                if self._seq_back[src] < 3:
+                    if diff == 255:
+                        self.stats.seq_duplicates += 1
+                    else:
+                        self.stats.seq_reordered += 1
+                    return
+                diff = 0
             self.stats.seq_lost += diff
+        self._seq_back[src] = 0
         self._seq[src] = seq
 
     def _handle(self, msg, peer, rx_s: float, items: list) -> None:

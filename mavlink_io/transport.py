@@ -32,6 +32,41 @@ class TransportDead(Exception):
     """The connection is gone; the link closes the transport and reopens it with backoff."""
 
 
+OUT_QUEUE_LIMIT_BYTES = 65536
+"""Stream transports queue outgoing frames up to this much; beyond, whole frames are dropped."""
+
+
+class _OutQueue:
+    """Outgoing bytes of a stream transport. Frames enter whole or not at all, so a full kernel
+    buffer (slow serial link) never puts half a frame on the wire; the rest goes out on flush."""
+
+    def __init__(self, limit: int = OUT_QUEUE_LIMIT_BYTES):
+        self.buf = bytearray()
+        self.limit = limit
+        self.dropped_frames = 0
+
+    def push(self, frame: bytes) -> bool:
+        if len(self.buf) + len(frame) > self.limit:
+            self.dropped_frames += 1
+            return False
+        self.buf += frame
+        return True
+
+    def flush(self, send) -> None:
+        """send(memoryview) -> bytes written; OSError other than EAGAIN propagates."""
+        while self.buf:
+            try:
+                n = send(memoryview(self.buf))
+            except (BlockingIOError, InterruptedError):
+                return
+            if not n:
+                return
+            del self.buf[:n]
+
+    def clear(self) -> None:
+        self.buf.clear()
+
+
 class Transport:
     endpoint: Endpoint
 
@@ -55,6 +90,12 @@ class Transport:
 
     def set_peer(self, peer: object) -> None:
         """Tell a datagram transport where the autopilot's packets come from (reply address)."""
+
+    def flush(self) -> None:
+        """Push queued outgoing bytes (stream transports); may raise TransportDead."""
+
+    def _pending_out(self) -> bool:
+        return False
 
     @property
     def local_address(self) -> tuple | None:
@@ -80,7 +121,7 @@ class Transport:
         if fd is None:
             time.sleep(min(timeout_s, 0.05))
             return
-        wl = [fd] if self._want_write() else []
+        wl = [fd] if (self._want_write() or self._pending_out()) else []
         try:
             select.select([fd], wl, [], timeout_s)
         except (OSError, ValueError):
@@ -186,6 +227,10 @@ class TcpClientTransport(Transport):
         super().__init__(endpoint)
         self.sock: socket.socket | None = None
         self.connecting = False
+        self.out = _OutQueue()
+
+    def _pending_out(self) -> bool:
+        return bool(self.out.buf)
 
     def open(self) -> None:
         fam, addr = _resolve(self.endpoint.host, self.endpoint.port, socket.SOCK_STREAM)
@@ -204,6 +249,7 @@ class TcpClientTransport(Transport):
             self.sock.close()
             self.sock = None
         self.connecting = False
+        self.out.clear()
 
     def fileno(self) -> int | None:
         return None if self.sock is None else self.sock.fileno()
@@ -248,13 +294,18 @@ class TcpClientTransport(Transport):
     def write(self, buf: bytes) -> bool:
         if self.sock is None or not self._check_connected():
             return False
+        if not self.out.push(buf):
+            return False  # queue full: drop this frame rather than block the loop
+        self.flush()
+        return True
+
+    def flush(self) -> None:
+        if self.sock is None or self.connecting or not self.out.buf:
+            return
         try:
-            self.sock.sendall(buf)
-        except (BlockingIOError, InterruptedError):
-            return False  # send buffer full: drop rather than block the loop
+            self.out.flush(self.sock.send)
         except OSError as exc:
             raise TransportDead(f"TCP send failed: {exc}") from exc
-        return True
 
 
 class TcpServerTransport(Transport):
@@ -264,6 +315,10 @@ class TcpServerTransport(Transport):
         super().__init__(endpoint)
         self.listener: socket.socket | None = None
         self.client: socket.socket | None = None
+        self.out = _OutQueue()
+
+    def _pending_out(self) -> bool:
+        return self.client is not None and bool(self.out.buf)
 
     def open(self) -> None:
         ep = self.endpoint
@@ -288,6 +343,7 @@ class TcpServerTransport(Transport):
         if self.client is not None:
             self.client.close()
             self.client = None
+        self.out.clear()
 
     def fileno(self) -> int | None:
         if self.client is not None:
@@ -336,16 +392,18 @@ class TcpServerTransport(Transport):
         return out
 
     def write(self, buf: bytes) -> bool:
-        if self.client is None:
+        if self.client is None or not self.out.push(buf):
             return False
+        self.flush()
+        return self.client is not None
+
+    def flush(self) -> None:
+        if self.client is None or not self.out.buf:
+            return
         try:
-            self.client.sendall(buf)
-        except (BlockingIOError, InterruptedError):
-            return False
+            self.out.flush(self.client.send)
         except OSError:
-            self._drop_client()
-            return False
-        return True
+            self._drop_client()  # the client went away: keep listening
 
 
 class SerialTransport(Transport):
@@ -354,6 +412,10 @@ class SerialTransport(Transport):
     def __init__(self, endpoint: Endpoint):
         super().__init__(endpoint)
         self.fd: int | None = None
+        self.out = _OutQueue()
+
+    def _pending_out(self) -> bool:
+        return bool(self.out.buf)
 
     def open(self) -> None:
         import termios
@@ -381,6 +443,7 @@ class SerialTransport(Transport):
             except OSError:
                 pass
             self.fd = None
+        self.out.clear()
 
     def fileno(self) -> int | None:
         return self.fd
@@ -408,15 +471,19 @@ class SerialTransport(Transport):
         return out
 
     def write(self, buf: bytes) -> bool:
-        if self.fd is None:
+        if self.fd is None or not self.out.push(buf):
             return False
+        self.flush()
+        return True
+
+    def flush(self) -> None:
+        if self.fd is None or not self.out.buf:
+            return
+        fd = self.fd
         try:
-            n = os.write(self.fd, buf)
-        except (BlockingIOError, InterruptedError):
-            return False
+            self.out.flush(lambda mv: os.write(fd, mv))
         except OSError as exc:
             raise TransportDead(f"serial write failed: {exc}") from exc
-        return n == len(buf)
 
 
 class NullTransport(Transport):

@@ -59,3 +59,17 @@ def test_mutated_frames_never_raise_and_are_counted(flips, chunk):
             assert np.all(np.isfinite(it.gyro_rad_s)) and np.all(np.isfinite(it.accel_m_s2))
     if bytes(data) != FRAMES:  # every byte is a frame's magic, or CRC-protected, or its msgid
         assert s.crc_errors + s.framing_errors + s.unknown_ids >= 1  # (unknown id: no CRC extra)
+
+
+def test_sequence_counter_restart_resyncs():
+    fc = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    link = _link()
+    link.feed(mavlink2.MAVLink_heartbeat_message(1, 3, 0, 0, 4, 3).pack(fc), 0.0)
+    data = b""
+    for boot in range(2):
+        fc.seq = 0  # the FC restarted: its sequence counter too
+        for k in range(10):
+            data += mavlink2.MAVLink_attitude_message(100 * boot + k, 0, 0, 0, 0, 0, 0).pack(fc)
+            fc.seq = (fc.seq + 1) % 256
+    link.feed(data, 1.0)
+    assert link.stats.seq_lost == 0 and link.stats.seq_reordered == 2 and link.stats.seq_duplicates == 1

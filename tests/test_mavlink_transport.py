@@ -175,3 +175,31 @@ def test_udpout_sends_heartbeat_before_hearing_anything():
     finally:
         link.close()
         rx.close()
+
+
+def test_serial_slow_reader_gets_whole_frames_only():
+    """A full serial buffer never puts half a frame on the wire: frames queue whole, the overflow
+    is dropped whole and counted, the rest is flushed by poll()."""
+    master, slave = pty.openpty()
+    name = os.ttyname(slave)
+    os.close(slave)
+    os.set_blocking(master, False)
+    link = MavlinkLink(LinkConfig(url=f"serial:{name}:115200", system_id=1))
+    try:
+        sent = sum(link.send(link.mav.attitude_encode(k, 0.1, 0.2, 0.3, 0.0, 0.0, 0.0)) for k in range(12000))
+        assert 0 < sent < 12000 and link.stats.send_errors == 12000 - sent  # the overflow, counted
+        parser = mavlink2.MAVLink(None)
+        got = []
+        t_end = time.monotonic() + 5.0
+        while time.monotonic() < t_end and len(got) < sent:
+            link.poll(0.001)
+            try:
+                got += [m for m in (parser.parse_buffer(os.read(master, 65536)) or [])]
+            except BlockingIOError:
+                pass
+        att = [m for m in got if m.get_type() == "ATTITUDE"]
+        assert len(att) == sent and not [m for m in got if m.get_type() == "BAD_DATA"]
+        assert [m.time_boot_ms for m in att] == sorted(m.time_boot_ms for m in att)
+    finally:
+        link.close()
+        os.close(master)
