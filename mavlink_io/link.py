@@ -456,7 +456,9 @@ class MavlinkLink:
         if self.fc_autopilot == "px4" and "EKF_STATUS_REPORT" in rates and "ESTIMATOR_STATUS" not in rates:
             rates["ESTIMATOR_STATUS"] = rates["EKF_STATUS_REPORT"]
         skip = set(_NOT_SENT_BY.get(self.fc_autopilot, set()))
-        if self.fc_autopilot == "ardupilot" and "RAW_IMU" in rates:
+        if self.cfg.imu_source != "auto":
+            skip |= set(IMU_SOURCES) - {self.cfg.imu_source}  # only the IMU stream we use
+        elif self.fc_autopilot == "ardupilot" and "RAW_IMU" in rates:
             skip.add("HIGHRES_IMU")  # one IMU stream is enough: RAW_IMU is ArduPilot's native one
         return [(n, message_id(n), float(r)) for n, r in rates.items() if n not in skip]
 
@@ -632,7 +634,11 @@ class MavlinkLink:
             self.stats.count_non_finite(mtype)
             self.last_error = f"decode {mtype}: {exc}"
         for cb in self._subscribers:
-            cb(msg)
+            try:
+                cb(msg)
+            except Exception as exc:  # noqa: BLE001 - a subscriber's bug must not stop the link
+                self.stats.subscriber_errors += 1
+                self.last_error = f"subscriber {getattr(cb, '__qualname__', cb)!s} on {mtype}: {exc!r}"
 
     def _fc_time(self, stream: str, mtype: str, msg, rx_s: float, items: list,
                  gap_s: float | None = None) -> float | None:

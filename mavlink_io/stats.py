@@ -71,6 +71,8 @@ class LinkStats:
     transport_errors: int = 0
     parser_errors: int = 0
     """Unexpected exceptions inside the MAVLink parser (the parser is reset, nothing raised)."""
+    subscriber_errors: int = 0
+    """Exceptions raised by MavlinkLink.subscribe() callbacks (caught; see link.last_error)."""
     messages_sent: int = 0
     send_errors: int = 0
     send_no_peer: int = 0

@@ -73,3 +73,32 @@ def test_sequence_counter_restart_resyncs():
             fc.seq = (fc.seq + 1) % 256
     link.feed(data, 1.0)
     assert link.stats.seq_lost == 0 and link.stats.seq_reordered == 2 and link.stats.seq_duplicates == 1
+
+
+def test_subscriber_sees_raw_messages_and_its_errors_are_contained():
+    fc = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    link = _link()
+    seen = []
+
+    def bad(msg):
+        seen.append(msg.get_type())
+        raise RuntimeError("boom")
+    link.subscribe(bad)
+    items = link.feed(mavlink2.MAVLink_heartbeat_message(1, 3, 0, 0, 4, 3).pack(fc)
+                      + mavlink2.MAVLink_vfr_hud_message(1, 2, 3, 4, 5, 6).pack(fc), 0.0)
+    assert seen == ["HEARTBEAT", "VFR_HUD"] and link.stats.subscriber_errors == 2
+    assert "boom" in link.last_error and any(getattr(i, "kind", "") == "autopilot_detected" for i in items)
+
+
+def test_fixed_imu_source_requests_only_that_stream():
+    fc = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    t = [0.0]
+    link = MavlinkLink(LinkConfig(url="udpin:127.0.0.1:0", imu_source="SCALED_IMU",
+                                  stream_rates_hz={"RAW_IMU": 200.0, "SCALED_IMU": 100.0, "ATTITUDE": 10.0}),
+                       clock=lambda: t[0], transport=NullTransport(None))
+    items = link.feed(mavlink2.MAVLink_heartbeat_message(1, 3, 0, 0, 4, 3).pack(fc), 0.0)
+    req = [i for i in items if getattr(i, "kind", "") == "rates_requested"][0]
+    assert "SCALED_IMU 100 Hz" in req.detail and "RAW_IMU" not in req.detail
+    items = link.feed(mavlink2.MAVLink_raw_imu_message(1000, 0, 0, -1000, 0, 0, 0, 0, 0, 0, 0, 0).pack(fc)
+                      + mavlink2.MAVLink_scaled_imu_message(1, 0, 0, -1000, 0, 0, 0, 0, 0, 0, 0).pack(fc), 0.1)
+    assert [i.source for i in items if isinstance(i, ImuSample)] == ["SCALED_IMU"]

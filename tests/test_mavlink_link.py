@@ -437,3 +437,22 @@ def test_silent_stream_is_rerequested_a_few_times():
     finally:
         link.close()
         fc.close()
+
+
+@pytest.mark.parametrize("kw, fragment", [
+    ({"url": "udpin:0.0.0.0:99999"}, "port 99999 out of range"),
+    ({"component_id": 0}, "component_id must be an integer in [1, 255]"),
+    ({"system_id": 256}, "system_id must be an integer in [1, 255]"),
+    ({"heartbeat_hz": 0.0}, "heartbeat_hz must be in (0, 50]"),
+    ({"link_timeout_s": -1.0}, "link_timeout_s must be in (0, 3600]"),
+    ({"imu_gap_s": float("nan")}, "imu_gap_s must be in"),
+    ({"stream_rates_hz": {"RAW_IMUU": 10.0}}, "unknown MAVLink message 'RAW_IMUU'"),
+    ({"stream_rates_hz": {"RAW_IMU": 0.0}}, "stream_rates_hz['RAW_IMU'] must be in (0, 1000] Hz"),
+    ({"imu_source": "IMU"}, "imu_source must be 'auto' or one of"),
+    ({"reconnect_backoff_s": 2.0, "reconnect_backoff_max_s": 1.0}, "reconnect_backoff_max_s must be >="),
+])
+def test_link_config_errors_name_the_field(kw, fragment):
+    kw.setdefault("url", "udpin:0.0.0.0:14550")
+    with pytest.raises(ValueError) as exc:
+        LinkConfig(**kw)
+    assert fragment in str(exc.value)
