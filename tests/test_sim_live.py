@@ -282,3 +282,89 @@ def test_cli_bad_arguments_and_listing():
     assert main(["--imu-grade", "navigation"]) == 2
     assert main(["--scenario", "no_such_scenario", "--mavlink", "udpin:127.0.0.1:0"]) == 2
     assert main(["--list-scenarios"]) == 0
+
+
+def _track_until(s, t_end, types=("SIMSTATE", "ATTITUDE", "HEARTBEAT")):
+    """Collect (time_boot_s, msg) until ATTITUDE says time_boot >= t_end (ATTITUDE must stream)."""
+    out, t = [], 0.0
+    while t < t_end:
+        m = s.c.recv_match(type=list(types), blocking=True, timeout=1.0)
+        assert m is not None
+        if m.get_type() == "ATTITUDE":
+            t = m.time_boot_ms / 1000.0
+        out.append((t, m))
+    return out
+
+
+def _bearing_deg(lat1, lon1, lat2, lon2):
+    la1, la2, dl = map(math.radians, (lat1, lat2, lon2 - lon1))
+    return math.degrees(math.atan2(math.sin(dl) * math.cos(la2),
+                                   math.cos(la1) * math.sin(la2) - math.sin(la1) * math.cos(la2) * math.cos(dl))) % 360
+
+
+def test_reposition_loiter_mode_and_external_yaw_are_obeyed(sim_factory, tmp_path):
+    """DO_REPOSITION (COMMAND_INT) to a point 1.5 km south-east: ACCEPTED, GUIDED (15), and within
+    25 s the ground track points at it; then DO_SET_MODE LOITER (12): the vehicle circles (stays
+    within 3 loiter radii of where it was). ODOMETRY yaws sent meanwhile land in the truth log."""
+    log = tmp_path / "t.npz"
+    s = sim_factory("--scenario", "inclined_rail", "--speed", "20", "--duration", "0", "--truth-log", str(log),
+                    "--set", "launcher.rest_s=2", "--set", "wind.gust_sigma_m_s=0.0")
+    assert s.set_rate(30, 10) == 0
+    tr = _track_until(s, 35.0)
+    home = next((m.lat * 1e-7, m.lng * 1e-7) for _, m in tr if m.get_type() == "SIMSTATE")
+    tgt = (home[0] - 0.0095, home[1] + 0.014)  # ~1.05 km S, ~0.95 km E at 47.4 N
+    s.c.mav.command_int_send(1, 1, mavutil.mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, 192, 0, 0,
+                             -1, 0, 0, float("nan"), int(tgt[0] * 1e7), int(tgt[1] * 1e7), 120.0)
+    ack = s.c.recv_match(type="COMMAND_ACK", blocking=True, timeout=3.0)
+    assert ack is not None and ack.command == 192 and ack.result == 0
+    q = [math.cos(0.5), 0.0, 0.0, math.sin(0.5)]  # yaw 1 rad
+    s.c.mav.odometry_send(0, 1, 2, float("nan"), float("nan"), float("nan"), q, float("nan"), float("nan"),
+                          float("nan"), float("nan"), float("nan"), float("nan"), [float("nan")] * 20 + [0.01],
+                          [float("nan")] * 21)
+    t_cmd = tr[-1][0]
+    tr = _track_until(s, t_cmd + 25.0)
+    assert any(m.get_type() == "HEARTBEAT" and m.custom_mode == 15 for _, m in tr)
+    pos = [(t, m.lat * 1e-7, m.lng * 1e-7) for t, m in tr if m.get_type() == "SIMSTATE"]
+    (_, a0, b0), (_, a1, b1) = pos[-3], pos[-1]
+    err = (_bearing_deg(a0, b0, a1, b1) - _bearing_deg(a1, b1, *tgt) + 180) % 360 - 180
+    assert abs(err) < 15.0
+    assert s.command(176, 1, 12) == 0  # ArduPlane LOITER
+    t_l = tr[-1][0]
+    tr = _track_until(s, t_l + 40.0)
+    assert any(m.get_type() == "HEARTBEAT" and m.custom_mode == 12 for _, m in tr)
+    pos = np.array([(m.lat * 1e-7, m.lng * 1e-7) for _, m in tr if m.get_type() == "SIMSTATE"])
+    d_m = np.hypot((pos[:, 0] - a1) * 111.2e3, (pos[:, 1] - b1) * 111.2e3 * math.cos(math.radians(a1)))
+    assert d_m.max() < 3 * 120.0 + 50.0
+    assert s.command(176, 1, 7) == 2  # a mode the simulator does not fly: DENIED
+    s.close()
+    z = np.load(log)
+    assert z["ext_yaw_rad"].size == 1 and z["ext_yaw_rad"][0] == pytest.approx(1.0, abs=1e-6)
+    assert z["ext_yaw_var_rad2"][0] == pytest.approx(0.01)
+
+
+def test_link_faults_drop_duplicate_corrupt_and_request_data_stream(sim_factory):
+    """20 % drops, 10 % duplicates, 5 % corrupted packets on RAW_IMU requested with the legacy
+    REQUEST_DATA_STREAM at 100 Hz: the client sees ~ (1 - 0.2) * 1.1 * (1 - 0.05) of the messages,
+    repeated time_usec values, and CRC errors; the stream keeps going."""
+    s = sim_factory("--scenario", "inclined_rail", "--duration", "0", "--speed", "2", "--seed", "4",
+                    "--set", "faults.drop_rate=0.2", "--set", "faults.duplicate_rate=0.1",
+                    "--set", "faults.corrupt_rate=0.05")
+    s.c.mav.request_data_stream_send(1, 1, 1, 100, 1)
+    _count(s.c, 0.3, {"RAW_IMU"})
+    got = _count(s.c, 3.0, {"RAW_IMU"})["RAW_IMU"]
+    tus = [m.time_usec for _, m in got]
+    span_samples = (tus[-1] - tus[0]) * 1e-6 * 100 + 1
+    ratio = len(tus) / span_samples
+    assert 0.70 < ratio < 0.97, ratio
+    assert len(tus) - len(set(tus)) > 5  # duplicates
+    assert s.c.mav.total_receive_errors > 0  # corrupted packets were rejected by CRC
+
+
+def test_mag_dropout_sends_zero_mag_and_clears_health(sim_factory):
+    s = sim_factory("--scenario", "inclined_rail", "--duration", "0", "--speed", "2",
+                    "--set", 'faults.sensor_dropouts=[{sensor="mag", start_s=0.0, end_s=100.0}]')
+    assert s.set_rate(27, 50) == 0 and s.set_rate(1, 5) == 0
+    got = _count(s.c, 1.0, {"RAW_IMU", "SYS_STATUS"})
+    assert all((m.xmag, m.ymag, m.zmag) == (0, 0, 0) for _, m in got["RAW_IMU"])
+    assert all(m.zacc < -900 for _, m in got["RAW_IMU"])  # the rest of the IMU still flows
+    assert all(not m.onboard_control_sensors_health & 4 for _, m in got["SYS_STATUS"])
