@@ -511,7 +511,7 @@ class Autopilot:
         last_status = 0.0
         try:
             while not self._stop:
-                t_next = min(min(s.next_s for s in self.streams.values()), end)
+                t_next = min(min((s.next_s for s in self.streams.values()), default=self.t + 0.05), end)
                 if self.reboot_at is not None and self.t < self.reboot_at <= t_next:
                     t_next = self.reboot_at
                 # pace against the wall clock, receiving meanwhile

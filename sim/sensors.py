@@ -116,21 +116,36 @@ class Triad:
         return self.bias0 + self.walk
 
 
-def gauss_markov_on_grid(rng: np.random.Generator, t0: float, t1: float, tau_s: float, n_series: int,
-                         state: np.ndarray | None, step_s: float = 0.1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unit-variance first-order Gauss-Markov series on a coarse grid covering [t0, t1]; returns
-    (grid times, values (m, n_series), last state) for linear interpolation."""
-    m = int(math.ceil((t1 - t0) / step_s)) + 2
-    tg = t0 + step_s * np.arange(m)
-    a = math.exp(-step_s / tau_s)
-    b = math.sqrt(1.0 - a * a)
-    x = rng.standard_normal(n_series) if state is None else state.copy()
-    noise = rng.standard_normal((m, n_series))
-    out = np.empty((m, n_series))
-    for i in range(m):
-        out[i] = x
-        x = a * x + b * noise[i]
-    return tg, out, x
+class GaussMarkovGrid:
+    """Unit-variance first-order Gauss-Markov series on a fixed global grid (t = i * step_s),
+    linearly interpolated; extending it chunk by chunk gives the same values as one long call."""
+
+    def __init__(self, rng: np.random.Generator, tau_s: float, n_series: int, step_s: float = 0.1):
+        self.rng, self.n, self.step = rng, n_series, step_s
+        self.a = math.exp(-step_s / tau_s) if tau_s > 0 else 0.0
+        self.b = math.sqrt(1.0 - self.a * self.a)
+        self.i0 = 0
+        self.vals = rng.standard_normal((1, n_series))  # value at grid index i0
+
+    def at(self, t: np.ndarray) -> np.ndarray:
+        i_need = int(math.floor(t[-1] / self.step)) + 1
+        i_last = self.i0 + len(self.vals) - 1
+        if i_need > i_last:
+            m = i_need - i_last
+            noise = self.rng.standard_normal((m, self.n))
+            new = np.empty((m, self.n))
+            x = self.vals[-1]
+            for j in range(m):
+                x = self.a * x + self.b * noise[j]
+                new[j] = x
+            self.vals = np.vstack([self.vals, new])
+        tg = (self.i0 + np.arange(len(self.vals))) * self.step
+        out = np.stack([np.interp(t, tg, self.vals[:, i]) for i in range(self.n)], -1)
+        # keep only what the next chunk can still need
+        keep_from = max(0, int(math.floor(t[-1] / self.step)) - self.i0)
+        self.vals = self.vals[keep_from:]
+        self.i0 += keep_from
+        return out
 
 
 class SensorSuite:
@@ -147,6 +162,7 @@ class SensorSuite:
         self.gyro = Triad(self.p, "gyro", rng[0], rng[1], rng[2], dt_s)
         self.accel = Triad(self.p, "accel", rng[3], rng[4], rng[5], dt_s)
         self.rng_mag, self.rng_baro, self.rng_air, self.rng_fc = rng[6], rng[7], rng[8], rng[9]
+        self.rng_temp = rng[10]
         M = scenario["mag"]
         self.W = np.asarray(M["soft_iron"], float)
         self.hard_iron = np.asarray(M["hard_iron_gauss"], float)
@@ -160,7 +176,7 @@ class SensorSuite:
         F = scenario["fc"]
         self.fc_p = F
         self.gnss_lost_s = scenario["gnss"]["lost_at_s"]
-        self.fc_state: np.ndarray | None = None
+        self.fc_gm = GaussMarkovGrid(self.rng_fc, F["error_tau_s"], 3)
         self.fc_drift_sign = float(self.rng_fc.choice([-1.0, 1.0]))
         self.dropouts = scenario["faults"]["sensor_dropouts"]
 
@@ -206,7 +222,7 @@ class SensorSuite:
         B = self.sc["baro"]
         press = earth.isa_pressure_pa(st["alt_m"]) + B["bias_pa"] + self.rng_baro.standard_normal(n) * B["noise_pa"]
         temp = earth.isa_temperature_k(st["alt_m"]) + B["temperature_offset_k"] + \
-            self.rng_baro.standard_normal(n) * B["temperature_noise_k"]
+            self.rng_temp.standard_normal(n) * B["temperature_noise_k"]
         A = self.sc["airspeed"]
         u = np.maximum(tr["air_body_m_s"][:, 0], 0.0)
         diff = 0.5 * earth.isa_density_kg_m3(st["alt_m"]) * u * u + A["offset_pa"] + \
@@ -228,9 +244,7 @@ class SensorSuite:
         if len(t) == 0:
             return eul
         F = self.fc_p
-        tg, gm, self.fc_state = gauss_markov_on_grid(self.rng_fc, t[0], t[-1], F["error_tau_s"], 3, self.fc_state)
-        # restart the next chunk's grid where this one continues
-        e = np.stack([np.interp(t, tg, gm[:, i]) for i in range(3)], -1)
+        e = self.fc_gm.at(t)
         sig_rp = np.full(len(t), math.radians(F["roll_pitch_error_deg"]))
         sig_y = np.full(len(t), math.radians(F["yaw_error_deg"]))
         drift = np.zeros(len(t))
