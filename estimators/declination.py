@@ -189,10 +189,16 @@ def estimate_declination(state: RestState, lat_rad: float, wmm_declination_rad: 
                      f"{math.degrees(sigma_rate) * 3600:.2f} deg/h -> true-heading sigma "
                      f"{math.degrees(sigma_Hg):.1f} deg > {math.degrees(params.max_heading_sigma_rad):.1f} deg; using WMM"))
     if rate_dev > params.rate_consistency_k * sigma_rate + 0.1 * EARTH_RATE_RAD_S:
+        why = "motion or uncompensated bias"
+        if np.any(state.gyro_m2 == 0.0):
+            why = "the gyro samples do not vary: quantised coarser than Earth rate (e.g. RAW_IMU mrad/s)"
         return DeclinationResult(
             **fallback, magnetic_heading_rad=psi_m,
             message=(f"measured rate {math.degrees(w_norm) * 3600:.2f} deg/h is inconsistent with Earth "
-                     f"rate 15.04 deg/h (motion or uncompensated bias); using WMM"))
+                     f"rate 15.04 deg/h ({why}); using WMM"))
+    if np.linalg.norm(np.cross(f, state.gyro_mean_rad_s)) <= 1e-12 * np.linalg.norm(f) * EARTH_RATE_RAD_S:
+        return DeclinationResult(**fallback, magnetic_heading_rad=psi_m,
+                                 message="measured rate is zero or parallel to gravity: no azimuth; using WMM")
     C = triad_alignment(f, state.gyro_mean_rad_s, lat_rad)
     _, _, H_g = euler_from_dcm(C)
     # magnetometer contribution: averaged noise across the horizontal field
