@@ -345,13 +345,19 @@ def test_reposition_loiter_mode_and_external_yaw_are_obeyed(sim_factory, tmp_pat
 def test_link_faults_drop_duplicate_corrupt_and_request_data_stream(sim_factory):
     """20 % drops, 10 % duplicates, 5 % corrupted packets on RAW_IMU requested with the legacy
     REQUEST_DATA_STREAM at 100 Hz: the client sees ~ (1 - 0.2) * 1.1 * (1 - 0.05) of the messages,
-    repeated time_usec values, and CRC errors; the stream keeps going."""
+    repeated time_usec values, and CRC errors; the stream keeps going. 10 % of the ATTITUDE
+    messages carry a NaN angle."""
     s = sim_factory("--scenario", "inclined_rail", "--duration", "0", "--speed", "2", "--seed", "4",
                     "--set", "faults.drop_rate=0.2", "--set", "faults.duplicate_rate=0.1",
-                    "--set", "faults.corrupt_rate=0.05")
+                    "--set", "faults.corrupt_rate=0.05", "--set", "faults.nan_rate=0.1")
     s.c.mav.request_data_stream_send(1, 1, 1, 100, 1)
+    s.c.mav.request_data_stream_send(1, 1, 10, 50, 1)
     _count(s.c, 0.3, {"RAW_IMU"})
-    got = _count(s.c, 3.0, {"RAW_IMU"})["RAW_IMU"]
+    both = _count(s.c, 3.0, {"RAW_IMU", "ATTITUDE"})
+    got = both["RAW_IMU"]
+    att = [m for _, m in both["ATTITUDE"]]
+    n_nan = sum(not all(math.isfinite(v) for v in (m.roll, m.pitch, m.yaw)) for m in att)
+    assert 0.04 * len(att) < n_nan < 0.2 * len(att), (n_nan, len(att))
     tus = [m.time_usec for _, m in got]
     span_samples = (tus[-1] - tus[0]) * 1e-6 * 100 + 1
     ratio = len(tus) / span_samples
