@@ -1,16 +1,25 @@
 """FC timestamps -> one monotonic FC time per stream: unwrap, reboot and gap detection.
 
-The FC stamps its messages with time since boot, either ``time_usec`` (uint64 microseconds,
-RAW_IMU, HIGHRES_IMU, ESTIMATOR_STATUS: never wraps in practice) or ``time_boot_ms`` (uint32
-milliseconds, SCALED_IMU, SCALED_PRESSURE, ATTITUDE: wraps every 2^32 ms = 49.71 days). This
-module turns them into ``time_fc_s`` with three guarantees:
+The FC stamps its messages with time since boot, either ``time_usec`` (microseconds: RAW_IMU,
+HIGHRES_IMU, ESTIMATOR_STATUS) or ``time_boot_ms`` (uint32 milliseconds: SCALED_IMU,
+SCALED_PRESSURE, ATTITUDE). Two clocks wrap:
 
-1. **Wrap**: a ``time_boot_ms`` value is unwrapped against the latest FC time seen on any stream
-   (``t_ref``): it takes the wrap count k that puts ``raw + k 2^32`` within ``wrap_window_s`` of
-   ``t_ref``. A new k above every previous one is reported once as ``time_wrap``.
-2. **Reboot (backward jump)**: a stream whose raw time goes back by more than ``reboot_jump_s``
-   means the FC rebooted (its clock restarted). Reported as ``fc_reboot``; every stream is reset
-   and the output time is continued monotonically: the new boot's time ``t_raw`` is mapped to
+- ``time_boot_ms`` is uint32 ms: it wraps every 2^32 ms = 49.71 days;
+- ArduPilot fills RAW_IMU.time_usec from ``AP_HAL::micros()``, a **uint32** microsecond counter,
+  even though the field is uint64: it wraps every 2^32 us = 71.58 minutes of FC uptime. A 64-bit
+  sender (PX4) simply never shows a value >= 2^32 that goes back, so the same rule is harmless.
+
+This module turns them into ``time_fc_s`` with three guarantees:
+
+1. **Wrap**: a raw value r (a clock with modulus M) is unwrapped to ``r + k M`` where k makes it
+   closest to the *predicted* FC time ``t_pred = t_ref + (rx - rx_ref)`` (latest FC time on any
+   stream plus the local time elapsed since it arrived). A change of k is accepted only when it
+   lands within ``wrap_tolerance_s`` (+0.1 % of the elapsed local time, for clock drift) of
+   t_pred, so a wrap is told from a reboot by the local clock, and still recognised after a
+   long link loss. A new, higher k is reported once as ``time_wrap``.
+2. **Reboot (backward jump)**: a stream whose (unwrapped) time goes back by more than
+   ``reboot_jump_s`` means the FC rebooted. Reported as ``fc_reboot``; every stream is reset and
+   the output time continues monotonically: the new boot's time ``t_raw`` is mapped to
    ``t_last_out + (rx_now - rx_last)`` (elapsed local time across the reboot), so estimators are
    never handed a backward time. Smaller backward steps (reordered or duplicated packets) are
    dropped and counted (``stale``), never passed on.
@@ -25,20 +34,25 @@ from dataclasses import dataclass, field
 
 MS_WRAP = 1 << 32
 """time_boot_ms modulus (uint32 milliseconds)."""
+US32_WRAP = 1 << 32
+"""Modulus of a uint32 microsecond counter sent in a uint64 time_usec field (ArduPilot RAW_IMU)."""
+_MOD_S = {"ms": MS_WRAP * 1e-3, "us": US32_WRAP * 1e-6}
+_SCALE_S = {"ms": 1e-3, "us": 1e-6}
 
 
 @dataclass(frozen=True, slots=True)
 class TimebaseParams:
     reboot_jump_s: float = 1.0
     """A raw FC time going back by more than this (s) on one stream is an FC reboot."""
-    wrap_window_s: float = 60.0
-    """A time_boot_ms value is unwrapped only if it lands within this (s) of the latest FC time."""
+    wrap_tolerance_s: float = 2.0
+    """A wrap is accepted when the unwrapped time is within this (s) of the time predicted from
+    the local clock (plus 0.1 % of the local time elapsed since the reference sample)."""
 
     def __post_init__(self) -> None:
         if not self.reboot_jump_s > 0:
             raise ValueError(f"reboot_jump_s must be > 0, got {self.reboot_jump_s}")
-        if not 0 < self.wrap_window_s < MS_WRAP / 2000.0:
-            raise ValueError(f"wrap_window_s must be in (0, {MS_WRAP / 2000.0:g}), got {self.wrap_window_s}")
+        if not 0 < self.wrap_tolerance_s < 600.0:
+            raise ValueError(f"wrap_tolerance_s must be in (0, 600), got {self.wrap_tolerance_s}")
 
 
 @dataclass(slots=True)
@@ -58,10 +72,12 @@ class TimebaseEvent:
 class FcTimebase:
     """State of the FC clock reconstruction (one per link)."""
     params: TimebaseParams = field(default_factory=TimebaseParams)
-    wraps: int = 0
-    """Highest time_boot_ms wrap count seen in the current boot."""
+    wraps: dict[str, int] = field(default_factory=lambda: {"ms": 0, "us": 0})
+    """Wrap count of each clock ("ms": uint32 ms, "us": uint32 us) in the current boot."""
     t_ref_s: float | None = None
     """Latest raw (unwrapped, current boot) FC time seen on any stream, s."""
+    rx_ref_s: float | None = None
+    """Local receive time of that sample, s."""
     offset_s: float = 0.0
     """Added to the current boot's raw time to keep the output monotonic across reboots, s."""
     last_out_s: float | None = None
@@ -73,26 +89,33 @@ class FcTimebase:
     """Samples dropped because their time did not advance on their stream."""
     reboots: int = 0
 
-    def _unwrap_ms(self, raw_ms: int, events: list[TimebaseEvent]) -> float:
+    def _unwrap(self, raw: int, unit: str, rx_s: float, events: list[TimebaseEvent]) -> float:
+        raw_s = raw * _SCALE_S[unit]
+        if unit == "us" and raw >= US32_WRAP:
+            return raw_s  # a 64-bit microsecond clock: nothing to unwrap
+        k_now = self.wraps[unit]
         if self.t_ref_s is None:
-            return raw_ms * 1e-3
-        ref_ms = self.t_ref_s * 1000.0
-        k = round((ref_ms - raw_ms) / MS_WRAP)
-        k = max(k, 0)
-        t_ms = raw_ms + k * MS_WRAP
-        if abs(t_ms - ref_ms) > self.params.wrap_window_s * 1000.0:
-            k = self.wraps  # no consistent unwrap: keep the current count, let jump logic judge
-            t_ms = raw_ms + k * MS_WRAP
-        elif k > self.wraps:
-            self.wraps = k
-            events.append(TimebaseEvent(
-                "time_wrap", f"time_boot_ms wrapped (count {k}): raw {raw_ms} ms -> {t_ms * 1e-3:.3f} s"))
-        return t_ms * 1e-3
+            return raw_s + k_now * _MOD_S[unit]
+        mod_s = _MOD_S[unit]
+        elapsed_s = max(0.0, rx_s - self.rx_ref_s)
+        t_pred = self.t_ref_s + elapsed_s
+        k = max(0, round((t_pred - raw_s) / mod_s))
+        if k != k_now:
+            tol_s = self.params.wrap_tolerance_s + 1e-3 * elapsed_s
+            if abs(raw_s + k * mod_s - t_pred) > tol_s:
+                k = k_now  # not consistent with the local clock: keep the count, jump logic judges
+            elif k > k_now:
+                self.wraps[unit] = k
+                clock = "time_boot_ms (uint32 ms)" if unit == "ms" else "time_usec (uint32 us counter)"
+                events.append(TimebaseEvent(
+                    "time_wrap", f"{clock} wrapped (count {k}): raw {raw} -> {raw_s + k * mod_s:.6f} s"))
+        return raw_s + k * mod_s
 
     def reset(self) -> None:
         """Forget the FC clock entirely (e.g. a different FC). Output stays monotonic."""
-        self.wraps = 0
+        self.wraps = {"ms": 0, "us": 0}
         self.t_ref_s = None
+        self.rx_ref_s = None
         self.streams.clear()
 
     def feed(self, stream: str, raw: int, unit: str, rx_s: float,
@@ -104,12 +127,9 @@ class FcTimebase:
         gap_s: report a time_gap when this stream advances by more than this (None: never).
         """
         events: list[TimebaseEvent] = []
-        if unit == "us":
-            t_raw = raw * 1e-6
-        elif unit == "ms":
-            t_raw = self._unwrap_ms(int(raw) % MS_WRAP, events)
-        else:
+        if unit not in _MOD_S:
             raise ValueError(f"unit must be 'us' or 'ms', got {unit!r}")
+        t_raw = self._unwrap(int(raw) % MS_WRAP if unit == "ms" else int(raw), unit, rx_s, events)
         st = self.streams.get(stream)
         if st is not None and t_raw <= st.last_raw_s:
             back_s = st.last_raw_s - t_raw
@@ -125,9 +145,8 @@ class FcTimebase:
                 "fc_reboot", f"{stream} time went back {back_s:.3f} s (from {st.last_raw_s:.3f} s to "
                              f"{t_raw:.3f} s since boot): FC rebooted; FC time continues at "
                              f"{t_raw + self.offset_s:.3f} s"))
-            self.wraps = 0
-            self.t_ref_s = None
-            self.streams.clear()
+            self.reset()
+            t_raw = self._unwrap(int(raw) % MS_WRAP if unit == "ms" else int(raw), unit, rx_s, events)
             st = None
         t_out = t_raw + self.offset_s
         floor = self.floors_s.get(stream)
@@ -146,6 +165,7 @@ class FcTimebase:
             self.streams[stream] = _Stream(t_raw, t_out)
         if self.t_ref_s is None or t_raw > self.t_ref_s:
             self.t_ref_s = t_raw
+            self.rx_ref_s = rx_s
         if self.last_out_s is None or t_out > self.last_out_s:
             self.last_out_s = t_out
         self.last_rx_s = rx_s

@@ -1,11 +1,13 @@
 """FC clock reconstruction: uint32 ms wrap, reboot (backward jump), gaps, stale packets."""
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mavlink_io.timebase import MS_WRAP, FcTimebase, TimebaseParams
+from mavlink_io.timebase import MS_WRAP, US32_WRAP, FcTimebase, TimebaseParams
 
 WRAP_S = MS_WRAP / 1000.0  # 4294967.296 s = 49.71 days
+US32_S = US32_WRAP / 1e6  # 4294.967296 s = 71.58 min: ArduPilot's RAW_IMU micros() counter
 
 
 def _feed_all(tb, seq, gap_s=None):
@@ -20,7 +22,7 @@ def _feed_all(tb, seq, gap_s=None):
 def test_ms_wrap_is_unwrapped_and_reported_once():
     tb = FcTimebase()
     raws = [MS_WRAP - 20, MS_WRAP - 10, 0, 10, 20]  # 20 ms steps across the wrap
-    out, events = _feed_all(tb, [("ATTITUDE", r, "ms", 1.0 + i) for i, r in enumerate(raws)])
+    out, events = _feed_all(tb, [("ATTITUDE", r, "ms", 1.0 + 0.010 * i) for i, r in enumerate(raws)])
     assert out == pytest.approx([WRAP_S - 0.020, WRAP_S - 0.010, WRAP_S, WRAP_S + 0.010, WRAP_S + 0.020], abs=1e-9)
     assert [e.kind for e in events] == ["time_wrap"]
 
@@ -33,6 +35,52 @@ def test_ms_stream_unwrapped_against_us_stream():
     assert t_imu == pytest.approx(WRAP_S + 5.0)
     assert t_p == pytest.approx(WRAP_S + 4.98, abs=1e-9)
     assert [e.kind for e in ev] == ["time_wrap"]
+
+
+def test_ardupilot_raw_imu_uint32_microsecond_wrap():
+    """RAW_IMU.time_usec is uint64 but ArduPilot fills it from a uint32 us counter (71.6 min)."""
+    tb = FcTimebase()
+    raws = [US32_WRAP - 10_000, US32_WRAP - 5_000, 0, 5_000, 10_000]
+    out, events = _feed_all(tb, [("IMU", r, "us", 4300.0 + 0.005 * i) for i, r in enumerate(raws)], gap_s=0.5)
+    np.testing.assert_allclose(np.diff(out), [0.005] * 4, atol=1e-9)
+    assert out[2] == pytest.approx(US32_S, abs=1e-9)
+    assert [e.kind for e in events] == ["time_wrap"] and "uint32 us" in events[0].detail
+    # the uint32 ms streams of the same FC agree with the unwrapped IMU time
+    t_att, ev = tb.feed("ATTITUDE", int(US32_S * 1000) + 10, "ms", 4300.02)
+    assert ev == [] and t_att == pytest.approx(US32_S + 0.010 - 0.000296, abs=1e-6)
+
+
+def test_wrap_recognised_after_a_long_link_loss():
+    tb = FcTimebase()
+    tb.feed("PRESSURE", MS_WRAP - 10_000, "ms", 1000.0)  # 10 s before the 49.7-day wrap
+    t, ev = tb.feed("PRESSURE", 20_000, "ms", 1030.0)  # 30 s of silence, then 20 s after the wrap
+    assert [e.kind for e in ev] == ["time_wrap"]
+    assert t == pytest.approx(WRAP_S + 20.0)
+
+
+def test_reboot_near_the_us32_wrap_is_not_taken_for_a_wrap():
+    tb = FcTimebase()
+    tb.feed("IMU", US32_WRAP - 1_000_000, "us", 100.0)  # 1 s before the counter would wrap
+    # 0.5 s later the FC says 2 s since boot: a wrap would mean 3 s elapsed, the local clock says 0.5
+    t, ev = tb.feed("IMU", 2_000_000, "us", 100.5)
+    assert [e.kind for e in ev] == ["fc_reboot"] and t == pytest.approx(US32_S - 1.0 + 0.5)
+    t2, ev2 = tb.feed("IMU", 2_005_000, "us", 100.505)  # and the new boot goes on normally
+    assert ev2 == [] and t2 - t == pytest.approx(0.005, abs=1e-9)
+
+
+def test_reboot_just_after_a_us32_wrap_is_caught_by_the_ms_streams():
+    """3 s after boot looks like 'a little later' to a wrapped uint32 us clock; the uint32 ms
+    stream of the same FC (ATTITUDE) goes back 4295 s and tells the reboot."""
+    tb = FcTimebase()
+    _feed_all(tb, [("IMU", US32_WRAP - 5_000, "us", 10.0), ("ATTITUDE", int(US32_S * 1000) - 5, "ms", 10.0),
+                   ("IMU", 5_000, "us", 10.01)])  # wrapped once
+    t_imu, ev = tb.feed("IMU", 3_000_000, "us", 20.0)  # rebooted 10 s later: ambiguous on its own
+    assert ev == []
+    t_att, ev = tb.feed("ATTITUDE", 3_001, "ms", 20.001)
+    assert [e.kind for e in ev] == ["fc_reboot"] and t_att > t_imu
+    out, ev = _feed_all(tb, [("IMU", 3_000_000 + 5_000 * i, "us", 20.0 + 0.005 * i) for i in range(1, 5)])
+    assert ev == [] and all(o is not None for o in out) and np.allclose(np.diff(out), 0.005, atol=1e-9)
+    assert out[0] > t_imu  # never backwards
 
 
 def test_late_pre_wrap_packet_is_dropped_not_jumped_forward():
