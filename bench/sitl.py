@@ -124,19 +124,75 @@ class OutputListener:
         self._conn.close()
 
 
+class UdpTap:
+    """A UDP relay between the simulator and the daemon that decodes what the daemon sends.
+
+    The simulator pushes to ``sim_side_port``; the tap forwards to the daemon's udpin port and
+    relays the daemon's replies back to the simulator, recording every message the daemon sent
+    (an observer outside both processes).
+    """
+
+    def __init__(self, daemon_port: int):
+        from pymavlink.dialects.v20 import ardupilotmega
+        self.daemon_addr = ("127.0.0.1", daemon_port)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sim_side_port = self.sock.getsockname()[1]
+        self.parser = ardupilotmega.MAVLink(None)
+        self.parser.robust_parsing = True
+        self.from_daemon: list[tuple[float, object]] = []
+        self.forwarded = {"to_daemon": 0, "to_sim": 0}
+        self._sim_addr = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def start(self) -> "UdpTap":
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        self.sock.settimeout(0.2)
+        while not self._stop.is_set():
+            try:
+                data, addr = self.sock.recvfrom(65536)
+            except (TimeoutError, socket.timeout):
+                continue
+            except OSError:
+                return
+            if addr == self.daemon_addr:
+                if self._sim_addr is not None:
+                    self.sock.sendto(data, self._sim_addr)
+                    self.forwarded["to_sim"] += 1
+                now = time.monotonic()
+                for msg in self.parser.parse_buffer(data) or []:
+                    self.from_daemon.append((now, msg))
+            else:
+                self._sim_addr = addr
+                self.sock.sendto(data, self.daemon_addr)
+                self.forwarded["to_daemon"] += 1
+
+    def sent_by_daemon(self, mtype: str) -> list:
+        return [m for _, m in self.from_daemon if m.get_type() == mtype]
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self.sock.close()
+
+
 class Sitl:
     """Simulator + daemon as two processes; outputs mirrored to a local listener."""
 
     def __init__(self, scenario: str = "inclined_rail", speed: float = 1.0, seed: int = 1,
                  workdir: Path | None = None, config_overrides: dict | None = None,
                  sim_args: list[str] | None = None, daemon_args: list[str] | None = None,
-                 status_interval_s: float = 0.0, capture_output: bool = True):
+                 status_interval_s: float = 0.0, capture_output: bool = True, tap: bool = False):
         import tempfile
         self.scenario = scenario
         self.workdir = Path(workdir or tempfile.mkdtemp(prefix="azimuthd-sitl-"))
         self.fc_port = free_udp_port()
         self.out_port = free_udp_port()
-        self.truth_log = self.workdir / "truth.npz"
+        self.truth_log = self.workdir / "truth.csv"
         overrides = {"mavlink": {"url": f"udpin:127.0.0.1:{self.fc_port}"},
                      "outputs": {"extra_mavlink_urls": [f"udpout:127.0.0.1:{self.out_port}"],
                                  "status_interval_s": status_interval_s},
@@ -147,8 +203,10 @@ class Sitl:
         for section, keys in (config_overrides or {}).items():
             overrides.setdefault(section, {}).update(keys)
         self.config_path = write_config(self.workdir / "azimuthd.toml", overrides)
+        self.tap = UdpTap(self.fc_port) if tap else None
+        sim_port = self.tap.sim_side_port if self.tap else self.fc_port
         self.sim_cmd = [sys.executable, "-m", "service.cli", "sim", "--scenario", scenario,
-                        "--mavlink", f"udpout:127.0.0.1:{self.fc_port}", "--speed", str(speed),
+                        "--mavlink", f"udpout:127.0.0.1:{sim_port}", "--speed", str(speed),
                         "--seed", str(seed), "--truth-log", str(self.truth_log), *(sim_args or [])]
         self.daemon_cmd = [sys.executable, "-m", "service.cli", "run", "--config", str(self.config_path),
                            *(daemon_args or [])]
@@ -159,6 +217,8 @@ class Sitl:
 
     def __enter__(self) -> "Sitl":
         self.listener.start()
+        if self.tap:
+            self.tap.start()
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         out = (lambda name: open(self.workdir / name, "w")) if self.capture_output else (lambda name: None)
         self._daemon_out = out("daemon.log")
@@ -192,6 +252,8 @@ class Sitl:
                     p.kill()
                     p.wait(5)
         self.listener.stop()
+        if self.tap:
+            self.tap.stop()
         for f in (self._daemon_out, self._sim_out):
             if f:
                 f.close()
@@ -204,8 +266,13 @@ class Sitl:
         return p.read_text() if p.exists() else ""
 
     def truth(self) -> dict[str, np.ndarray]:
-        with np.load(self.truth_log) as z:
-            return {k: z[k] for k in z.files}
+        """The simulator's truth log (columns of sim/truthlog.py), plus ``launch_time_boot_s``."""
+        from sim.trajectory import PHASES
+        from sim.truthlog import load_truth_log
+        tr = load_truth_log(str(self.truth_log))
+        moving = np.nonzero(tr["phase"] != PHASES.index("rest"))[0]
+        tr["launch_time_boot_s"] = float(tr["time_boot_s"][moving[0]]) if moving.size else math.nan
+        return tr
 
 
 def angle_diff_rad(a, b):

@@ -13,6 +13,8 @@ import signal
 import sys
 import time
 
+from pymavlink.dialects.v20 import common as mavlink2
+
 from mavlink_io.link import LinkConfig, LinkEvent, MavlinkLink
 from mavlink_io.samples import FcAttitude, FcEkfStatus, FcHeartbeat, ImuSample, PressureSample
 from service.logs import RateLimitedLog
@@ -74,6 +76,7 @@ class Daemon:
         self.status_interval_s = out["status_interval_s"]
         self._next_attitude_rx_s = 0.0
         self._next_status_s = 0.0
+        self._next_extra_heartbeat_s = 0.0
         self.sent = {"ATTITUDE": 0}
 
     # --- lifecycle ----------------------------------------------------------------------------
@@ -124,6 +127,12 @@ class Daemon:
         for item in self.link.poll(timeout_s=timeout_s):
             self.dispatch(item)
         now = self.clock()
+        if self.extra_ports and now >= self._next_extra_heartbeat_s:
+            # ground stations and MAVLink clients discover a component by its HEARTBEAT
+            self._next_extra_heartbeat_s = now + 1.0 / self.cfg["mavlink"]["heartbeat_hz"]
+            self._send_extra(self.link.mav.heartbeat_encode(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
+                                                            mavlink2.MAV_AUTOPILOT_INVALID, 0, 0,
+                                                            mavlink2.MAV_STATE_ACTIVE))
         if self.status_interval_s > 0 and now >= self._next_status_s:
             self._next_status_s = now + self.status_interval_s
             print(status_line(self.last_solution, self.link.stats.rates_hz(), self.link.connected),
@@ -152,6 +161,9 @@ class Daemon:
 
     def _send(self, msg) -> None:
         self.link.send(msg)
+        self._send_extra(msg)
+
+    def _send_extra(self, msg) -> None:
         for p in self.extra_ports:
             try:
                 p.mav.srcSystem = self.link.mav.srcSystem
