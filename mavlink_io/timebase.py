@@ -85,6 +85,8 @@ class FcTimebase:
     streams: dict[str, _Stream] = field(default_factory=dict)
     floors_s: dict[str, float] = field(default_factory=dict)
     """Last output time per stream, kept across reboots: the output never goes back."""
+    units_seen: set = field(default_factory=set)
+    """Clocks ("ms", "us") seen in the current boot (a first sample's wrap count is not an event)."""
     stale: int = 0
     """Samples dropped because their time did not advance on their stream."""
     reboots: int = 0
@@ -95,6 +97,7 @@ class FcTimebase:
             return raw_s  # a 64-bit microsecond clock: nothing to unwrap
         k_now = self.wraps[unit]
         if self.t_ref_s is None:
+            self.units_seen.add(unit)
             return raw_s + k_now * _MOD_S[unit]
         mod_s = _MOD_S[unit]
         elapsed_s = max(0.0, rx_s - self.rx_ref_s)
@@ -104,11 +107,14 @@ class FcTimebase:
             tol_s = self.params.wrap_tolerance_s + 1e-3 * elapsed_s
             if abs(raw_s + k * mod_s - t_pred) > tol_s:
                 k = k_now  # not consistent with the local clock: keep the count, jump logic judges
+            elif k > k_now and unit not in self.units_seen:
+                self.wraps[unit] = k  # first sample of this clock: the FC was up long before we came
             elif k > k_now:
                 self.wraps[unit] = k
                 clock = "time_boot_ms (uint32 ms)" if unit == "ms" else "time_usec (uint32 us counter)"
                 events.append(TimebaseEvent(
                     "time_wrap", f"{clock} wrapped (count {k}): raw {raw} -> {raw_s + k * mod_s:.6f} s"))
+        self.units_seen.add(unit)
         return raw_s + k * mod_s
 
     def reset(self) -> None:
@@ -116,6 +122,7 @@ class FcTimebase:
         self.wraps = {"ms": 0, "us": 0}
         self.t_ref_s = None
         self.rx_ref_s = None
+        self.units_seen.clear()
         self.streams.clear()
 
     def feed(self, stream: str, raw: int, unit: str, rx_s: float,

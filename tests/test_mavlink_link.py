@@ -363,9 +363,10 @@ def test_time_wrap_and_gap_reported_through_the_link(pair):
     wrap = 1 << 32
     for t_ms in (wrap - 40, wrap - 20, 0, 20):
         fc.mav.scaled_pressure_send(t_ms, 1000.0, 0.0, 2000)
-    fc.mav.raw_imu_send(1_000_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0)
-    fc.mav.raw_imu_send(1_005_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0)
-    fc.mav.raw_imu_send(1_705_000, 0, 0, -1000, 0, 0, 0, 0, 0, 0)  # 0.7 s later: > imu_gap_s 0.5
+    # ArduPilot's RAW_IMU counter (uint32 us) of the same FC, 49.7 days after boot: wrapped ~1000
+    # times already (silently unwrapped: it is its first sample), then a 0.7 s gap > imu_gap_s 0.5
+    for dt_s in (0.1, 0.105, 0.805):
+        fc.mav.raw_imu_send(round((wrap / 1000.0 + dt_s) * 1e6) % (1 << 32), 0, 0, -1000, 0, 0, 0, 0, 0, 0)
     items = _run(link, fc, 0.15)
     kinds = [e.kind for e in _events(items)]
     assert kinds.count("time_wrap") == 1 and kinds.count("time_gap") == 1
@@ -373,6 +374,8 @@ def test_time_wrap_and_gap_reported_through_the_link(pair):
     np.testing.assert_allclose(np.diff(tp), [0.02, 0.02, 0.02], atol=1e-9)
     assert tp[2] == pytest.approx(wrap / 1000.0)
     assert link.stats.time_wraps == 1 and link.stats.time_gaps == 1
+    ti = [i.time_fc_s for i in items if isinstance(i, ImuSample)]
+    np.testing.assert_allclose(ti, np.array([0.1, 0.105, 0.805]) + wrap / 1000.0, atol=1e-6)
 
 
 def test_reordered_imu_sample_dropped_never_backwards(pair):

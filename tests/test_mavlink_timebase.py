@@ -34,7 +34,9 @@ def test_ms_stream_unwrapped_against_us_stream():
     t_p, ev = tb.feed("PRESSURE", 5000 - 20, "ms", 0.0)
     assert t_imu == pytest.approx(WRAP_S + 5.0)
     assert t_p == pytest.approx(WRAP_S + 4.98, abs=1e-9)
-    assert [e.kind for e in ev] == ["time_wrap"]
+    assert ev == []  # the first ms sample: the wrap happened before we connected
+    t_p, ev = tb.feed("PRESSURE", 5000, "ms", 0.02)
+    assert t_p == pytest.approx(WRAP_S + 5.0, abs=1e-9) and ev == []
 
 
 def test_ardupilot_raw_imu_uint32_microsecond_wrap():
@@ -81,6 +83,13 @@ def test_reboot_just_after_a_us32_wrap_is_caught_by_the_ms_streams():
     out, ev = _feed_all(tb, [("IMU", 3_000_000 + 5_000 * i, "us", 20.0 + 0.005 * i) for i in range(1, 5)])
     assert ev == [] and all(o is not None for o in out) and np.allclose(np.diff(out), 0.005, atol=1e-9)
     assert out[0] > t_imu  # never backwards
+
+
+def test_connecting_to_an_fc_up_for_days_is_not_a_wrap_event():
+    tb = FcTimebase()
+    t_att, ev1 = tb.feed("ATTITUDE", 200_000_000, "ms", 5.0)  # 2.3 days after boot
+    t_imu, ev2 = tb.feed("IMU", (200_000_000_000 + 3_000) % US32_WRAP, "us", 5.0)  # its uint32 us counter
+    assert ev1 == ev2 == [] and t_imu == pytest.approx(200_000.003, abs=1e-6)
 
 
 def test_late_pre_wrap_packet_is_dropped_not_jumped_forward():
