@@ -50,6 +50,11 @@ def _cmd_sim(argv: list[str]) -> int:
     return sim_main(argv)
 
 
+def _cmd_replay(argv: list[str]) -> int:
+    from service.replay import main as replay_main
+    return replay_main(argv)
+
+
 def _cmd_watch(argv: list[str]) -> int:
     from service.watch import main as watch_main
     return watch_main(argv)
@@ -58,6 +63,7 @@ def _cmd_watch(argv: list[str]) -> int:
 COMMANDS = {
     "run": (_cmd_run, "the daemon: estimate heading and attitude from a flight controller's sensors"),
     "sim": (_cmd_sim, "the bundled MAVLink flight simulator, as an autopilot"),
+    "replay": (_cmd_replay, "a recorded flight log (.tlog, .bin, .ulg) through the same estimators, offline"),
     "watch": (_cmd_watch, "terminal dashboard over Zenoh"),
 }
 
