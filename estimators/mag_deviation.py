@@ -38,8 +38,9 @@ from estimators.rotations import dcm_from_euler, wrap_2pi
 from estimators.polar_heading import magnetic_heading
 
 N_PER_AXIS = 7
-RESID_BURN_IN = 3 * N_PER_AXIS
+N_PER_AXIS_EXTENDED = 11
 COEFF_NAMES = ("A", "B", "C", "D", "E", "F", "G")
+COEFF_NAMES_EXTENDED = COEFF_NAMES + ("H", "I", "J", "K")
 AXES = ("x", "y", "z")
 
 
@@ -62,6 +63,10 @@ class DeviationParams:
     pitch_bins: int = 4
     min_samples_per_bin: int = 5
     """A bin counts as visited after this many observations."""
+    extended: bool = False
+    """Beyond the seed: add the cross terms [phi sin psi, phi cos psi, theta sin psi,
+    theta cos psi] (11 coefficients per axis, 33 in all). Soft iron in a banked or pitched
+    attitude produces exactly such products, which the seed's additive model cannot follow."""
 
     def __post_init__(self) -> None:
         if not 0.9 < self.forgetting_factor <= 1.0:
@@ -88,7 +93,8 @@ class DeviationState:
     resid_sq_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
     """Sum of squared normalised a-priori residuals per axis (gauss^2), after the burn-in."""
     n_resid: int = 0
-    """Residuals in that sum (the first RESID_BURN_IN are left out: they measure the prior)."""
+    """Residuals in that sum (the first 3 x coefficients-per-axis are left out: they measure
+    the prior)."""
     heading_counts: np.ndarray | None = None
     roll_counts: np.ndarray | None = None
     pitch_counts: np.ndarray | None = None
@@ -107,7 +113,8 @@ class DeviationState:
             else:
                 kw[k] = np.array(v, dtype=float if k in ("coeffs", "P", "resid_sq_sum") else np.int64)
         st = cls(**kw)
-        if st.coeffs.shape != (N_PER_AXIS, 3) or st.P.shape != (N_PER_AXIS, N_PER_AXIS):
+        n = st.coeffs.shape[0]
+        if n not in (N_PER_AXIS, N_PER_AXIS_EXTENDED) or st.coeffs.shape != (n, 3) or st.P.shape != (n, n):
             raise ValueError("persisted deviation state has wrong shapes")
         return st
 
@@ -130,17 +137,26 @@ class Coverage:
 
 
 def deviation_init(params: DeviationParams = DeviationParams()) -> DeviationState:
-    return DeviationState(coeffs=np.zeros((N_PER_AXIS, 3)),
-                          P=np.eye(N_PER_AXIS) * (params.init_coeff_sigma_gauss / params.mag_noise_gauss) ** 2,
+    n = N_PER_AXIS_EXTENDED if params.extended else N_PER_AXIS
+    return DeviationState(coeffs=np.zeros((n, 3)),
+                          P=np.eye(n) * (params.init_coeff_sigma_gauss / params.mag_noise_gauss) ** 2,
                           heading_counts=np.zeros(params.heading_bins, np.int64),
                           roll_counts=np.zeros(params.roll_bins, np.int64),
                           pitch_counts=np.zeros(params.pitch_bins, np.int64))
 
 
-def regressor(heading_rad: float, roll_rad: float, pitch_rad: float) -> np.ndarray:
-    """h = [1, sin psi, cos psi, phi, phi^2, theta, theta^2] (eq. 1)."""
-    return np.array([1.0, math.sin(heading_rad), math.cos(heading_rad), roll_rad, roll_rad ** 2,
-                     pitch_rad, pitch_rad ** 2])
+def regressor(heading_rad: float, roll_rad: float, pitch_rad: float, extended: bool = False) -> np.ndarray:
+    """h = [1, sin psi, cos psi, phi, phi^2, theta, theta^2] (eq. 1), and with ``extended``
+    the cross terms [phi sin psi, phi cos psi, theta sin psi, theta cos psi]."""
+    s, c = math.sin(heading_rad), math.cos(heading_rad)
+    h = [1.0, s, c, roll_rad, roll_rad ** 2, pitch_rad, pitch_rad ** 2]
+    if extended:
+        h += [roll_rad * s, roll_rad * c, pitch_rad * s, pitch_rad * c]
+    return np.array(h)
+
+
+def _h(state: "DeviationState", heading_rad: float, roll_rad: float, pitch_rad: float) -> np.ndarray:
+    return regressor(heading_rad, roll_rad, pitch_rad, state.coeffs.shape[0] == N_PER_AXIS_EXTENDED)
 
 
 def reference_field_body(field_ned_gauss: np.ndarray, heading_rad: float, roll_rad: float,
@@ -168,7 +184,7 @@ def deviation_step(state: DeviationState, mag_body_gauss: np.ndarray, field_ned_
         return state, DeviationDiag(False, reason="non-finite input")
     if abs(roll_rad) > params.roll_limit_rad or abs(pitch_rad) > params.pitch_limit_rad:
         return state, DeviationDiag(False, reason="outside the calibration roll/pitch limits")
-    h = regressor(heading_rad, roll_rad, pitch_rad)
+    h = _h(state, heading_rad, roll_rad, pitch_rad)
     dT = m - reference_field_body(F, heading_rad, roll_rad, pitch_rad)
     lam = params.forgetting_factor
     Ph = state.P @ h
@@ -189,7 +205,7 @@ def deviation_step(state: DeviationState, mag_body_gauss: np.ndarray, field_ned_
     if b is not None:
         pc[b] += 1
     # e^2 / s is the a-priori residual normalised by its own variance factor (1 + h^T P h)
-    burn = state.n < RESID_BURN_IN
+    burn = state.n < 3 * len(h)
     st = replace(state, coeffs=coeffs, P=P, n=state.n + 1,
                  resid_sq_sum=state.resid_sq_sum + (0.0 if burn else e * e / s),
                  n_resid=state.n_resid + (0 if burn else 1),
@@ -199,7 +215,7 @@ def deviation_step(state: DeviationState, mag_body_gauss: np.ndarray, field_ned_
 
 def deviation_model(state: DeviationState, heading_rad: float, roll_rad: float, pitch_rad: float) -> np.ndarray:
     """Modelled deviation dT (gauss, body axes) at an attitude."""
-    return regressor(heading_rad, roll_rad, pitch_rad) @ state.coeffs
+    return _h(state, heading_rad, roll_rad, pitch_rad) @ state.coeffs
 
 
 def residual_sigma_gauss(state: DeviationState) -> np.ndarray:
@@ -208,17 +224,20 @@ def residual_sigma_gauss(state: DeviationState) -> np.ndarray:
 
 
 def coefficient_covariance(state: DeviationState) -> np.ndarray:
-    """21x21 covariance, ordering [A_x..G_x, A_y..G_y, A_z..G_z] (axes independent)."""
+    """21x21 covariance, ordering [A_x..G_x, A_y..G_y, A_z..G_z] (axes independent);
+    33x33 for the extended model."""
     s2 = residual_sigma_gauss(state) ** 2
-    out = np.zeros((3 * N_PER_AXIS, 3 * N_PER_AXIS))
+    n = state.coeffs.shape[0]
+    out = np.zeros((3 * n, 3 * n))
     for i in range(3):
-        out[i * N_PER_AXIS:(i + 1) * N_PER_AXIS, i * N_PER_AXIS:(i + 1) * N_PER_AXIS] = s2[i] * state.P
+        out[i * n:(i + 1) * n, i * n:(i + 1) * n] = s2[i] * state.P
     return out
 
 
 def coefficients_dict(state: DeviationState) -> dict:
     """{'x': {'A': .., ..., 'G': ..}, 'y': ..., 'z': ...} (gauss; D..G per rad / rad^2)."""
-    return {ax: {nm: float(state.coeffs[j, i]) for j, nm in enumerate(COEFF_NAMES)}
+    names = COEFF_NAMES_EXTENDED if state.coeffs.shape[0] == N_PER_AXIS_EXTENDED else COEFF_NAMES
+    return {ax: {nm: float(state.coeffs[j, i]) for j, nm in enumerate(names)}
             for i, ax in enumerate(AXES)}
 
 
