@@ -133,3 +133,20 @@ def test_hard_soft_iron_fit_recovers_a_linear_distortion():
     S_hat, b_hat = fit_hard_soft_iron(ref @ S.T + b, ref)
     np.testing.assert_allclose(S_hat, S, atol=1e-9)
     np.testing.assert_allclose(b_hat, b, atol=1e-9)
+
+
+def test_extended_model_recovers_cross_terms_the_seed_model_cannot():
+    rng = np.random.default_rng(9)
+    c = np.vstack([true_coeffs(), rng.normal(0.0, 0.01, (4, 3))])
+    psi, phi, th = manoeuvre(2000)
+    mag = np.array([reference_field_body(FIELD, a, b, d) + regressor(a, b, d, extended=True) @ c
+                    for a, b, d in zip(psi, phi, th)])
+    p_ext = DeviationParams(extended=True, init_coeff_sigma_gauss=100.0)
+    st = fit(mag, psi, phi, th, p_ext)
+    np.testing.assert_allclose(st.coeffs, c, atol=2e-6)
+    assert coefficient_covariance(st).shape == (33, 33)
+    assert set(coefficients_dict(st)["x"]) == set("ABCDEFGHIJK")
+    seed_model = fit(mag, psi, phi, th)
+    from estimators.mag_deviation import residual_sigma_gauss
+    assert residual_sigma_gauss(seed_model).min() > 1e-3           # cannot follow the cross terms
+    assert DeviationState.from_dict(st.to_dict()).coeffs.shape == (11, 3)

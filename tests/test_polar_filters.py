@@ -221,3 +221,25 @@ def test_heading_save_restore_equals_unbroken_run():
         b, _ = polar_heading_step(b, u)
     np.testing.assert_array_equal(a.x, b.x)
     np.testing.assert_array_equal(a.P, b.P)
+
+
+def test_horizontal_field_threshold_is_configurable():
+    decl = 0.3
+    field = 0.018 * np.array([math.cos(decl), math.sin(decl), 0.0]) + np.array([0, 0, 0.57])
+    r, truth = _run_cascade(89.9, field, decl, 40.0, ph=PolarHeadingParams(min_horizontal_field_gauss=0.01))
+    assert np.all(r[:, 3] == 1.0)                        # 0.018 G now counts as a source
+    k = r[:, 0].astype(int)
+    err = np.array([wrap_pi(a) for a in r[:, 1] - truth[k, 2]])
+    assert np.all(np.abs(err) < 3.0 * np.sqrt(r[:, 2]))  # Z/H = 32: a large but honest sigma
+
+
+def test_class_wrapper_equals_pure_steps():
+    from estimators.polar_attitude import PolarAttitudeFilter
+    t, gyro, accel, _, _ = synth(45.0, duration_s=5.0)
+    f = PolarAttitudeFilter(PARAMS)
+    s = polar_attitude_init(PARAMS)
+    for k in range(len(t)):
+        f.step(t[k], gyro[k], accel[k])
+        s, _ = polar_attitude_step(s, t[k], gyro[k], accel[k], PARAMS)
+    np.testing.assert_array_equal(f.state.P, s.P)
+    assert f.estimate().roll_rad == polar_attitude_estimate(s).roll_rad
