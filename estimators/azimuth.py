@@ -44,12 +44,14 @@ from estimators import azimuth_fit as af
 from estimators.launch_direction import (LAUNCH_CASES, BoostParams, BoostState, boost_direction, boost_init, boost_step, elevation_rad,
                                          u_aligned, u_vertical)
 from estimators.azimuth_fit import angle_between
-from estimators.levelling import (STANDARD_GRAVITY_M_S2, LevellingParams, LevellingResult,
+from estimators.levelling import (LevellingParams, LevellingResult,
                                   LevellingState, levelling_result, levelling_step)
 from estimators.rotations import dcm_from_quat, euler_from_dcm, quat_from_dcm
 from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init, strapdown_step
 
 STATUS = ("prelaunch", "failed", "collecting", "withheld", "solved", "holding")
+N_GYRO_CONSIDER = 12
+"""Gyro consider parameters: bias error (3) and the scale/misalignment matrix T (9)."""
 
 
 @dataclass(frozen=True)
@@ -86,10 +88,12 @@ class AzimuthParams:
     """Per-axis white noise of the magnetometer, incl. quantisation (G)."""
     gyro_arw_rad_sqrt_s: float = math.radians(0.01)
     """Gyro angle random walk, rad/sqrt(s) (= rad/s/sqrt(Hz))."""
-    gyro_bias_sigma_rad_s: float = math.radians(0.02)
+    gyro_bias_sigma_rad_s: float = math.radians(0.01)
     """1-sigma of the gyro bias change between the rest calibration and flight (rad/s)."""
-    accel_bias_sigma_m_s2: float = 0.05
-    """1-sigma accelerometer bias: sets the levelling tilt uncertainty (m/s^2)."""
+    gyro_scale_sigma: float = 3e-3
+    """1-sigma gyro scale-factor error (consider parameter, per axis)."""
+    gyro_misalign_sigma_rad: float = 3e-3
+    """1-sigma gyro axis misalignment / cross-coupling (consider parameter, 6 elements)."""
     drift_weighting: bool = True
     """Weight samples by the gyro drift their attitude carries (False: white noise only)."""
     field_model_sigma_rad: float = 0.0
@@ -117,7 +121,8 @@ class AzimuthParams:
             if not getattr(self, name) > 0.0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("mag_skip_after_launch_s", "gyro_arw_rad_sqrt_s", "gyro_bias_sigma_rad_s",
-                     "accel_bias_sigma_m_s2", "field_model_sigma_rad"):
+                     "gyro_scale_sigma", "gyro_misalign_sigma_rad",
+                     "field_model_sigma_rad"):
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.max_fit_samples < self.gate.min_samples:
@@ -129,7 +134,7 @@ class MagRecord:
     time_s: float
     h_sf_gauss: np.ndarray
     C_sf_from_isf: np.ndarray
-    G_isf_s: np.ndarray
+    G_gyro: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -157,7 +162,9 @@ class AzimuthState:
     P_consider: np.ndarray | None = None
     # in flight
     strapdown: StrapdownState | None = None
-    G_isf_s: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    G_gyro: np.ndarray = field(default_factory=lambda: np.zeros((3, N_GYRO_CONSIDER)))
+    """Attitude-error sensitivity alpha_ISF = G c_g to the gyro errors c_g = [bias error (3),
+    T row-major (9): scale on the diagonal, misalignment off it] (see azimuth_fit)."""
     boost: BoostState | None = None
     u_sf: np.ndarray | None = None
     u_reason: str = ""
@@ -257,8 +264,10 @@ def azimuth_launch(state: AzimuthState, launch_time_s: float) -> tuple[AzimuthSt
                        launch_time_s=float(launch_time_s)), reason
     f_rest = res.accel_mean_m_s2
     C_isf_af = af.C_isf_from_af(res.roll_rad, res.pitch_rad)
-    tilt_var = res.roll_sigma_rad ** 2 + (p.accel_bias_sigma_m_s2 / STANDARD_GRAVITY_M_S2) ** 2
-    P_c = np.diag([p.gyro_bias_sigma_rad_s ** 2] * 3 + [tilt_var] * 2)
+    # the levelling's tilt sigma includes its accelerometer-bias allowance (LevellingParams)
+    tilt_var = 0.5 * (res.roll_sigma_rad ** 2 + res.pitch_sigma_rad ** 2)
+    T_var = [p.gyro_scale_sigma ** 2 if i == j else p.gyro_misalign_sigma_rad ** 2 for i in range(3) for j in range(3)]
+    P_c = np.diag([p.gyro_bias_sigma_rad_s ** 2] * 3 + T_var + [tilt_var] * 2)
     u_sf, u_reason, cross, elev = None, "", math.nan, math.nan
     if p.launch_case == "vertical":
         u_sf = u_vertical(f_rest)
@@ -305,7 +314,7 @@ def _solve(state: AzimuthState, time_s: float) -> AzimuthState:
         reason = af.gate_reason(None, n, 0.0, math.inf, p.gate)
         return replace(state, last_solve_s=time_s, last_gate_reason=reason)
     C = np.array([r.C_sf_from_isf for r in recs])
-    G = np.array([r.G_isf_s for r in recs])
+    G = np.array([r.G_gyro for r in recs])
     h = np.array([r.h_sf_gauss for r in recs])
     tau = np.array([r.time_s for r in recs]) - state.launch_time_s
     e2 = float(e @ e)
@@ -315,8 +324,11 @@ def _solve(state: AzimuthState, time_s: float) -> AzimuthState:
     fit = af.fit_psi(data, state.C_isf_af, e, p.distortion_model)
     psi_for_div = fit.psi_rad if fit.ok else 0.0
     diversity = af.orientation_diversity_rad(C @ state.C_isf_af, psi_for_div, e)
+    # the gate judges what the data determine (white + gyro terms); the levelling-tilt share does
+    # not shrink with more samples, it is reported in the sigma instead
+    psi_sigma_fit = math.sqrt(af.psi_variance(fit, state.P_consider, include_tilt=False)) if fit.ok else math.inf
     psi_sigma = math.sqrt(af.psi_variance(fit, state.P_consider)) if fit.ok else math.inf
-    reason = af.gate_reason(fit, n, diversity, psi_sigma, p.gate)
+    reason = af.gate_reason(fit, n, diversity, psi_sigma_fit, p.gate)
     sol = state.solution
     if reason == "":
         sol = Solution(time_s, fit, psi_sigma, diversity)
@@ -335,11 +347,16 @@ def azimuth_step(state: AzimuthState, gyro_rad_s: np.ndarray, accel_m_s2: np.nda
     g = np.asarray(gyro_rad_s, float)
     sd, diag = strapdown_step(state.strapdown, g - state.gyro_bias_rad_s, time_s, p.strapdown)
     C_isf_sf = dcm_from_quat(sd.q_ref_from_sensor)
-    if diag.integrated:  # G = int C_ISF<-SF dt, trapezoid
-        G = state.G_isf_s + (0.5 * diag.dt_s) * (dcm_from_quat(state.strapdown.q_ref_from_sensor) + C_isf_sf)
+    if diag.integrated:  # G: bias columns -int C dt, T columns int C[:, i] w_j dt (trapezoid)
+        C0 = dcm_from_quat(state.strapdown.q_ref_from_sensor)
+        w0, w1 = state.strapdown.gyro_prev_rad_s, sd.gyro_prev_rad_s
+        h = 0.5 * diag.dt_s
+        G = state.G_gyro.copy()
+        G[:, :3] -= h * (C0 + C_isf_sf)
+        G[:, 3:] += h * ((C0[:, :, None] * w0).reshape(3, 9) + (C_isf_sf[:, :, None] * w1).reshape(3, 9))
     else:
-        G = state.G_isf_s
-    upd = {"strapdown": sd, "G_isf_s": G}
+        G = state.G_gyro
+    upd = {"strapdown": sd, "G_gyro": G}
     st = state
     # flight direction from the boost window (inclined case)
     if st.boost is not None and st.u_sf is None:
@@ -398,7 +415,7 @@ def _output(st: AzimuthState, C_isf_sf: np.ndarray, time_s: float) -> AzimuthOut
     if status == "holding":
         flags.insert(0, "holding last solution: " + st.last_gate_reason)
     arw_var = p.gyro_arw_rad_sqrt_s ** 2 * max(time_s - st.launch_time_s, 0.0)
-    hd, hs, _ = af.direction_azimuth_and_sigma(C_sf_body[:, 0], psi, st.C_isf_af, C_isf_sf, st.G_isf_s,
+    hd, hs, _ = af.direction_azimuth_and_sigma(C_sf_body[:, 0], psi, st.C_isf_af, C_isf_sf, st.G_gyro,
                                                sol.fit, st.P_consider, arw_var)
     fm2 = p.field_model_sigma_rad ** 2
     hs = math.sqrt(hs ** 2 + fm2)
@@ -408,12 +425,15 @@ def _output(st: AzimuthState, C_isf_sf: np.ndarray, time_s: float) -> AzimuthOut
                distortion_A=sol.fit.A, distortion_b_gauss=sol.fit.b_gauss)
     if st.u_sf is None:
         return AzimuthOutput(time_s, status, "; ".join([st.u_reason] + flags), False, **out, **diag)
-    az, az_s, _ = af.direction_azimuth_and_sigma(st.u_sf, psi, st.C_isf_af, C_isf_sf, st.G_isf_s,
-                                                 sol.fit, st.P_consider, arw_var)
-    az0, _, _ = af.direction_azimuth_and_sigma(st.u_sf, psi, st.C_isf_af, np.eye(3), np.zeros((3, 3)),
-                                               sol.fit, st.P_consider, 0.0)
+    if np.array_equal(st.u_sf, C_sf_body[:, 0]):   # aligned case: u is the body x axis
+        az, az_s = hd, hs
+    else:
+        az, az_s, _ = af.direction_azimuth_and_sigma(st.u_sf, psi, st.C_isf_af, C_isf_sf, st.G_gyro,
+                                                     sol.fit, st.P_consider, arw_var)
+        az_s = math.sqrt(az_s ** 2 + fm2)
+    az0 = af.azimuth_of(af.r3(psi).T @ (st.C_isf_af.T @ st.u_sf))   # C_ISF<-SF = I at launch
     return AzimuthOutput(time_s, status, "; ".join(flags), True, azimuth_rad=az,
-                         azimuth_sigma_rad=math.sqrt(az_s ** 2 + fm2), launch_azimuth_rad=az0, **out, **diag)
+                         azimuth_sigma_rad=az_s, launch_azimuth_rad=az0, **out, **diag)
 
 
 class AzimuthEstimator:

@@ -30,9 +30,11 @@ Covariance (beyond the seed):
     white part : P_w = s2 * H^-1 J^T W R W J H^-1  (sandwich: W need not be R^-1, because the
                  weights also carry the gyro drift), s2 = max(1, r^T W r / (3N - p)) scales by
                  the residual variance when the data are worse than the noise model says
-    consider   : errors c = [gyro bias error (3, rad/s), levelling tilt error beta (2, rad)]
-                 that are common to all samples shift theta by S c, S = -H^-1 J^T W D,
-                 D = dr/dc (derived in ``consider_jacobian``); P_theta = P_w + S P_c S^T.
+    consider   : errors c = [gyro errors c_g (K), levelling tilt error beta (2, rad)] common
+                 to all samples shift theta by S c, S = -H^-1 J^T W D, D = dr/dc (derived in
+                 ``consider_jacobian``); P_theta = P_w + S P_c S^T. The gyro errors act through
+                 the attitude error alpha(t) = G(t) c_g of the propagated C_ISF<-SF (G from the
+                 estimator: bias columns -int C dt, scale/misalignment columns int C[:, i] w_j dt).
 
 Gate (claim 10, beyond the seed): a solution is withheld with a named reason when there are too
 few samples, the field direction in SF has not swept enough angle (orientation diversity), the
@@ -49,8 +51,8 @@ import numpy as np
 from estimators.rotations import frame_rot_x, frame_rot_y, frame_rot_z, skew, wrap_2pi, wrap_pi
 
 MODELS = ("none", "seed7", "full12")
-N_CONSIDER = 5
-"""Consider parameters: gyro bias error (3, rad/s, sensor axes), levelling tilt (2, rad, AF x/y)."""
+N_TILT = 2
+"""Levelling tilt consider parameters (rad, AF x/y); they follow the K gyro-error ones."""
 
 
 # --- frames and closed forms ----------------------------------------------------------------
@@ -118,9 +120,9 @@ class FitData:
     """(N,) per-axis variance of the white part of each residual (mag noise + ARW), G^2."""
     weight: np.ndarray
     """(N,) weight of each sample's 3 residual rows (1/G^2), usually 1/(white + drift variance)."""
-    G_isf_s: np.ndarray | None = None
-    """(N, 3, 3) integral of C_ISF<-SF dt from launch (s): attitude error = -G dbias. None: no
-    consider analysis for the gyro bias."""
+    G_gyro: np.ndarray | None = None
+    """(N, 3, K) attitude-error sensitivity at each sample: alpha_ISF = G c_g for the K gyro
+    error parameters c_g (see module doc). None: K = 0 (tilt-only consider analysis)."""
 
 
 @dataclass(frozen=True)
@@ -137,7 +139,7 @@ class FitResult:
     cov_white: np.ndarray
     """(p, p) white-noise covariance of theta (scaled by s2)."""
     S_consider: np.ndarray
-    """(p, 5) sensitivity of theta to the consider errors."""
+    """(p, K + 2) sensitivity of theta to the consider errors [c_g, beta]."""
     s2: float
     """Normalised residual r^T W r / (3N - p) (1 when the noise model is right)."""
     residual_rms_gauss: float
@@ -197,11 +199,31 @@ def _solve_linear(model: str, m: np.ndarray, h: np.ndarray, w: np.ndarray) -> tu
     return beta[:3].T.copy(), beta[3].copy()
 
 
-def _profile_cost(model, psi, U, V, Z, h, w):
-    m = math.cos(psi) * U + math.sin(psi) * V + Z
-    A, b = _solve_linear(model, m, h, w)
-    r = h - m @ A.T - b
-    return float(w @ np.einsum("ij,ij->i", r, r)), A, b
+def _profile_costs(model, psis, U, V, Z, h, w):
+    """Profile cost c(psi) = min_(A,b) sum_i w_i |h_i - A m_i(psi) - b|^2 for many psi at once
+    (the linear unknowns solved in closed form for each psi)."""
+    c, sn = np.cos(psis)[:, None, None], np.sin(psis)[:, None, None]
+    m = c * U + sn * V + Z                                         # (K, N, 3)
+    if model == "none":
+        r = h - m
+    elif model == "seed7":
+        S1 = w.sum()
+        Sx = np.einsum("n,knj->kj", w, m)
+        Sxx = np.einsum("n,knj->kj", w, m * m)
+        Sh = w @ h                                                 # (3,)
+        Sxh = np.einsum("n,knj,nj->kj", w, m, h)
+        det = Sxx * S1 - Sx * Sx
+        ok = det > 1e-12 * np.maximum(Sxx * S1, 1e-300)
+        det = np.where(ok, det, 1.0)
+        sc = np.where(ok, (S1 * Sxh - Sx * Sh) / det, 0.0)        # 2x2 normal equations per axis
+        bb = np.where(ok, (Sxx * Sh - Sx * Sxh) / det, Sh / S1)
+        r = h - sc[:, None, :] * m - bb[:, None, :]
+    else:
+        X = np.concatenate([m, np.ones(m.shape[:2] + (1,))], axis=2)  # (K, N, 4)
+        Xw = X * w[:, None]
+        beta = np.linalg.pinv(np.einsum("kni,knj->kij", Xw, X)) @ np.einsum("kni,nj->kij", Xw, h)
+        r = h - X @ beta
+    return np.einsum("n,kni,kni->k", w, r, r)
 
 
 def _residual_and_jacobian(model, theta, Cfa, e, h):
@@ -227,12 +249,14 @@ def _residual_and_jacobian(model, theta, Cfa, e, h):
 
 
 def consider_jacobian(model: str, theta: np.ndarray, C_sf_from_isf: np.ndarray, C_isf_af: np.ndarray,
-                      e: np.ndarray, G_isf_s: np.ndarray | None) -> np.ndarray:
-    """D = dr/dc (3N, 5) for c = [gyro bias error (3), levelling tilt beta (2)].
+                      e: np.ndarray, G_gyro: np.ndarray | None) -> np.ndarray:
+    """D = dr/dc (3N, K + 2) for c = [gyro errors c_g (K), levelling tilt beta (2)].
 
-    Gyro bias: the propagated C^_ISF<-SF = (I + [alpha]x) C_ISF<-SF with alpha' = -C_ISF<-SF dbias,
-    so alpha(t) = -G(t) dbias, G = int C_ISF<-SF dt. Then m^ = C^_SF<-ISF e_ISF = m + C_SF<-ISF
-    [e_ISF]x alpha, and dr/d dbias = -A dm^/d dbias = A C_SF<-ISF [e_ISF]x G.
+    Gyro: the propagated C^_ISF<-SF = (I + [alpha]x) C_ISF<-SF. With a rate error eps (estimated
+    minus true rate, sensor axes), d/dt of that gives [alpha']x = C [eps]x C^T, alpha' = C eps:
+    a bias error db gives alpha = -int C dt db, a scale/misalignment matrix T (w_meas = (I+T) w)
+    alpha = sum_ij T_ij int C[:, i] w_j dt; both are alpha = G c_g. Then
+    m^ = C^_SF<-ISF e_ISF = m + C_SF<-ISF [e_ISF]x alpha and dr/dc_g = -A C_SF<-ISF [e_ISF]x G.
     Levelling: C^_AF<-ISF = (I + [beta]x) C_AF<-ISF (beta in AF, only x/y matter: z is psi), so
     m^ = m + C_SF<-AF [e_AF]x beta and dr/d beta = -A C_SF<-AF [e_AF]x[:, :2].
     """
@@ -240,12 +264,13 @@ def consider_jacobian(model: str, theta: np.ndarray, C_sf_from_isf: np.ndarray, 
     e_af = r3(psi) @ e
     e_isf = C_isf_af @ e_af
     N = len(C_sf_from_isf)
-    D = np.zeros((N, 3, N_CONSIDER))
-    if G_isf_s is not None:
-        D[:, :, :3] = A @ (C_sf_from_isf @ skew(e_isf)) @ G_isf_s
+    K = 0 if G_gyro is None else G_gyro.shape[2]
+    D = np.zeros((N, 3, K + N_TILT))
+    if K:
+        D[:, :, :K] = -(A @ (C_sf_from_isf @ skew(e_isf))) @ G_gyro
     Cfa = C_sf_from_isf @ C_isf_af
-    D[:, :, 3:5] = -(A @ (Cfa @ skew(e_af)))[:, :, :2]
-    return D.reshape(3 * N, N_CONSIDER)
+    D[:, :, K:] = -(A @ (Cfa @ skew(e_af)))[:, :, :2]
+    return D.reshape(3 * N, K + N_TILT)
 
 
 def fit_psi(data: FitData, C_isf_af: np.ndarray, e_ned: np.ndarray, model: str = "seed7",
@@ -258,8 +283,9 @@ def fit_psi(data: FitData, C_isf_af: np.ndarray, e_ned: np.ndarray, model: str =
     w = np.asarray(data.weight, float)
     N = len(h)
     p = n_unknowns(model)
+    K = 0 if data.G_gyro is None else data.G_gyro.shape[2]
     nan_res = FitResult(False, model, math.nan, np.full(p, math.nan), np.eye(3), np.zeros(3),
-                        np.full((p, p), math.nan), np.zeros((p, N_CONSIDER)), math.nan, math.nan,
+                        np.full((p, p), math.nan), np.zeros((p, K + N_TILT)), math.nan, math.nan,
                         math.inf, N, 0)
     if 3 * N <= p:
         return _replace_reason(nan_res, f"{N} samples give {3 * N} equations for {p} unknowns")
@@ -267,18 +293,18 @@ def fit_psi(data: FitData, C_isf_af: np.ndarray, e_ned: np.ndarray, model: str =
     U, V, Z = _field_terms(Cfa, e)
     # candidates: closed-form 2-D fit of the undistorted model, and a grid over [0, 2pi)
     h_af = np.einsum("nji,nj->ni", Cfa, h)                            # C_AF<-SF h
-    cands = [psi_closed_form(h_af, e, w)] + list(np.linspace(0.0, 2 * math.pi, grid_points, endpoint=False))
-    costs = [_profile_cost(model, c, U, V, Z, h, w)[0] for c in cands]
-    psi0 = cands[int(np.argmin(costs))]
-    _, A0, b0 = _profile_cost(model, psi0, U, V, Z, h, w)
+    cands = np.concatenate([[psi_closed_form(h_af, e, w)], np.linspace(0.0, 2 * math.pi, grid_points, endpoint=False)])
+    psi0 = float(cands[int(np.argmin(_profile_costs(model, cands, U, V, Z, h, w)))])
+    m0 = math.cos(psi0) * U + math.sin(psi0) * V + Z
+    A0, b0 = _solve_linear(model, m0, h, w)
     theta = _pack(model, psi0, A0, b0)
     sw = np.repeat(w, 3)
     r, J, _ = _residual_and_jacobian(model, theta, Cfa, e, h)
     cost = float(sw @ (r * r))
     it = 0
     for it in range(1, max_iterations + 1):
-        Js = J * np.sqrt(sw)[:, None]
-        step = np.linalg.lstsq(Js, -np.sqrt(sw) * r, rcond=None)[0]
+        Jw = J * sw[:, None]
+        step = -(np.linalg.pinv(J.T @ Jw) @ (Jw.T @ r))           # Gauss-Newton normal equations
         lam = 1.0
         while True:  # step halving keeps the cost non-increasing
             th_new = theta + lam * step
@@ -301,13 +327,13 @@ def fit_psi(data: FitData, C_isf_af: np.ndarray, e_ned: np.ndarray, model: str =
     s2_raw = float(sw @ (r * r)) / dof
     R_white = np.repeat(data.var_white_gauss2, 3)
     P_w = H_inv @ (Jw.T @ (Jw * R_white[:, None])) @ H_inv * max(1.0, s2_raw)
-    D = consider_jacobian(model, theta, data.C_sf_from_isf, C_isf_af, e, data.G_isf_s)
+    D = consider_jacobian(model, theta, data.C_sf_from_isf, C_isf_af, e, data.G_gyro)
     S = -H_inv @ (Jw.T @ D)
-    # conditioning of the weighted Jacobian with unit-norm columns
-    Js = J * np.sqrt(sw)[:, None]
-    norms = np.linalg.norm(Js, axis=0)
-    sv = np.linalg.svd(Js / np.where(norms > 0, norms, 1.0), compute_uv=False)
-    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+    # conditioning of the weighted Jacobian with unit-norm columns: sqrt(cond) of the scaled H
+    dn = np.sqrt(np.diag(H))
+    dn = np.where(dn > 0, dn, 1.0)
+    ev = np.linalg.eigvalsh(H / np.outer(dn, dn))
+    cond = float(math.sqrt(ev[-1] / ev[0])) if ev[0] > ev[-1] * 1e-30 else math.inf
     psi, A, b = unpack(model, theta)
     return FitResult(True, model, psi, theta, A, b, P_w, S, s2_raw,
                      float(math.sqrt(float(r @ r) / (3 * N))), cond, N, it)
@@ -326,9 +352,12 @@ def _replace_reason(res: FitResult, reason: str) -> FitResult:
     return replace(res, reason=reason)
 
 
-def psi_variance(fit: FitResult, P_consider: np.ndarray) -> float:
-    """Total variance of psi_s: white part plus the consider errors' share."""
-    s = fit.S_consider[0]
+def psi_variance(fit: FitResult, P_consider: np.ndarray, include_tilt: bool = True) -> float:
+    """Variance of psi_s: white part plus the consider errors' share (the levelling-tilt part
+    only when ``include_tilt``: it does not shrink with more data, so the gate leaves it out)."""
+    s = fit.S_consider[0].copy()
+    if not include_tilt:
+        s[-N_TILT:] = 0.0
     return float(fit.cov_white[0, 0] + s @ P_consider @ s)
 
 
@@ -395,13 +424,13 @@ def gate_reason(fit: FitResult | None, n_samples: int, diversity_rad: float, psi
 # --- output: azimuth of a sensor-fixed direction and its sigma ------------------------------
 
 def direction_azimuth_and_sigma(u_sf: np.ndarray, psi_rad: float, C_isf_af: np.ndarray,
-                                C_isf_from_sf: np.ndarray, G_now_s: np.ndarray, fit: FitResult,
+                                C_isf_from_sf: np.ndarray, G_now: np.ndarray, fit: FitResult,
                                 P_consider: np.ndarray, arw_var_rad2: float) -> tuple[float, float, np.ndarray]:
     """Azimuth (eq. 6-8) of the sensor-fixed direction u_sf now, with its 1-sigma.
 
     u_NF = R3(psi)^T C_AF<-ISF C_ISF<-SF(t) u_SF. Errors, to first order (g = d az / d u_NF):
       psi error           : d az = d psi                       (a rotation about down)
-      gyro bias error db  : d u_NF = C_NF<-ISF [u_ISF]x G(t) db  (alpha = -G db, du = alpha x u)
+      gyro errors c_g     : d u_NF = -C_NF<-ISF [u_ISF]x G(t) c_g  (alpha = G c_g, du = alpha x u)
       levelling tilt beta : d u_NF = -R3(psi)^T [u_AF]x beta
       ARW (white)         : var = |g C_NF<-ISF [u_ISF]x|^2 * arw_var (isotropic per axis)
     and d psi itself = S_psi c + white, correlated with the consider terms, so
@@ -414,10 +443,11 @@ def direction_azimuth_and_sigma(u_sf: np.ndarray, psi_rad: float, C_isf_af: np.n
     u_nf = C_nf_af @ u_af
     g = azimuth_gradient(u_nf)
     C_nf_isf = C_nf_af @ C_isf_af.T
-    k = np.empty(N_CONSIDER)
+    K = G_now.shape[1]
+    k = np.empty(K + N_TILT)
     L = g @ C_nf_isf @ skew(u_isf)
-    k[:3] = L @ G_now_s
-    k[3:5] = -(g @ C_nf_af @ skew(u_af))[:2]
+    k[:K] = -(L @ G_now)
+    k[K:] = -(g @ C_nf_af @ skew(u_af))[:2]
     s = fit.S_consider[0] + k
     var = fit.cov_white[0, 0] + s @ P_consider @ s + float(L @ L) * arw_var_rad2
     return azimuth_of(u_nf), math.sqrt(max(var, 0.0)), u_nf

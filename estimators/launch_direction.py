@@ -2,7 +2,7 @@
 
 Three cases (seed eq. 2.1-2.3), the platform's nose assumed along its flight direction:
   "vertical" : u_SF = f_rest / |f_rest|  (specific force at rest points up, along the nose)
-  "inclined" : u_SF = sum_k a_k / |sum_k a_k| over the first seconds of boost, where
+  "inclined" : u_SF = sum_k a_k / |sum_k a_k| over the thrust phase of the boost, where
                a_k = f_k - C_SF<-ISF(t_k) f_rest_ISF is the specific force with the gravity
                reaction known from levelling removed (rotated into the current sensor frame by
                the gyro-propagated attitude): on the rail and under thrust this is the
@@ -22,7 +22,7 @@ Pure steps: ``boost_step(state, accel, C_sf_from_isf, time_s, params) -> state``
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -57,6 +57,9 @@ class BoostParams:
     """Samples whose gravity-free acceleration is below this are not used (coast, noise)."""
     min_samples: int = 10
     """Samples needed for a direction."""
+    end_fraction: float = 0.5
+    """The boost is over when |a| falls below this fraction of its peak: later samples (pull-up,
+    turns, drag) are not along the nose and are not used."""
 
     def __post_init__(self):
         if not self.window_s > 0.0:
@@ -73,26 +76,31 @@ class BoostState:
     sum_accel_m_s2: np.ndarray = field(default_factory=lambda: np.zeros(3))
     n: int = 0
     done: bool = False
+    peak_m_s2: float = 0.0
 
 
 def boost_init(f_rest_isf_m_s2: np.ndarray, launch_time_s: float) -> BoostState:
-    return BoostState(np.asarray(f_rest_isf_m_s2, float).copy(), float(launch_time_s), np.zeros(3), 0, False)
+    return BoostState(np.asarray(f_rest_isf_m_s2, float).copy(), float(launch_time_s), np.zeros(3), 0, False, 0.0)
 
 
 def boost_step(state: BoostState, accel_m_s2: np.ndarray, C_sf_from_isf: np.ndarray, time_s: float,
                params: BoostParams = BoostParams()) -> BoostState:
-    """Add one sample of the boost window: a = f - C_SF<-ISF f_rest_ISF."""
+    """Add one sample of the boost window: a = f - C_SF<-ISF f_rest_ISF (thrust phase only)."""
     if state.done:
         return state
     if time_s - state.launch_time_s > params.window_s:
-        return BoostState(state.f_rest_isf_m_s2, state.launch_time_s, state.sum_accel_m_s2, state.n, True)
+        return replace(state, done=True)
     f = np.asarray(accel_m_s2, float)
     if not np.all(np.isfinite(f)):
         return state
     a = f - C_sf_from_isf @ state.f_rest_isf_m_s2
-    if float(np.linalg.norm(a)) < params.min_accel_m_s2:
-        return state
-    return BoostState(state.f_rest_isf_m_s2, state.launch_time_s, state.sum_accel_m_s2 + a, state.n + 1, False)
+    na = float(np.linalg.norm(a))
+    peak = max(state.peak_m_s2, na)
+    if state.n >= params.min_samples and na < params.end_fraction * peak:
+        return replace(state, done=True, peak_m_s2=peak)        # thrust over
+    if na < params.min_accel_m_s2 or na < params.end_fraction * peak:
+        return replace(state, peak_m_s2=peak)
+    return replace(state, sum_accel_m_s2=state.sum_accel_m_s2 + a, n=state.n + 1, peak_m_s2=peak)
 
 
 def boost_direction(state: BoostState, params: BoostParams = BoostParams()) -> tuple[np.ndarray | None, str]:

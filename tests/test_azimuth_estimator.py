@@ -8,6 +8,7 @@ import pytest
 
 from estimators import azimuth as az
 from estimators.azimuth_fit import GateParams
+from estimators.levelling import LevellingParams
 from estimators.launch_direction import LaunchDetectState, launch_detect_step
 from estimators.rotations import dcm_from_quat, rot_x, rot_y, rot_z, wrap_pi
 from test_azimuth_synth import E_NED_GAUSS, MANOEUVRE, launcher_attitude, make_flight
@@ -113,7 +114,8 @@ def test_noisy_flight_error_is_within_its_sigma():
     fl = make_flight(C_nf_isf=C_nf_isf, u_sf=C_BS[0], segments=MANOEUVRE, A=np.diag([1.05, 0.95, 1.1]),
                      b=np.array([0.05, -0.03, 0.02]), mag_noise_gauss=0.003, gyro_noise_rad_s=0.002,
                      accel_noise_m_s2=0.05, seed=4)
-    _, outs = run(fl, params_for("inclined", accel_bias_sigma_m_s2=0.01))
+    _, outs = run(fl, params_for("inclined", levelling=LevellingParams(accel_bias_sigma_m_s2=0.01), gyro_scale_sigma=1e-4,
+                                 gyro_misalign_sigma_rad=1e-4))
     i, o = outs[-1]
     err = wrap_pi(o.azimuth_rad - truth_azimuth(fl, i, C_BS[0]))
     assert o.valid
@@ -202,3 +204,34 @@ def test_params_are_validated():
         GateParams(min_samples=0)
     with pytest.raises(ValueError, match="azimuth_step before azimuth_launch"):
         az.azimuth_step(az.azimuth_init(params_for("inclined")), np.zeros(3), np.zeros(3), None, 0.0)
+
+
+def test_sigma_chain_predicts_the_effect_of_gyro_errors():
+    """GIVEN a noiseless flight, WHEN the in-flight gyro gets a bias change db and a
+    scale/misalignment matrix T, THEN the azimuth moves by (S_psi + k) . c as the consider
+    analysis predicts (c = [-db, vec(T)]), to 2 % of the effect: this checks the estimator's G
+    accumulation, the fit sensitivity S and the output sensitivity k together."""
+    from dataclasses import replace as dc_replace
+    from estimators import azimuth_fit as af
+    C_nf_isf = launcher_attitude(math.radians(200.0), math.radians(40.0), C_BS)
+    fl = make_flight(C_nf_isf=C_nf_isf, u_sf=C_BS[0], segments=MANOEUVRE, A=np.diag([1.05, 0.95, 1.1]),
+                     b=np.array([0.05, -0.03, 0.02]))
+    p = params_for("aligned")
+    st0, outs0 = run(fl, p)
+    db = np.array([2e-4, -1e-4, 1.5e-4])
+    T = np.array([[2e-3, -1e-3, 5e-4], [1e-3, -2e-3, 1e-3], [-5e-4, 1.5e-3, 1e-3]])
+    flight = fl.time_s >= fl.launch_time_s
+    fl2 = make_flight(C_nf_isf=C_nf_isf, u_sf=C_BS[0], segments=MANOEUVRE, A=np.diag([1.05, 0.95, 1.1]),
+                      b=np.array([0.05, -0.03, 0.02]))
+    fl2.gyro_rad_s[flight] = fl2.gyro_rad_s[flight] @ (np.eye(3) + T).T + db
+    st1, outs1 = run(fl2, p)
+    i, o0 = outs0[-1]
+    o1 = outs1[-1][1]
+    actual = wrap_pi(o1.azimuth_rad - o0.azimuth_rad)
+    c = np.concatenate([-db, T.reshape(-1), [0.0, 0.0]])
+    fit0 = dc_replace(st0.solution.fit, cov_white=np.zeros_like(st0.solution.fit.cov_white))
+    C_isf_sf = dcm_from_quat(st0.strapdown.q_ref_from_sensor)
+    _, predicted_abs, _ = af.direction_azimuth_and_sigma(st0.u_sf, fit0.psi_rad, st0.C_isf_af, C_isf_sf,
+                                                         st0.G_gyro, fit0, np.outer(c, c), 0.0)
+    assert abs(actual) > math.radians(0.2)          # a sizeable effect ...
+    assert abs(abs(actual) - predicted_abs) < 0.02 * abs(actual), (math.degrees(actual), math.degrees(predicted_abs))

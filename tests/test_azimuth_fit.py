@@ -125,7 +125,7 @@ def test_gate_refuses_a_flight_without_orientation_change_and_says_why():
     fit = af.fit_psi(data, C_isf_af, E, "seed7")
     div = af.orientation_diversity_rad(data.C_sf_from_isf @ C_isf_af, fit.psi_rad, E)
     assert div < 1e-6
-    reason = af.gate_reason(fit, 80, div, math.sqrt(af.psi_variance(fit, np.zeros((5, 5)))), af.GateParams())
+    reason = af.gate_reason(fit, 80, div, math.sqrt(af.psi_variance(fit, np.zeros((2, 2)))), af.GateParams())
     assert reason.startswith("orientation diversity 0.0 deg < 20 deg required")
 
 
@@ -188,27 +188,29 @@ def test_psi_covariance_matches_monte_carlo(model):
 
 
 def test_consider_jacobian_matches_finite_differences():
-    """dr/d(gyro bias error) and dr/d(levelling tilt) against regenerated perturbed data."""
+    """dr/d(gyro bias error), dr/d(gyro scale/misalignment) and dr/d(levelling tilt) against
+    regenerated, perturbed data (the definition of G as in the estimator: bias columns
+    -int C dt, T columns int C[:, i] w_j dt)."""
+    from estimators.rotations import dcm_from_quat, skew
+    from estimators.strapdown import strapdown_init, strapdown_step
     C_nf_isf = launcher_attitude(0.9, 0.7, rot_z(0.4) @ rot_x(0.3))
     fl = make_flight(C_nf_isf=C_nf_isf, u_sf=[1, 0, 0], segments=MANOEUVRE[:3], rest_s=0.1, boost_s=0.5)
     i0 = int(np.searchsorted(fl.time_s, fl.launch_time_s))
-    idx = np.arange(i0, len(fl.time_s), 40)
-    dt = fl.time_s[1] - fl.time_s[0]
-    C_isf_sf = np.einsum("ji,njk->nik", fl.C_nf_isf, fl.C_nf_sf)
-    from estimators.strapdown import strapdown_init, strapdown_step
-    from estimators.rotations import dcm_from_quat
+    sel = np.arange(0, len(fl.time_s) - i0, 40)
 
-    def propagate(db):
+    def propagate(db=np.zeros(3), T=np.zeros((3, 3))):
         st = strapdown_init(np.array([1.0, 0, 0, 0]))
-        Cs, Gs, Gacc = [], [], np.zeros((3, 3))
+        Cs, Gs, G = [], [], np.zeros((3, 12))
         for i in range(i0, len(fl.time_s)):
-            C_prev = dcm_from_quat(st.q_ref_from_sensor)
-            st, d = strapdown_step(st, fl.gyro_rad_s[i] - db, fl.time_s[i])
+            C0, w0 = dcm_from_quat(st.q_ref_from_sensor), st.gyro_prev_rad_s
+            st, d = strapdown_step(st, (np.eye(3) + T) @ fl.gyro_rad_s[i] - db, fl.time_s[i])
             C = dcm_from_quat(st.q_ref_from_sensor)
             if d.integrated:
-                Gacc = Gacc + 0.5 * (C_prev + C) * d.dt_s   # trapezoid, as the estimator
+                G = G.copy()
+                G[:, :3] -= 0.5 * d.dt_s * (C0 + C)
+                G[:, 3:] += 0.5 * d.dt_s * ((C0[:, :, None] * w0).reshape(3, 9) + (C[:, :, None] * st.gyro_prev_rad_s).reshape(3, 9))
             Cs.append(C.T)
-            Gs.append(Gacc.copy())
+            Gs.append(G)
         return np.array(Cs), np.array(Gs)
 
     psi = fl.psi_s_rad
@@ -217,10 +219,10 @@ def test_consider_jacobian_matches_finite_differences():
     C_isf_af = af.C_isf_from_af(roll, pitch)
     A = np.diag([1.1, 0.9, 1.0])
     theta = np.concatenate([[psi], np.diag(A), [0.01, 0.02, -0.01]])
-    C0, G0 = propagate(np.zeros(3))
-    sel = idx - i0
+    C0, G0 = propagate()
     D = af.consider_jacobian("seed7", theta, C0[sel], C_isf_af, E, G0[sel])
-    h = fl.mag_gauss[idx] @ A.T + theta[4:]
+    assert D.shape == (3 * len(sel), 14)
+    h = fl.mag_gauss[i0 + sel] @ A.T + theta[4:]
 
     def resid(C_sf_isf, C_isf_af_):
         m = C_sf_isf @ C_isf_af_ @ (af.r3(psi) @ E)
@@ -229,16 +231,20 @@ def test_consider_jacobian_matches_finite_differences():
     r0 = resid(C0[sel], C_isf_af)
     assert np.abs(r0).max() < 1e-10
     eps = 1e-6
-    for j in range(3):
-        db = np.zeros(3)
-        db[j] = eps
-        Cp, _ = propagate(db)
-        np.testing.assert_allclose((resid(Cp[sel], C_isf_af) - r0) / eps, D[:, j], atol=2e-5)
+    for j in range(12):
+        if j < 3:
+            db = np.zeros(3)
+            db[j] = eps
+            Cp, _ = propagate(db=db)
+        else:
+            T = np.zeros(9)
+            T[j - 3] = eps
+            Cp, _ = propagate(T=T.reshape(3, 3))
+        fd = (resid(Cp[sel], C_isf_af) - r0) / eps
+        assert np.abs(fd - D[:, j]).max() < 1e-4 * np.abs(D[:, j]).max() + 1e-9, (j, np.abs(fd - D[:, j]).max())
     for j in range(2):
         beta = np.zeros(3)
         beta[j] = eps
-        from estimators.rotations import skew
         C_af_isf_hat = (np.eye(3) + skew(beta)) @ C_isf_af.T
-        np.testing.assert_allclose((resid(C0[sel], C_af_isf_hat.T) - r0) / eps, D[:, 3 + j], atol=2e-6)
-    assert np.abs(D).max() > 1e-2  # non-trivial sensitivities
-    _ = (dt, C_isf_sf)
+        np.testing.assert_allclose((resid(C0[sel], C_af_isf_hat.T) - r0) / eps, D[:, 12 + j], atol=2e-6)
+    assert np.abs(D[:, :3]).max() > 1e-2 and np.abs(D[:, 3:12]).max() > 1e-3  # non-trivial sensitivities
