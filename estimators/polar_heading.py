@@ -293,13 +293,14 @@ def _measure(st, u, Prp, p):
     r_white = (p.mag_noise_gauss / H) ** 2
     r_corr = u.declination_sigma_rad ** 2 + float(G @ Prp @ G) + p.mag_heading_floor_rad ** 2
     R = r_white + r_corr * max(1.0, p.mag_error_tau_s / p.mag_update_period_s)
+    R_single = r_white + r_corr          # the error of ONE measurement (initialisation, reset)
     z = wrap_2pi(psi_m + u.declination_rad)
     if not st.initialised:
-        st = replace(st, initialised=True, x=np.array([z, 0.0, 0.0, 0.0]), P=_prior_P(R, p),
+        st = replace(st, initialised=True, x=np.array([z, 0.0, 0.0, 0.0]), P=_prior_P(R_single, p),
                      source_available=True)
         return st, HeadingDiag(measured=True, fused=True, source_available=True,
                                horizontal_field_gauss=H, heading_meas_rad=z, innovation_rad=0.0,
-                               innovation_var_rad2=R, test_ratio=0.0, reason="initialised from source")
+                               innovation_var_rad2=R_single, test_ratio=0.0, reason="initialised from source")
     nu = wrap_pi(z - st.x[0])
     S = st.P[0, 0] + R
     ratio = nu * nu / S / p.gate_chi2
@@ -311,7 +312,7 @@ def _measure(st, u, Prp, p):
             P = st.P.copy()
             P[0, :] = 0.0
             P[:, 0] = 0.0
-            P[0, 0] = R
+            P[0, 0] = R_single
             st = replace(st, x=np.array([z, st.x[1], st.x[2], st.x[3]]), P=P, rejected_since_s=None,
                          source_available=True, n_resets=st.n_resets + 1)
             return st, HeadingDiag(**diag_kw, reset=True, reset_jump_rad=nu,

@@ -243,3 +243,25 @@ def test_class_wrapper_equals_pure_steps():
         s, _ = polar_attitude_step(s, t[k], gyro[k], accel[k], PARAMS)
     np.testing.assert_array_equal(f.state.P, s.P)
     assert f.estimate().roll_rad == polar_attitude_estimate(s).roll_rad
+
+
+def test_disturbed_source_is_gated_then_reset_with_the_jump_reported():
+    """GIVEN a heading source that jumps by 40 deg and stays there (e.g. a new magnetic
+    disturbance), THEN the filter rejects it, and re-initialises after reset_after_s."""
+    field = np.array([0.2, 0.0, 0.4])
+    t, gyro, accel, mag, truth = synth(45.0, duration_s=40.0, field_ned=field)
+    rot = dcm_from_euler(0.0, 0.0, math.radians(-40.0))        # body field turned: heading +40
+    ph = PolarHeadingParams(reset_after_s=5.0)
+    st = polar_heading_init()
+    resets, rejected = [], 0
+    for k in range(len(t)):
+        m = mag[k] if t[k] < 20.0 else dcm_from_euler(truth[k, 0], truth[k, 1], truth[k, 2]).T @ (rot @ field)
+        st, d = polar_heading_step(st, HeadingInputs(t[k], gyro[k], truth[k, 0], truth[k, 1], np.eye(2) * 1e-6,
+                                                     m, 0.0, 0.0), ph)
+        rejected += d.measured and not d.fused
+        if d.reset:
+            resets.append((t[k], d.reset_jump_rad))
+    assert rejected > 0 and len(resets) == 1
+    t_reset, jump = resets[0]
+    assert 25.0 <= t_reset <= 25.5
+    assert abs(math.degrees(jump) - 40.0) < 1.0
