@@ -18,7 +18,9 @@ This module turns them into ``time_fc_s`` with three guarantees:
    t_pred, so a wrap is told from a reboot by the local clock, and still recognised after a
    long link loss. A new, higher k is reported once as ``time_wrap``.
 2. **Reboot (backward jump)**: a stream whose (unwrapped) time goes back by more than
-   ``reboot_jump_s`` means the FC rebooted. Reported as ``fc_reboot``; every stream is reset and
+   ``reboot_jump_s``, or goes back at all while lagging the local-clock prediction by more than
+   2 ``reboot_jump_s`` (a reboot that took about as long as the uptime before it), means the FC
+   rebooted. Reported as ``fc_reboot``; every stream is reset and
    the output time continues monotonically: the new boot's time ``t_raw`` is mapped to
    ``t_last_out + (rx_now - rx_last)`` (elapsed local time across the reboot), so estimators are
    never handed a backward time. Smaller backward steps (reordered or duplicated packets) are
@@ -140,7 +142,10 @@ class FcTimebase:
         st = self.streams.get(stream)
         if st is not None and t_raw <= st.last_raw_s:
             back_s = st.last_raw_s - t_raw
-            if back_s <= self.params.reboot_jump_s:
+            # how far behind the local-clock prediction: ~0 for a reordered or duplicated packet,
+            # ~ the FC's uptime before the reboot for a restarted clock (even a short one)
+            deficit_s = self.t_ref_s + max(0.0, rx_s - self.rx_ref_s) - t_raw
+            if back_s <= self.params.reboot_jump_s and deficit_s <= 2.0 * self.params.reboot_jump_s:
                 self.stale += 1
                 return None, events
             # FC clock restarted: continue our output time across the reboot with local time

@@ -115,6 +115,19 @@ def test_reboot_detected_and_output_stays_monotonic():
     assert tb.reboots == 1
 
 
+def test_quick_reboot_told_from_reordering_by_the_local_clock():
+    """Up 3 s, reboot, 2 s of silence, first sample at 2 s since boot: only 1 s back, but 3 s
+    behind what the local clock predicts -> a reboot, not a late packet."""
+    tb = FcTimebase(TimebaseParams(reboot_jump_s=1.0))
+    _feed_all(tb, [("IMU", 2_995_000, "us", 10.0), ("IMU", 3_000_000, "us", 10.005)])
+    t, ev = tb.feed("IMU", 2_000_000, "us", 12.005)
+    assert [e.kind for e in ev] == ["fc_reboot"] and t == pytest.approx(3.0 + 2.0)
+    # whereas a late packet from 0.5 s ago arriving right away is just dropped
+    tb.feed("IMU", 2_005_000, "us", 12.010)
+    t, ev = tb.feed("IMU", 1_505_000, "us", 12.011)
+    assert t is None and ev == []
+
+
 def test_small_backward_step_is_dropped_not_a_reboot():
     tb = FcTimebase(TimebaseParams(reboot_jump_s=1.0))
     out, ev = _feed_all(tb, [("IMU", 10_000_000, "us", 0), ("IMU", 10_005_000, "us", 0),
