@@ -40,7 +40,7 @@ IMU_AVG_MAX_S = 0.1
 # message ids
 HEARTBEAT, SYS_STATUS, RAW_IMU, SCALED_PRESSURE, ATTITUDE, ATTITUDE_QUATERNION = 0, 1, 27, 29, 30, 31
 GLOBAL_POSITION_INT, HIGHRES_IMU, AUTOPILOT_VERSION, SIMSTATE, EKF_STATUS_REPORT = 33, 105, 148, 164, 193
-ESTIMATOR_STATUS = 230
+ESTIMATOR_STATUS, SCALED_IMU, VFR_HUD = 230, 26, 74
 
 # MAV_CMD / MAV_RESULT
 CMD_NAV_RTL, CMD_DO_SET_MODE, CMD_DO_REPOSITION = 20, 176, 192
@@ -61,8 +61,8 @@ PX4_MAIN_AUTO = 4
 PX4_SUB = {"LOITER": 3, "AUTO": 4, "RTL": 5, "GUIDED": 3}
 
 # REQUEST_DATA_STREAM groups (ArduPilot's stream lists, the messages we simulate)
-DATA_STREAMS = {1: (RAW_IMU, SCALED_PRESSURE), 2: (SYS_STATUS,), 6: (GLOBAL_POSITION_INT,),
-                10: (ATTITUDE, SIMSTATE), 11: (ATTITUDE_QUATERNION,), 12: (EKF_STATUS_REPORT,)}
+DATA_STREAMS = {1: (RAW_IMU, SCALED_IMU, SCALED_PRESSURE), 2: (SYS_STATUS,), 6: (GLOBAL_POSITION_INT,),
+                10: (ATTITUDE, SIMSTATE), 11: (ATTITUDE_QUATERNION, VFR_HUD), 12: (EKF_STATUS_REPORT,)}
 MAX_RATE_HZ = 1000.0
 
 
@@ -119,12 +119,17 @@ class Autopilot:
         self.streams: dict[int, Stream] = {}
         self.counts: dict[str, int] = {}
         self.rx_count = 0
+        self.params = {"SYSID_THISMAV": float(self.sysid), "SIM_SPEEDUP": self.speed,
+                       "AHRS_ORIENTATION": 0.0, "COMPASS_USE": 1.0, "ARSPD_TYPE": 1.0,
+                       "EK3_SRC1_YAW": 1.0, "EK3_SRC1_POSXY": 3.0}
+        """A small parameter table so that ground stations finish their parameter download; PARAM_SET
+        stores and echoes (the simulated flight does not depend on these)."""
         self._reset_streams()
 
     # ---- streams -------------------------------------------------------------------------
     def supported(self, msg_id: int) -> bool:
-        common = {HEARTBEAT, SYS_STATUS, SCALED_PRESSURE, ATTITUDE, ATTITUDE_QUATERNION, GLOBAL_POSITION_INT,
-                  SIMSTATE}
+        common = {HEARTBEAT, SYS_STATUS, SCALED_IMU, SCALED_PRESSURE, ATTITUDE, ATTITUDE_QUATERNION,
+                  GLOBAL_POSITION_INT, VFR_HUD, SIMSTATE}
         own = {HIGHRES_IMU, ESTIMATOR_STATUS} if self.px4 else {RAW_IMU, EKF_STATUS_REPORT}
         return msg_id in common | own
 
@@ -211,7 +216,7 @@ class Autopilot:
             status = 3 if flight.phase == "rest" else 4  # STANDBY / ACTIVE
             base = 1 | 16 | 8 | 4 | (128 if self.armed else 0)
             return m.heartbeat_encode(1, 12 if self.px4 else 3, base, self._custom_mode(), status)
-        if msg_id in (RAW_IMU, HIGHRES_IMU):
+        if msg_id in (RAW_IMU, HIGHRES_IMU, SCALED_IMU):
             if self._dropped("imu", t):
                 return None
             k_prev = st.last_k if st is not None and st.last_k >= 0 else k - 1
@@ -221,10 +226,13 @@ class Autopilot:
             gyro = self._avg("gyro_rad_s", k_prev, k)
             accel = self._avg("accel_m_s2", k_prev, k)
             mag = self._get("mag_gauss", k)
-            if msg_id == RAW_IMU:
+            if msg_id in (RAW_IMU, SCALED_IMU):
                 a, g, mg = wire.raw_imu_ints(gyro[None], accel[None], mag[None])
                 temp = wire.temperature_cdegc(self._get("temperature_k", k))
-                return m.raw_imu_encode(tb_us, *map(int, a[0]), *map(int, g[0]), *map(int, mg[0]), 0, temp)
+                ints = [*map(int, a[0]), *map(int, g[0]), *map(int, mg[0])]
+                if msg_id == SCALED_IMU:
+                    return m.scaled_imu_encode(tb_ms, *ints, temp)
+                return m.raw_imu_encode(tb_us, *ints, 0, temp)
             press = self._get("press_abs_pa", k)
             diff = self._get("press_diff_pa", k)
             temp_k = self._get("temperature_k", k)
@@ -281,6 +289,12 @@ class Autopilot:
                                                 int(round(math.degrees(lon) * 1e7)), int(round(alt * 1000)),
                                                 int(round((alt - h0) * 1000)), *[int(round(x * 100)) for x in v],
                                                 int(round(math.degrees(yaw) % 360.0 * 100)) % 36000)
+        if msg_id == VFR_HUD:
+            v = self._get("vel_ned_m_s", k)
+            yaw = float(self._get("fc_euler_rad", k)[2])
+            alt = float(self._get("alt_m", k))
+            return m.vfr_hud_encode(float(self._get("airspeed_m_s", k)), float(math.hypot(v[0], v[1])),
+                                    int(round(math.degrees(yaw))) % 360, 50, alt, float(-v[2]))
         if msg_id == SYS_STATUS:
             present = S_GYRO | S_ACCEL | S_MAG | S_ABS | S_DIFF | S_GPS | S_AHRS
             health = present
@@ -316,6 +330,9 @@ class Autopilot:
         self.counts[name] = self.counts.get(name, 0) + 1
         for b in (self.faults.outbound(buf, self.t) if self.faults.active else (buf,)):
             self.conn.write(b)
+
+    def _send_param(self, name: str, index: int) -> None:
+        self._send(self.conn.mav.param_value_encode(name.encode(), self.params[name], 9, len(self.params), index))
 
     def _ack(self, msg, command: int, result: int) -> None:
         self._send(self.conn.mav.command_ack_encode(command, result, 0, 0, msg.get_srcSystem(),
@@ -362,6 +379,21 @@ class Autopilot:
                 self._ext_yaw_logged = self.t
                 log.info("t=%.1f s external yaw (ODOMETRY from %d/%d): %.2f deg, var %.3g rad^2",
                          self.t, msg.get_srcSystem(), msg.get_srcComponent(), math.degrees(yaw), var)
+        elif typ == "PARAM_REQUEST_LIST":
+            if self._for_us(msg):
+                for i, name in enumerate(self.params):
+                    self._send_param(name, i)
+        elif typ == "PARAM_REQUEST_READ":
+            if self._for_us(msg):
+                names = list(self.params)
+                name = msg.param_id if msg.param_index < 0 else (names[msg.param_index] if msg.param_index < len(names) else None)
+                if name in self.params:
+                    self._send_param(name, names.index(name))
+        elif typ == "PARAM_SET":
+            if self._for_us(msg) and msg.param_id in self.params and math.isfinite(msg.param_value):
+                self.params[msg.param_id] = float(msg.param_value)
+                log.info("t=%.1f s parameter %s = %g", self.t, msg.param_id, msg.param_value)
+                self._send_param(msg.param_id, list(self.params).index(msg.param_id))
         elif typ == "TIMESYNC":
             if msg.tc1 == 0:
                 self._send(self.conn.mav.timesync_encode(int(self.time_boot_s * 1e9), msg.ts1))

@@ -376,3 +376,28 @@ def test_mag_dropout_sends_zero_mag_and_clears_health(sim_factory):
     assert all((m.xmag, m.ymag, m.zmag) == (0, 0, 0) for _, m in got["RAW_IMU"])
     assert all(m.zacc < -900 for _, m in got["RAW_IMU"])  # the rest of the IMU still flows
     assert all(not m.onboard_control_sensors_health & 4 for _, m in got["SYS_STATUS"])
+
+
+def test_ground_station_basics_params_scaled_imu_vfr_hud(sim_factory):
+    """What MAVProxy/QGroundControl need: a parameter list that completes, PARAM_SET echoed,
+    SCALED_IMU and VFR_HUD on request, AUTOPILOT_VERSION on REQUEST_MESSAGE."""
+    s = sim_factory("--scenario", "inclined_rail", "--duration", "0")
+    s.c.mav.param_request_list_send(1, 1)
+    vals = {}
+    end = time.monotonic() + 3.0
+    count = None
+    while time.monotonic() < end and (count is None or len(vals) < count):
+        m = s.c.recv_match(type="PARAM_VALUE", blocking=True, timeout=0.3)
+        if m is not None:
+            vals[m.param_id] = m.param_value
+            count = m.param_count
+    assert count is not None and len(vals) == count and vals["SYSID_THISMAV"] == 1.0
+    s.c.mav.param_set_send(1, 1, b"EK3_SRC1_YAW", 6.0, 9)
+    m = s.c.recv_match(type="PARAM_VALUE", blocking=True, timeout=2.0)
+    assert m is not None and m.param_id == "EK3_SRC1_YAW" and m.param_value == 6.0
+    assert s.set_rate(26, 20) == 0 and s.set_rate(74, 5) == 0
+    assert s.command(512, 148) == 0
+    got = _count(s.c, 1.0, {"SCALED_IMU", "VFR_HUD", "AUTOPILOT_VERSION"})
+    assert len(got["SCALED_IMU"]) >= 15 and len(got["VFR_HUD"]) >= 3 and "AUTOPILOT_VERSION" in got
+    m = got["SCALED_IMU"][-1][1]
+    assert m.zacc < -900 and m.xacc > 200  # at rest on the 15 deg rail
