@@ -9,8 +9,6 @@ External yaw received over ODOMETRY is logged too (npz: ext_yaw_*; csv: a second
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from sim.frames import euler_from_q
@@ -98,10 +96,14 @@ class TruthLog:
 def load_truth_log(path: str) -> dict[str, np.ndarray]:
     """Read a truth log (csv or npz) into a dict of column arrays."""
     if path.lower().endswith(".csv"):
-        data = np.loadtxt(path, delimiter=",", comments="#", skiprows=2, ndmin=2)
+        with open(path) as f:
+            lines = [ln for ln in f if not ln.startswith("#")]
+        # skip the header; drop a last row cut short by a hard kill
+        rows = [ln for ln in lines[1:] if ln.endswith("\n") and ln.count(",") == len(COLUMNS) - 1]
+        data = np.loadtxt(rows, delimiter=",", ndmin=2) if rows else np.zeros((0, len(COLUMNS)))
         return {name: data[:, i] for i, name in enumerate(COLUMNS)}
     with np.load(path) as z:
         return {k: z[k] for k in z.files}
 
 
-__all__ = ["TruthLog", "load_truth_log", "COLUMNS", "MODES", "math"]
+__all__ = ["TruthLog", "load_truth_log", "COLUMNS", "MODES"]
