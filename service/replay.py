@@ -1,0 +1,551 @@
+"""``azimuthd replay LOG``: a recorded flight log through the daemon's own Pipeline, offline.
+
+    azimuthd replay LOG [--config FILE | --site LAT,LON[,ALT]] [--output OUT.csv] [--plot OUT.png]
+
+The log's samples (service.logreaders: .tlog, .bin, .ulg) go, in the log's order, to the same
+``service.pipeline.Pipeline`` the daemon runs, as fast as the CPU allows; every NavSolution becomes
+a CSV row next to the log's own FC attitude (the reference, held from the last FC attitude at most
+``--ref-max-age`` seconds old in FC time). At the end: the streams found and missing, the phases
+reached, the RMS differences against the reference, the speed.
+
+Exit codes: 0 done; 2 bad input (unknown extension, not a log, truncated to nothing, no IMU,
+no site, bad config), with a one-line message and no traceback.
+
+CSV columns (degrees; empty where a value does not exist): see ``CSV_COLUMNS`` and docs/REPLAY.md.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+CSV_COLUMNS = ["time_s", "phase", "roll_deg", "pitch_deg", "heading_deg", "heading_sigma_deg",
+               "heading_source", "azimuth_deg", "azimuth_sigma_deg", "ref_roll_deg", "ref_pitch_deg",
+               "ref_heading_deg"]
+REF_MAX_AGE_S = 1.0
+"""Default: an FC attitude further than this from a sample (FC time) is no reference for it."""
+
+# pygeomag coefficient sets by validity start year (the daemon's config accepts 2025..2030 only)
+_WMM_BY_EPOCH = ((2010.0, "wmm_2010", "WMM_2010"), (2015.0, "wmm_2015v2", "WMM_2015v2"),
+                 (2020.0, "wmm_2020", "WMM_2020"))
+
+
+class ReplayError(ValueError):
+    """Input the replay cannot use: reported in one line, exit code 2."""
+
+
+# --- config ------------------------------------------------------------------------------------
+
+def _parse_site(text: str) -> tuple[float, float, float | None]:
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) not in (2, 3):
+        raise ReplayError(f"--site: expected LAT,LON or LAT,LON,ALT_M (degrees, metres), got {text!r}")
+    try:
+        vals = [float(p) for p in parts]
+    except ValueError:
+        raise ReplayError(f"--site: not numbers: {text!r}") from None
+    if not all(math.isfinite(v) for v in vals) or not -90 <= vals[0] <= 90 or not -180 <= vals[1] <= 180:
+        raise ReplayError(f"--site: latitude must be in [-90, 90] and longitude in [-180, 180], got {text!r}")
+    return vals[0], vals[1], (vals[2] if len(vals) == 3 else None)
+
+
+def _field_for_year(lat: float, lon: float, alt_m: float, year: float) -> tuple[list, str] | None:
+    """The WMM field [N, E, D] gauss for a log dated before the daemon's model (2025..2030)."""
+    import importlib
+    from pygeomag import GeoMag
+    for start, mod, attr in _WMM_BY_EPOCH:
+        if start <= year < start + 5.0:
+            coeff = getattr(importlib.import_module(f"pygeomag.wmm.{mod}"), attr)
+            r = GeoMag(coefficients_data=coeff).calculate(glat=lat, glon=lon, alt=alt_m / 1000.0, time=year)
+            return [r.x * 1e-5, r.y * 1e-5, r.z * 1e-5], attr.replace("_", "-")
+    return None
+
+
+def build_config(args, reader) -> tuple[dict, list[str]]:
+    """The Pipeline config: --config if given, else the defaults; the site from --site, else the
+    config, else the log's GNSS. Returns (validated config, notes for the user)."""
+    from service.config import ConfigError, load, validate
+    notes: list[str] = []
+    try:
+        if args.config:
+            cfg = load(args.config)
+            raw = {s: dict(v) for s, v in cfg.items()}
+            notes.append(f"config: {args.config}")
+        else:
+            raw = {}
+    except ConfigError as exc:
+        raise ReplayError(f"config error: {exc}") from None
+    site_cfg = raw.setdefault("site", {})
+    have_site = site_cfg.get("lat_deg") is not None or site_cfg.get("earth_field_ned_gauss") is not None
+    year = reader.decimal_year()
+    if args.site:
+        lat, lon, alt = _parse_site(args.site)
+        site_cfg.update({"lat_deg": lat, "lon_deg": lon, "earth_field_ned_gauss": None})
+        if alt is not None:
+            site_cfg["alt_m"] = alt
+        notes.append(f"site from --site: {lat:.6f}, {lon:.6f}")
+        have_site, site_from_log = True, False
+    elif not have_site:
+        site = reader.site()
+        if site is None:
+            raise ReplayError(f"{reader.path}: the log has no GNSS position to take the launch site from: "
+                              "give --site LAT,LON or --config FILE with [site] lat_deg/lon_deg")
+        site_cfg.update({"lat_deg": round(site.lat_deg, 7), "lon_deg": round(site.lon_deg, 7),
+                         "alt_m": float(min(max(site.alt_m, -500.0), 10000.0))})
+        notes.append(f"site from the log's {site.source}: {site.lat_deg:.6f}, {site.lon_deg:.6f}, "
+                     f"{site.alt_m:.0f} m")
+        site_from_log = True
+    else:
+        site_from_log = False
+    if (args.site or site_from_log) and site_cfg.get("decimal_year") is None:
+        if year is not None and 2025.0 <= year <= 2030.0:
+            site_cfg["decimal_year"] = round(year, 4)
+            notes.append(f"field model date from the log: {year:.2f}")
+        elif year is not None:
+            got = _field_for_year(site_cfg["lat_deg"], site_cfg["lon_deg"], site_cfg.get("alt_m", 0.0), year)
+            if got is not None:
+                site_cfg["earth_field_ned_gauss"] = [round(v, 6) for v in got[0]]
+                notes.append(f"the log is dated {year:.2f}, before the daemon's field model (2025..2030): "
+                             f"Earth field from {got[1]} at the site: [{', '.join(f'{v:.4f}' for v in got[0])}] G")
+            else:
+                notes.append(f"the log is dated {year:.2f}: no field model for that date; the field "
+                             "model's date is today")
+        else:
+            notes.append("the log carries no date: the field model's date is today")
+    try:
+        cfg = validate({s: {k: v for k, v in keys.items() if v is not None} for s, keys in raw.items()})
+    except ConfigError as exc:
+        raise ReplayError(f"config error: {exc}") from None
+    return cfg, notes
+
+
+# --- the replay --------------------------------------------------------------------------------
+
+@dataclass
+class ReplayResult:
+    """Arrays, one entry per output row (degrees; NaN where empty), and the run's figures."""
+    time_s: list = field(default_factory=list)
+    phase: list = field(default_factory=list)
+    cols: dict = field(default_factory=lambda: {c: [] for c in CSV_COLUMNS[2:] if c != "heading_source"})
+    heading_source: list = field(default_factory=list)
+    roll_sigma_deg: list = field(default_factory=list)
+    counts: dict = field(default_factory=dict)
+    missing: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
+    events: list = field(default_factory=list)
+    phases: list = field(default_factory=list)
+    """(phase, first FC time s) in the order reached."""
+    wall_s: float = 0.0
+    pipeline_s: float = 0.0
+    imu_samples: int = 0
+    counters: object = None
+
+
+def _deg(rad) -> float:
+    return math.degrees(rad) if rad is not None and math.isfinite(rad) else math.nan
+
+
+def _fmt(v: float, spec: str = ".10g") -> str:
+    return "" if v is None or not math.isfinite(v) else format(v, spec)
+
+
+class _Progress:
+    def __init__(self, enabled: bool, stream=sys.stderr):
+        self.enabled = enabled
+        self.stream = stream
+        self.tty = enabled and stream.isatty()
+        self.t0 = time.monotonic()
+        self.next_s = self.t0 + 1.0
+        self.shown = False
+
+    def update(self, frac: float, t_fc: float | None, n_imu: int) -> None:
+        now = time.monotonic()
+        if not self.enabled or now < self.next_s:
+            return
+        self.next_s = now + (0.5 if self.tty else 5.0)
+        rate = n_imu / max(now - self.t0, 1e-9)
+        msg = (f"replay: {100 * frac:5.1f}%  log t={t_fc if t_fc is not None else float('nan'):9.1f} s  "
+               f"{n_imu} IMU samples  {rate:,.0f} samples/s")
+        self.stream.write(("\r" + msg) if self.tty else (msg + "\n"))
+        self.stream.flush()
+        self.shown = True
+
+    def done(self) -> None:
+        if self.shown and self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = REF_MAX_AGE_S,
+               out_period_s: float = 0.0, progress: bool = False) -> ReplayResult:
+    """Feed every item of ``reader`` to a fresh Pipeline; write the CSV; return the rows."""
+    from mavlink_io.link import LinkEvent
+    from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcHeartbeat, FcSysStatus,
+                                    ImuSample, PressureSample)
+    from service.pipeline import Pipeline
+
+    pipe = Pipeline(cfg)
+    # what the daemon's dispatch does, plus any on_* the Pipeline has grown
+    handlers = {ImuSample: pipe.on_imu, PressureSample: pipe.on_pressure, FcAttitude: pipe.on_fc_attitude}
+    for cls, name in ((FcHeartbeat, "on_heartbeat"), (FcEkfStatus, "on_ekf_status"),
+                      (FcSysStatus, "on_sys_status"), (CommandAck, "on_command_ack")):
+        fn = getattr(pipe, name, None)
+        if callable(fn):
+            handlers[cls] = fn
+    res = ReplayResult()
+    cnt = {"imu": 0, "imu_with_mag": 0, "pressure": 0, "pressure_with_diff": 0, "pressure_diff_nonzero": 0,
+           "attitude": 0, "imu_time_span_s": [math.inf, -math.inf]}
+    imu_sources: dict[str, int] = {}
+    ref: FcAttitude | None = None
+    prog = _Progress(progress)
+    tmp = None
+    writer = None
+    fh = None
+    if csv_path is not None:
+        tmp = csv_path.with_name(csv_path.name + ".part")
+        fh = open(tmp, "w", newline="")
+        writer = csv.writer(fh)
+        writer.writerow(CSV_COLUMNS)
+    next_out_s = -math.inf
+    t_wall0 = time.perf_counter()
+    t_pipe = 0.0
+    perf = time.perf_counter
+    last_phase = None
+    cols = res.cols
+    try:
+        for item in reader.items():
+            cls = type(item)
+            if cls is ImuSample:
+                cnt["imu"] += 1
+                cnt["imu_with_mag"] += item.mag_gauss is not None
+                imu_sources[item.source] = imu_sources.get(item.source, 0) + 1
+                span = cnt["imu_time_span_s"]
+                span[0] = min(span[0], item.time_fc_s)
+                span[1] = max(span[1], item.time_fc_s)
+                t0 = perf()
+                sol = pipe.on_imu(item)
+                t_pipe += perf() - t0
+                for ev in pipe.drain_events():
+                    res.events.append((item.time_fc_s, *ev))
+                if cnt["imu"] % 256 == 0:
+                    prog.update(reader.progress(), item.time_fc_s, cnt["imu"])
+                if sol is None:
+                    continue
+                if sol.phase != last_phase:
+                    res.phases.append((sol.phase, sol.time_fc_s))
+                    last_phase = sol.phase
+                if sol.time_fc_s < next_out_s:
+                    continue
+                next_out_s = sol.time_fc_s + out_period_s if out_period_s > 0 else -math.inf
+                row_ref = ref if (ref is not None and abs(sol.time_fc_s - ref.time_fc_s) <= ref_max_age_s) else None
+                hdg = sol.heading_rad if (sol.heading_valid and sol.heading_rad is not None) else None
+                vals = {
+                    "roll_deg": _deg(sol.roll_rad), "pitch_deg": _deg(sol.pitch_rad),
+                    "heading_deg": _deg(hdg) % 360.0 if hdg is not None else math.nan,
+                    "heading_sigma_deg": _deg(sol.heading_sigma_rad) if hdg is not None else math.nan,
+                    "azimuth_deg": _deg(sol.azimuth_rad) % 360.0 if sol.azimuth_rad is not None else math.nan,
+                    "azimuth_sigma_deg": _deg(sol.azimuth_sigma_rad),
+                    "ref_roll_deg": _deg(row_ref.roll_rad) if row_ref else math.nan,
+                    "ref_pitch_deg": _deg(row_ref.pitch_rad) if row_ref else math.nan,
+                    "ref_heading_deg": (_deg(row_ref.yaw_rad) % 360.0) if row_ref else math.nan,
+                }
+                res.time_s.append(sol.time_fc_s)
+                res.phase.append(sol.phase)
+                src = sol.heading_source if hdg is not None else "none"
+                res.heading_source.append(src)
+                res.roll_sigma_deg.append(_deg(sol.roll_sigma_rad))
+                for k, v in vals.items():
+                    cols[k].append(v)
+                if writer is not None:
+                    writer.writerow([f"{sol.time_fc_s:.6f}", sol.phase, _fmt(vals["roll_deg"]),
+                                     _fmt(vals["pitch_deg"]), _fmt(vals["heading_deg"]),
+                                     _fmt(vals["heading_sigma_deg"]), src, _fmt(vals["azimuth_deg"]),
+                                     _fmt(vals["azimuth_sigma_deg"]), _fmt(vals["ref_roll_deg"]),
+                                     _fmt(vals["ref_pitch_deg"]), _fmt(vals["ref_heading_deg"])])
+            elif cls is FcAttitude:
+                cnt["attitude"] += 1
+                ref = item
+                pipe.on_fc_attitude(item)
+            elif cls is PressureSample:
+                cnt["pressure"] += 1
+                if item.press_diff_pa is not None:
+                    cnt["pressure_with_diff"] += 1
+                    cnt["pressure_diff_nonzero"] += item.press_diff_pa != 0.0
+                pipe.on_pressure(item)
+            elif cls is LinkEvent:
+                res.events.append((None, f"link.{item.kind}", item.detail))
+                if item.kind == "fc_reboot":
+                    pipe.on_fc_reboot()
+                    ref = None
+            else:
+                fn = handlers.get(cls)
+                if fn is not None:
+                    fn(item)
+    except BaseException:
+        if fh is not None:
+            fh.close()
+            tmp.unlink(missing_ok=True)
+        raise
+    finally:
+        prog.done()
+    if fh is not None:
+        fh.close()
+        if cnt["imu"] == 0:
+            tmp.unlink(missing_ok=True)
+        else:
+            os.replace(tmp, csv_path)
+    res.wall_s = time.perf_counter() - t_wall0
+    res.pipeline_s = t_pipe
+    res.imu_samples = cnt["imu"]
+    res.counts = dict(cnt, imu_sources=imu_sources)
+    res.notes = list(reader.summary.notes)
+    res.missing = missing_streams(cnt)
+    res.counters = pipe.counters
+    return res
+
+
+def missing_streams(cnt: dict) -> list[str]:
+    """What the log does not give the estimators, in words."""
+    out = []
+    if cnt["imu"] == 0:
+        out.append("IMU (gyro + accelerometer): none")
+    elif cnt["imu_with_mag"] == 0:
+        out.append("magnetometer: none (no heading from the magnetic methods)")
+    if cnt["pressure"] == 0:
+        out.append("barometer: none (no air data)")
+    elif cnt["pressure_with_diff"] == 0 or cnt["pressure_diff_nonzero"] == 0:
+        out.append("airspeed (differential pressure): none" +
+                   (" (logged as exactly 0: no sensor)" if cnt["pressure_with_diff"] else ""))
+    if cnt["attitude"] == 0:
+        out.append("reference attitude (the FC's ATTITUDE): none (ref_ columns empty)")
+    return out
+
+
+def _rms(a: np.ndarray) -> float:
+    a = a[np.isfinite(a)]
+    return float(np.sqrt(np.mean(a * a))) if a.size else math.nan
+
+
+def summary(res: ReplayResult) -> dict:
+    """The figures of a replay (JSON-ready: units in the keys)."""
+    c = res.cols
+    roll, pitch, hdg = (np.asarray(c[k], float) for k in ("roll_deg", "pitch_deg", "heading_deg"))
+    rr, rp, rh = (np.asarray(c[k], float) for k in ("ref_roll_deg", "ref_pitch_deg", "ref_heading_deg"))
+    d_roll = roll - rr
+    d_pitch = pitch - rp
+    d_hdg = (hdg - rh + 180.0) % 360.0 - 180.0
+    t = np.asarray(res.time_s, float)
+    span = res.counts.get("imu_time_span_s", [math.nan, math.nan])
+    dur = span[1] - span[0] if res.imu_samples > 1 else math.nan
+    out = {
+        "rows": len(res.time_s),
+        "imu_samples": res.imu_samples,
+        "imu_rate_hz": (res.imu_samples - 1) / dur if dur and dur > 0 else math.nan,
+        "imu_sources": res.counts.get("imu_sources", {}),
+        "pressure_samples": res.counts.get("pressure", 0),
+        "fc_attitude_samples": res.counts.get("attitude", 0),
+        "log_duration_s": dur,
+        "phases": [{"phase": p, "from_time_s": tt} for p, tt in res.phases],
+        "roll_rms_diff_deg": _rms(d_roll), "pitch_rms_diff_deg": _rms(d_pitch),
+        "heading_rms_diff_deg": _rms(d_hdg),
+        "roll_compared_rows": int(np.sum(np.isfinite(d_roll))),
+        "heading_compared_rows": int(np.sum(np.isfinite(d_hdg))),
+        "missing_streams": res.missing,
+        "notes": res.notes,
+        "events": len(res.events),
+        "imu_rejected": getattr(res.counters, "imu_rejected", 0),
+        "imu_rejected_reasons": dict(getattr(res.counters, "reasons", {})),
+        "wall_time_s": res.wall_s,
+        "samples_per_s": res.imu_samples / res.wall_s if res.wall_s > 0 else math.nan,
+        "pipeline_us_per_imu_sample": 1e6 * res.pipeline_s / res.imu_samples if res.imu_samples else math.nan,
+        "total_us_per_imu_sample": 1e6 * res.wall_s / res.imu_samples if res.imu_samples else math.nan,
+    }
+    if t.size:
+        inflight = np.isin(np.asarray(res.phase), ["launch", "in-flight"])
+        out["roll_rms_diff_in_flight_deg"] = _rms(d_roll[inflight])
+        out["pitch_rms_diff_in_flight_deg"] = _rms(d_pitch[inflight])
+    return out
+
+
+def print_summary(s: dict, res: ReplayResult, notes: list[str], log: Path, out=sys.stdout) -> None:
+    p = lambda *a: print(*a, file=out)  # noqa: E731
+    p(f"replay of {log}")
+    for n in notes + s["notes"]:
+        p(f"  note: {n}")
+    src = ", ".join(f"{k} {v}" for k, v in s["imu_sources"].items()) or "none"
+    p(f"  streams: IMU {s['imu_samples']} samples ({src}) at {s['imu_rate_hz']:.1f} Hz over "
+      f"{s['log_duration_s']:.1f} s; pressure {s['pressure_samples']}; FC attitude {s['fc_attitude_samples']}")
+    for m in s["missing_streams"]:
+        p(f"  missing: {m}")
+    ph = ", ".join(f"{x['phase']} at {x['from_time_s']:.2f} s" for x in s["phases"]) or "none"
+    p(f"  phases: {ph}")
+    kinds: dict[str, int] = {}
+    for _, kind, _detail in res.events:
+        kinds[kind] = kinds.get(kind, 0) + 1
+    if kinds:
+        p("  events: " + ", ".join(f"{k} x{v}" for k, v in sorted(kinds.items())))
+        shown = [e for e in res.events if e[1] in ("not_still", "levelled", "launch_ignored",
+                                                   "link.fc_reboot")][:3]
+        for t, kind, detail in shown:
+            p(f"    {kind} at {'' if t is None else f'{t:.2f} s'}: {detail}")
+    if s["imu_rejected"]:
+        p(f"  IMU samples rejected by the pipeline: {s['imu_rejected']} {s['imu_rejected_reasons']}")
+    if s["imu_rate_hz"] == s["imu_rate_hz"] and s["imu_rate_hz"] < 50:
+        p(f"  warning: the IMU is logged at {s['imu_rate_hz']:.1f} Hz: levelling needs a still block of "
+          "many samples and strapdown integration needs >= 50 Hz; expect no levelling and no attitude")
+    p(f"  rows: {s['rows']}; compared with the FC: roll/pitch {s['roll_compared_rows']} rows, heading "
+      f"{s['heading_compared_rows']} rows")
+    fmt = lambda v: "-" if not v == v else f"{v:.3f} deg"  # noqa: E731
+    p(f"  RMS difference vs the log's FC attitude: roll {fmt(s['roll_rms_diff_deg'])}, pitch "
+      f"{fmt(s['pitch_rms_diff_deg'])}, heading {fmt(s['heading_rms_diff_deg'])}")
+    if s.get("roll_rms_diff_in_flight_deg") == s.get("roll_rms_diff_in_flight_deg"):
+        p(f"    after launch only: roll {fmt(s['roll_rms_diff_in_flight_deg'])}, pitch "
+          f"{fmt(s['pitch_rms_diff_in_flight_deg'])}")
+    p(f"  speed: {s['wall_time_s']:.2f} s wall, {s['samples_per_s']:,.0f} IMU samples/s; "
+      f"{s['pipeline_us_per_imu_sample']:.1f} us/sample in the Pipeline, "
+      f"{s['total_us_per_imu_sample']:.1f} us/sample with log decoding")
+
+
+# --- plot --------------------------------------------------------------------------------------
+
+def plot(res: ReplayResult, path: Path, title: str) -> None:
+    """Roll, pitch, heading (ours with the 1-sigma band, the log's reference) and the error."""
+    try:
+        import matplotlib
+    except ImportError:
+        raise ReplayError("--plot needs matplotlib: pip install matplotlib") from None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = np.asarray(res.time_s, float)
+    c = {k: np.asarray(v, float) for k, v in res.cols.items()}
+    sig_rp = np.asarray(res.roll_sigma_deg, float)
+    step = max(1, t.size // 20000)  # a plot needs no more points than pixels
+    sl = slice(None, None, step)
+    fig, axes = plt.subplots(3, 2, figsize=(14, 9), sharex=True, squeeze=False)
+    specs = (("roll", "roll_deg", "ref_roll_deg", sig_rp),
+             ("pitch", "pitch_deg", "ref_pitch_deg", sig_rp),
+             ("heading", "heading_deg", "ref_heading_deg", c["heading_sigma_deg"]))
+    for row, (name, ours, ref, sig) in enumerate(specs):
+        ax, ax_e = axes[row]
+        y, r = c[ours], c[ref]
+        ax.plot(t[sl], r[sl], color="0.4", lw=1.0, label="log's FC estimate")
+        ax.plot(t[sl], y[sl], color="C0", lw=1.0, label="azimuthd")
+        ok = np.isfinite(y) & np.isfinite(sig)
+        if ok.any():
+            ax.fill_between(t[sl], (y - sig)[sl], (y + sig)[sl], where=ok[sl], color="C0", alpha=0.25,
+                            lw=0, label="azimuthd 1-sigma")
+        ax.set_ylabel(f"{name} (deg)")
+        err = y - r
+        if name == "heading":
+            err = (err + 180.0) % 360.0 - 180.0
+        ax_e.plot(t[sl], err[sl], color="C3", lw=1.0, label="azimuthd - FC")
+        if ok.any():
+            ax_e.fill_between(t[sl], -sig[sl], sig[sl], where=ok[sl], color="C0", alpha=0.2, lw=0,
+                              label="+-1-sigma")
+        ax_e.axhline(0.0, color="0.6", lw=0.5)
+        ax_e.set_ylabel(f"{name} error (deg)")
+        if not np.isfinite(y).any():
+            ax.text(0.5, 0.5, f"no {name} from azimuthd", transform=ax.transAxes, ha="center", color="C0")
+        if not np.isfinite(r).any():
+            ax.text(0.5, 0.4, "no reference in the log", transform=ax.transAxes, ha="center", color="0.4")
+        for a in (ax, ax_e):
+            a.grid(True, lw=0.3)
+        if row == 0:
+            ax.legend(loc="upper right", fontsize=8)
+            ax_e.legend(loc="upper right", fontsize=8)
+    for p, t0 in res.phases:
+        if p in ("launch", "in-flight"):
+            for a in axes.ravel():
+                a.axvline(t0, color="k", lw=0.6, ls="--")
+    axes[2, 0].set_xlabel("FC time (s)")
+    axes[2, 1].set_xlabel("FC time (s)")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+# --- command line ------------------------------------------------------------------------------
+
+def _json_safe(v):
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    if isinstance(v, dict):
+        return {k: _json_safe(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json_safe(x) for x in v]
+    return v
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="azimuthd replay",
+        description="Run a recorded flight log (.tlog MAVLink telemetry, .bin ArduPilot DataFlash, .ulg PX4 "
+                    "ULog) through the daemon's estimators, offline, and compare with the log's own attitude.")
+    ap.add_argument("log", metavar="LOG", help="the flight log (.tlog, .bin, .ulg)")
+    ap.add_argument("--config", metavar="FILE", help="daemon config (TOML); default: built from the log")
+    ap.add_argument("--site", metavar="LAT,LON[,ALT]", help="launch site (deg, deg, m) when the log has no GNSS fix")
+    ap.add_argument("--output", metavar="OUT.csv", help="CSV, one row per output sample")
+    ap.add_argument("--plot", metavar="OUT.png", help="plot of roll/pitch/heading vs the log's attitude (PNG)")
+    ap.add_argument("--json", metavar="PATH", help="write the summary figures as JSON")
+    ap.add_argument("--rate", type=float, metavar="HZ", default=0.0,
+                    help="output rows at most this often (FC time); default: every IMU sample")
+    ap.add_argument("--ref-max-age", type=float, metavar="S", default=REF_MAX_AGE_S,
+                    help=f"oldest FC attitude used as the reference of a row (default {REF_MAX_AGE_S} s)")
+    ap.add_argument("--no-progress", action="store_true", help="no progress lines on stderr")
+    try:
+        args = ap.parse_args(argv)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    from service.logreaders import LogError, open_log
+    try:
+        if args.rate < 0 or not math.isfinite(args.rate):
+            raise ReplayError(f"--rate: must be >= 0 Hz, got {args.rate}")
+        if not args.ref_max_age > 0:
+            raise ReplayError(f"--ref-max-age: must be > 0 s, got {args.ref_max_age}")
+        if args.plot and Path(args.plot).suffix.lower() != ".png":
+            raise ReplayError(f"--plot: the plot is a PNG file (OUT.png), got {args.plot!r}")
+        for opt in (args.output, args.plot, args.json):
+            if opt and not Path(opt).resolve().parent.is_dir():
+                raise ReplayError(f"{opt}: directory does not exist")
+        reader = open_log(args.log)
+        cfg, notes = build_config(args, reader)
+        if hasattr(reader, "imu_gap_s"):
+            reader.imu_gap_s = cfg["mavlink"]["imu_gap_s"]
+        res = run_replay(reader, cfg, Path(args.output) if args.output else None, args.ref_max_age,
+                         1.0 / args.rate if args.rate > 0 else 0.0, progress=not args.no_progress)
+        if res.imu_samples == 0:
+            raise ReplayError(f"{args.log}: no IMU samples in this log (missing: "
+                              f"{'; '.join(res.missing) or 'IMU'})")
+        s = summary(res)
+        if args.plot:
+            plot(res, Path(args.plot), f"azimuthd replay: {Path(args.log).name}")
+    except (LogError, ReplayError) as exc:
+        print(f"azimuthd replay: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"azimuthd replay: {exc.filename or args.log}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    s["config_notes"] = notes
+    print_summary(s, res, notes, Path(args.log))
+    if args.output:
+        print(f"  csv: {args.output}")
+    if args.plot:
+        print(f"  plot: {args.plot}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(_json_safe(s), indent=2) + "\n")
+        print(f"  json: {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
