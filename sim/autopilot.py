@@ -26,6 +26,7 @@ import numpy as np
 from sim import wire
 from sim.engine import Engine
 from sim.faults import LinkFaults
+from sim.frames import euler_from_q, q_from_euler
 from sim.truthlog import TruthLog
 
 os.environ.setdefault("MAVLINK20", "1")
@@ -153,8 +154,7 @@ class Autopilot:
         else:
             iv = max(interval_us * 1e-6, 1.0 / MAX_RATE_HZ)
             old = self.streams.get(msg_id)
-            self.streams[msg_id] = Stream(iv, self.t + (0.0 if old is None else 0.0),
-                                          -1 if old is None else old.last_k)
+            self.streams[msg_id] = Stream(iv, self.t, -1 if old is None else old.last_k)
         return ACCEPTED
 
     # ---- samples -------------------------------------------------------------------------
@@ -266,11 +266,9 @@ class Autopilot:
                 if self.faults.nan_now():
                     vals[int(self.faults.rng.integers(0, 3))] = float("nan")
                 return m.attitude_encode(tb_ms, *vals)
-            from sim.frames import q_from_euler
             q = q_from_euler(e[0], e[1], e[2])
             return m.attitude_quaternion_encode(tb_ms, *map(float, q), *map(float, w), [0.0, 0.0, 0.0, 0.0])
         if msg_id == SIMSTATE:
-            from sim.frames import euler_from_q
             e = euler_from_q(self._get("q_nav_from_body", k))
             f = self._get("f_body_m_s2", k)
             w = self._get("omega_body_rad_s", k)

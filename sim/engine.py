@@ -2,8 +2,6 @@
 derived kinematic truth and the sensor suite, advanced chunk by chunk on one fixed clock."""
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from sim.scenario import load_scenario
@@ -55,6 +53,3 @@ class Engine:
             "imu_grade": self.imu_grade,
         }
 
-
-def wrap_deg(a: float) -> float:
-    return math.degrees(math.atan2(math.sin(math.radians(a)), math.cos(math.radians(a))))

@@ -11,7 +11,6 @@ as NaN rows. Link faults (drops, corruption, reboot, outages, NaN fields) only a
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -110,12 +109,3 @@ def simulate(scenario="inclined_rail", seed: int = 0, imu_grade: str = "consumer
                   fc_time_s=time_fc[::k_fc], fc_euler_rad=fc_eul, gnss_lost_time_s=eng.sc["gnss"]["lost_at_s"],
                   truth=truth, site=eng.site(), scenario=eng.sc, seed=int(seed), imu_grade=imu_grade)
 
-
-def save_truth_npz(run: SimRun, path: str) -> None:
-    """Write the run (sensors, truth, site) to an .npz file."""
-    t = run.truth
-    arrays = {f"truth_{k}": v for k, v in vars(t).items() if isinstance(v, np.ndarray)}
-    arrays.update({k: v for k, v in vars(run).items() if isinstance(v, np.ndarray)})
-    arrays["site_C_body_from_sensor"] = run.site["C_body_from_sensor"]
-    arrays["truth_launch_time_s"] = np.array(math.nan if t.launch_time_s is None else t.launch_time_s)
-    np.savez_compressed(path, **arrays)

@@ -20,6 +20,7 @@ import math
 import numpy as np
 
 from sim import earth
+from sim.frames import dcm_from_euler_deg, dcm_from_q, euler_from_q, q_from_dcm, qmul
 
 DEG = math.pi / 180.0
 G0_M_S2 = 9.80665
@@ -156,7 +157,6 @@ class SensorSuite:
         self.sc = scenario
         self.dt = dt_s
         self.p = imu_params(imu_grade, scenario["imu"])
-        from sim.frames import dcm_from_euler_deg, q_from_dcm
         self.C_body_from_sensor = dcm_from_euler_deg(*scenario["imu"]["mount_euler_deg"])
         self.q_body_from_sensor = q_from_dcm(self.C_body_from_sensor)
         self.gyro = Triad(self.p, "gyro", rng[0], rng[1], rng[2], dt_s)
@@ -206,7 +206,6 @@ class SensorSuite:
     # -- one chunk -----------------------------------------------------------------------
     def measure(self, st: dict, tr: dict) -> dict:
         """Continuous-valued measurements (before the link's quantisation), sensor frame, SI."""
-        from sim.frames import dcm_from_q, qmul
         q_ns = qmul(tr["q_nav_from_body"], self.q_body_from_sensor)
         C_ns = dcm_from_q(q_ns)
         C_sb = self.C_body_from_sensor.T
@@ -239,7 +238,6 @@ class SensorSuite:
     def fc_attitude(self, t: np.ndarray, tr: dict) -> np.ndarray:
         """The FC's own estimate: truth Euler + Gauss-Markov errors; after GNSS loss the tilt error
         grows to degraded_tilt_error_deg and the yaw drifts at degraded_yaw_drift_deg_s."""
-        from sim.frames import euler_from_q
         eul = euler_from_q(tr["q_nav_from_body"])
         if len(t) == 0:
             return eul
