@@ -19,8 +19,9 @@ This module turns them into ``time_fc_s`` with three guarantees:
    long link loss. A new, higher k is reported once as ``time_wrap``.
 2. **Reboot (backward jump)**: a stream whose (unwrapped) time goes back by more than
    ``reboot_jump_s``, or goes back at all while lagging the local-clock prediction by more than
-   2 ``reboot_jump_s`` (a reboot that took about as long as the uptime before it), means the FC
-   rebooted. Reported as ``fc_reboot``; every stream is reset and
+   2 ``reboot_jump_s`` (a reboot that took about as long as the uptime before it), or moves
+   forward but lags the prediction by more than ``reboot_lag_s`` (a reboot during a link outage
+   longer than the uptime before it), means the FC rebooted. Reported as ``fc_reboot``; every stream is reset and
    the output time continues monotonically: the new boot's time ``t_raw`` is mapped to
    ``t_last_out + (rx_now - rx_last)`` (elapsed local time across the reboot), so estimators are
    never handed a backward time. Smaller backward steps (reordered or duplicated packets) are
@@ -46,6 +47,9 @@ _SCALE_S = {"ms": 1e-3, "us": 1e-6}
 class TimebaseParams:
     reboot_jump_s: float = 1.0
     """A raw FC time going back by more than this (s) on one stream is an FC reboot."""
+    reboot_lag_s: float = 5.0
+    """A stream's time that moved forward but lags the local-clock prediction by more than this
+    (s) means the FC rebooted while the link was silent (e.g. up 30 s, reboot, 60 s outage)."""
     wrap_tolerance_s: float = 2.0
     """A wrap is accepted when the unwrapped time is within this (s) of the time predicted from
     the local clock (plus 0.1 % of the local time elapsed since the reference sample)."""
@@ -53,6 +57,8 @@ class TimebaseParams:
     def __post_init__(self) -> None:
         if not self.reboot_jump_s > 0:
             raise ValueError(f"reboot_jump_s must be > 0, got {self.reboot_jump_s}")
+        if not self.reboot_lag_s > 0:
+            raise ValueError(f"reboot_lag_s must be > 0, got {self.reboot_lag_s}")
         if not 0 < self.wrap_tolerance_s < 600.0:
             raise ValueError(f"wrap_tolerance_s must be in (0, 600), got {self.wrap_tolerance_s}")
 
@@ -140,23 +146,30 @@ class FcTimebase:
             raise ValueError(f"unit must be 'us' or 'ms', got {unit!r}")
         t_raw = self._unwrap(int(raw) % MS_WRAP if unit == "ms" else int(raw), unit, rx_s, events)
         st = self.streams.get(stream)
-        if st is not None and t_raw <= st.last_raw_s:
+        rebooted = False
+        if st is not None:
             back_s = st.last_raw_s - t_raw
             # how far behind the local-clock prediction: ~0 for a reordered or duplicated packet,
-            # ~ the FC's uptime before the reboot for a restarted clock (even a short one)
+            # ~ the FC's uptime before the reboot for a restarted clock, whatever the silence
             deficit_s = self.t_ref_s + max(0.0, rx_s - self.rx_ref_s) - t_raw
-            if back_s <= self.params.reboot_jump_s and deficit_s <= 2.0 * self.params.reboot_jump_s:
-                self.stale += 1
-                return None, events
+            if back_s >= 0.0:
+                if back_s <= self.params.reboot_jump_s and deficit_s <= 2.0 * self.params.reboot_jump_s:
+                    self.stale += 1
+                    return None, events
+                rebooted = True
+            elif deficit_s > self.params.reboot_lag_s:
+                rebooted = True  # forward, yet far behind the local clock: rebooted during a silence
+        if rebooted:
             # FC clock restarted: continue our output time across the reboot with local time
             last_out = self.last_out_s if self.last_out_s is not None else st.last_out_s
             elapsed_s = max(rx_s - (self.last_rx_s if self.last_rx_s is not None else rx_s), 1e-3)
             self.offset_s = last_out + elapsed_s - t_raw
             self.reboots += 1
+            how = (f"went back {back_s:.3f} s" if back_s >= 0 else
+                   f"lags the local clock by {deficit_s:.3f} s")
             events.append(TimebaseEvent(
-                "fc_reboot", f"{stream} time went back {back_s:.3f} s (from {st.last_raw_s:.3f} s to "
-                             f"{t_raw:.3f} s since boot): FC rebooted; FC time continues at "
-                             f"{t_raw + self.offset_s:.3f} s"))
+                "fc_reboot", f"{stream} time {how} (from {st.last_raw_s:.3f} s to {t_raw:.3f} s since "
+                             f"boot): FC rebooted; FC time continues at {t_raw + self.offset_s:.3f} s"))
             self.reset()
             t_raw = self._unwrap(int(raw) % MS_WRAP if unit == "ms" else int(raw), unit, rx_s, events)
             st = None

@@ -70,19 +70,24 @@ def test_reboot_near_the_us32_wrap_is_not_taken_for_a_wrap():
     assert ev2 == [] and t2 - t == pytest.approx(0.005, abs=1e-9)
 
 
-def test_reboot_just_after_a_us32_wrap_is_caught_by_the_ms_streams():
+def test_reboot_just_after_a_us32_wrap_is_still_caught():
     """3 s after boot looks like 'a little later' to a wrapped uint32 us clock; the uint32 ms
     stream of the same FC (ATTITUDE) goes back 4295 s and tells the reboot."""
     tb = FcTimebase()
     _feed_all(tb, [("IMU", US32_WRAP - 5_000, "us", 10.0), ("ATTITUDE", int(US32_S * 1000) - 5, "ms", 10.0),
                    ("IMU", 5_000, "us", 10.01)])  # wrapped once
-    t_imu, ev = tb.feed("IMU", 3_000_000, "us", 20.0)  # rebooted 10 s later: ambiguous on its own
+    t_imu, ev = tb.feed("IMU", 3_000_000, "us", 13.0)  # rebooted 3 s later: ambiguous on its own
     assert ev == []
-    t_att, ev = tb.feed("ATTITUDE", 3_001, "ms", 20.001)
+    t_att, ev = tb.feed("ATTITUDE", 3_001, "ms", 13.001)
     assert [e.kind for e in ev] == ["fc_reboot"] and t_att > t_imu
-    out, ev = _feed_all(tb, [("IMU", 3_000_000 + 5_000 * i, "us", 20.0 + 0.005 * i) for i in range(1, 5)])
+    out, ev = _feed_all(tb, [("IMU", 3_000_000 + 5_000 * i, "us", 13.0 + 0.005 * i) for i in range(1, 5)])
     assert ev == [] and all(o is not None for o in out) and np.allclose(np.diff(out), 0.005, atol=1e-9)
     assert out[0] > t_imu  # never backwards
+    # had the FC been silent for 10 s, the IMU stream alone would tell: 7 s behind the local clock
+    tb = FcTimebase()
+    _feed_all(tb, [("IMU", US32_WRAP - 5_000, "us", 10.0), ("IMU", 5_000, "us", 10.01)])
+    _, ev = tb.feed("IMU", 3_000_000, "us", 20.0)
+    assert [e.kind for e in ev] == ["fc_reboot"]
 
 
 def test_connecting_to_an_fc_up_for_days_is_not_a_wrap_event():
@@ -126,6 +131,21 @@ def test_quick_reboot_told_from_reordering_by_the_local_clock():
     tb.feed("IMU", 2_005_000, "us", 12.010)
     t, ev = tb.feed("IMU", 1_505_000, "us", 12.011)
     assert t is None and ev == []
+
+
+def test_reboot_during_a_long_outage_seen_from_the_local_clock():
+    """Up 30 s, reboot, 60 s of outage: the first sample says 55 s since boot (forward!), but
+    the local clock says it should be ~90 s."""
+    tb = FcTimebase()
+    tb.feed("IMU", 30_000_000, "us", 100.0)
+    t, ev = tb.feed("IMU", 55_000_000, "us", 160.0)
+    assert [e.kind for e in ev] == ["fc_reboot"] and "lags the local clock by 35.000 s" in ev[0].detail
+    assert t == pytest.approx(90.0)
+    # a plain outage (no reboot) is a gap, not a reboot
+    tb2 = FcTimebase()
+    tb2.feed("IMU", 30_000_000, "us", 100.0)
+    t, ev = tb2.feed("IMU", 89_000_000, "us", 160.0, gap_s=0.5)
+    assert [e.kind for e in ev] == ["time_gap"] and t == pytest.approx(89.0)
 
 
 def test_small_backward_step_is_dropped_not_a_reboot():
