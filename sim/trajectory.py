@@ -319,7 +319,8 @@ class Flight:
                     self.phase = "climb"
             elif ph == "ground_roll":
                 self.V += L["takeoff_accel_m_s2"] * dt
-                if self.V >= L["rotate_airspeed_m_s"]:
+                an_, ae_, ad_ = self.air
+                if an_ * an_ + ae_ * ae_ + ad_ * ad_ >= L["rotate_airspeed_m_s"] ** 2:  # true airspeed
                     self._next_guidance_t = self.t + dt
                     self.phase = "climb"
             else:
