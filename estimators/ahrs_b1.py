@@ -29,11 +29,19 @@ alpha = k_alpha n / q_dyn (n = 1/cos(phi) the turn load factor, q_dyn = rho v^2 
 coefficient scales with n / q_dyn), low-passed with ``alpha_tau_s``; frozen when untrusted.
 
 Gyro zero correction (Fig. 1, filters 3 and 5): while the trusted reference works, the rates
-implied by its Euler angles, omega_ref = W(phi, theta) d(euler)/dt (euler_kinematics.body_rates),
-and the gyro rates are low-passed alike (``rate_lp_tau_s``); their difference is averaged with
-a long time constant (growing from ``zero_tau_min_s`` to ``zero_tau_s``, "initialised with the
-shorter time constant") into the correction c, used as omega = gyro + c. When the reference
-fails the last correction is kept (frozen).
+implied by the reference are compared with the zero-corrected gyro rates, and the difference is
+averaged with a long time constant (growing from ``zero_tau_min_s`` to ``zero_tau_s``,
+"initialised with the shorter time constant") into the correction c, used as omega = gyro + c.
+Differentiating the reference's Euler angles sample by sample (the seed's high-pass) amplifies
+their noise (0.2 deg at 50 Hz -> 14 deg/s), so the comparison is made on increments over a
+window of ``zero_window_s``: with C_r the reference attitude and C_g our gyro-only attitude
+(integrated with gyro + c, never reset), the body-frame rate error over the window is
+
+    delta_omega = rotvec( (C_r(a)^T C_r(b))^T (C_g(a)^T C_g(b)) ) / (t_b - t_a)
+
+(the gyro-only relative rotation minus the reference's, i.e. the mean of (gyro + c) - omega
+for slow attitude changes), and c <- c - k delta_omega with k = T / (tau + T). When the
+reference fails the last correction is kept (frozen).
 
 Frames: all rates are FRD body axes (the caller rotates sensor-frame gyros by
 C_body_from_sensor). Pure: ``b1_imu_step``, ``b1_air_step``, ``b1_reference_step``,
@@ -47,8 +55,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from estimators.air_data import AirData
-from estimators.euler_kinematics import body_rates, euler_integrate, euler_rates
-from estimators.rotations import wrap_2pi, wrap_pi
+from estimators.euler_kinematics import euler_integrate, euler_rates
+from estimators.rotations import (dcm_from_euler, dcm_from_quat, quat_from_dcm, quat_from_rotvec,
+                                  quat_mul, rotvec_from_quat, wrap_2pi, wrap_pi)
 
 G_M_S2 = 9.80665
 
@@ -70,7 +79,8 @@ class B1Params:
     """Gyro-zero uncertainty without any zero correction."""
     sigma_bias_corrected_rad_s: float = math.radians(0.03)
     """Residual gyro-zero uncertainty once the zero correction has converged."""
-    rate_lp_tau_s: float = 0.5
+    zero_window_s: float = 2.0
+    """Window of the reference-vs-gyro increment comparison (s)."""
     zero_tau_min_s: float = 2.0
     zero_tau_s: float = 60.0
     alpha_tau_s: float = 20.0
@@ -98,10 +108,10 @@ class B1State:
     """c: added to the gyro (rad/s, body)."""
     zero_corr_time_s: float = 0.0
     """Accumulated time of zero-correction learning (s)."""
-    gyro_lp_rad_s: np.ndarray | None = None
-    ref_rate_lp_rad_s: np.ndarray | None = None
-    ref_prev: tuple | None = None
-    """(time_s, euler) of the previous reference sample."""
+    q_free: np.ndarray | None = None
+    """Gyro-only attitude q_free_from_body, integrated with gyro + c, never reset."""
+    zero_window: tuple | None = None
+    """(t_a, C_ref(a), C_free(a)) at the start of the current zero-correction window."""
     k_alpha_pa: float | None = None
     """Learnt angle-of-attack coefficient alpha = k n / q_dyn (rad Pa)."""
     heading_rad: float | None = None
@@ -134,24 +144,21 @@ def b1_imu_step(state: B1State, gyro_body_rad_s: np.ndarray, time_s: float,
     if g.shape != (3,) or not np.all(np.isfinite(g)) or not math.isfinite(time_s):
         raise ValueError("b1_imu_step: gyro must be 3 finite values and time finite")
     w = g + state.zero_corr_rad_s
-    a = 0.0
-    gyro_lp = g if state.gyro_lp_rad_s is None else state.gyro_lp_rad_s
     if state.time_s is None or state.omega_prev_rad_s is None:
-        return replace(state, time_s=time_s, omega_prev_rad_s=w, gyro_lp_rad_s=gyro_lp)
+        return replace(state, time_s=time_s, omega_prev_rad_s=w, q_free=np.array([1.0, 0.0, 0.0, 0.0]))
     dt = time_s - state.time_s
     if dt <= 0.0:
         raise ValueError(f"b1_imu_step: time must increase ({time_s!r} after {state.time_s!r})")
     if dt > params.max_dt_s:
         return replace(state, time_s=time_s, omega_prev_rad_s=w)
-    a = dt / (params.rate_lp_tau_s + dt)
-    gyro_lp = gyro_lp + a * (g - gyro_lp)
+    qf = quat_mul(state.q_free, quat_from_rotvec(0.5 * (state.omega_prev_rad_s + w) * dt))
+    qf = qf / math.sqrt(float(qf @ qf))
     e = euler_integrate([state.roll_rad, state.pitch_rad, state.yaw_gyro_rad], state.omega_prev_rad_s, w, dt)
     q_angle = params.gyro_noise_rad_s_rthz ** 2 * dt
     Pr, Pp = _prop_axis(state.P_roll, dt, q_angle), _prop_axis(state.P_pitch, dt, q_angle)
     yaw_var = state.yaw_var + params.gyro_noise_rad_s_rthz ** 2 * dt + (state.P_roll[1, 1] * dt * dt)
     return replace(state, roll_rad=wrap_pi(e[0]), pitch_rad=float(e[1]), yaw_gyro_rad=wrap_2pi(e[2]),
-                   P_roll=Pr, P_pitch=Pp, yaw_var=yaw_var, omega_prev_rad_s=w, time_s=time_s,
-                   gyro_lp_rad_s=gyro_lp)
+                   P_roll=Pr, P_pitch=Pp, yaw_var=yaw_var, omega_prev_rad_s=w, time_s=time_s, q_free=qf)
 
 
 def b1_heading_step(state: B1State, heading_rad: float, sigma_rad: float, time_s: float,
@@ -218,36 +225,37 @@ def b1_air_step(state: B1State, air: AirData, params: B1Params = B1Params()) -> 
 def b1_reference_step(state: B1State, euler_ref_rad: np.ndarray, time_s: float, trusted: bool,
                       air: AirData | None = None, params: B1Params = B1Params()) -> B1State:
     """A reference (FC ATTITUDE) sample. While trusted: align roll/pitch, learn the zero
-    correction and alpha; untrusted: everything frozen (the sample is only remembered)."""
+    correction and alpha; untrusted: everything frozen (the comparison window restarts)."""
     e = np.asarray(euler_ref_rad, dtype=float)
     if e.shape != (3,) or not np.all(np.isfinite(e)) or not math.isfinite(time_s):
         raise ValueError("b1_reference_step: euler must be 3 finite values, time finite")
-    prev = state.ref_prev
-    st = replace(state, ref_prev=(time_s, e.copy()))
     if not trusted:
-        return st
-    st = replace(st, roll_rad=float(e[0]), pitch_rad=float(e[1]), initialised=True,
-                 P_roll=np.array([[params.sigma_fc_rad ** 2, 0.0], [0.0, st.P_roll[1, 1]]]),
-                 P_pitch=np.array([[params.sigma_fc_rad ** 2, 0.0], [0.0, st.P_pitch[1, 1]]]))
+        return replace(state, zero_window=None)
+    st = replace(state, roll_rad=float(e[0]), pitch_rad=float(e[1]), initialised=True,
+                 P_roll=np.array([[params.sigma_fc_rad ** 2, 0.0], [0.0, state.P_roll[1, 1]]]),
+                 P_pitch=np.array([[params.sigma_fc_rad ** 2, 0.0], [0.0, state.P_pitch[1, 1]]]))
     if not _heading_fresh(st, params):
         st = replace(st, yaw_gyro_rad=wrap_2pi(float(e[2])), yaw_var=params.sigma_fc_rad ** 2)
-    if prev is None or not (0.0 < time_s - prev[0] <= params.max_dt_s) or st.gyro_lp_rad_s is None:
+    prev_t = st.zero_window[0] if st.zero_window is not None else None
+    if st.q_free is None:
         return st
-    dt = time_s - prev[0]
-    de = (e - prev[1]) / dt
-    de[0] = wrap_pi(e[0] - prev[1][0]) / dt
-    de[2] = wrap_pi(e[2] - prev[1][2]) / dt
-    w_ref = body_rates(e[0], e[1], de)
-    a = dt / (params.rate_lp_tau_s + dt)
-    lp = w_ref if st.ref_rate_lp_rad_s is None else st.ref_rate_lp_rad_s + a * (w_ref - st.ref_rate_lp_rad_s)
-    t_zc = st.zero_corr_time_s + dt
+    C_r, C_g = dcm_from_euler(*e), dcm_from_quat(st.q_free)
+    if st.zero_window is None:
+        return replace(st, zero_window=(time_s, C_r, C_g))
+    T = time_s - prev_t
+    if T < params.zero_window_s:
+        return st
+    _, C_ra, C_ga = st.zero_window
+    R_ref, R_gyro = C_ra.T @ C_r, C_ga.T @ C_g
+    d_omega = rotvec_from_quat(quat_from_dcm(R_ref.T @ R_gyro)) / T
+    t_zc = st.zero_corr_time_s + T
     tau = min(params.zero_tau_s, max(params.zero_tau_min_s, t_zc))
-    b = dt / (tau + dt)
-    c = st.zero_corr_rad_s + b * ((lp - st.gyro_lp_rad_s) - st.zero_corr_rad_s)
+    c = st.zero_corr_rad_s - T / (tau + T) * d_omega
     sb = max(params.sigma_bias_corrected_rad_s,
              params.sigma_bias_uncorrected_rad_s * math.sqrt(params.zero_tau_min_s / t_zc))
-    st = replace(st, ref_rate_lp_rad_s=lp, zero_corr_rad_s=c, zero_corr_time_s=t_zc,
+    st = replace(st, zero_corr_rad_s=c, zero_corr_time_s=t_zc, zero_window=(time_s, C_r, C_g),
                  P_roll=np.diag([st.P_roll[0, 0], sb * sb]), P_pitch=np.diag([st.P_pitch[0, 0], sb * sb]))
+    dt = T
     if air is not None and air.usable and abs(e[0]) < params.roll_limit_rad and abs(e[1]) < params.pitch_limit_rad:
         v = air.tas_m_s
         gamma = math.asin(max(-1.0, min(1.0, air.alt_rate_m_s / v)))

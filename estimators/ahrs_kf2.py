@@ -57,6 +57,15 @@ N = 9
 G_M_S2 = 9.80665
 
 
+
+def _upd(state, **changes):
+    """dataclasses.replace for our frozen state records, without re-running __init__ (these
+    records have no __post_init__ validation), ~5x faster on the per-sample path."""
+    new = object.__new__(state.__class__)
+    new.__dict__.update(state.__dict__)
+    new.__dict__.update(changes)
+    return new
+
 @dataclass(frozen=True)
 class Kf2Params:
     gyro_noise_rad_s_rthz: float = math.radians(0.015)
@@ -198,7 +207,7 @@ def _propagate_cov(state: Kf2State, params: Kf2Params) -> Kf2State:
     kf.F = Phi
     kf.Q = np.diag([q_g] * 3 + [q_b] * 3 + [q_m] * 3)
     kf.predict()
-    return replace(state, P=0.5 * (kf.P + kf.P.T), cov_time_s=state.time_s,
+    return _upd(state, P=0.5 * (kf.P + kf.P.T), cov_time_s=state.time_s,
                    acc_angle_rad=np.zeros(3), acc_omega_sq=0.0)
 
 
@@ -206,10 +215,10 @@ def kf2_predict(state: Kf2State, gyro_body_rad_s: np.ndarray, time_s: float,
                 params: Kf2Params = Kf2Params()) -> tuple[Kf2State, Kf2Diag]:
     """One IMU sample: integrate the attitude (every sample) and P (every cov_period_s)."""
     w = np.asarray(gyro_body_rad_s, dtype=float) - state.gyro_bias_rad_s
-    if w.shape != (3,) or not np.all(np.isfinite(w)) or not math.isfinite(time_s):
+    if w.shape != (3,) or not np.isfinite(w).all() or not math.isfinite(time_s):
         return state, Kf2Diag(False, "non-finite gyro sample")
     if state.time_s is None or state.omega_prev_rad_s is None:
-        return (replace(state, time_s=time_s, omega_prev_rad_s=w, cov_time_s=time_s,
+        return (_upd(state, time_s=time_s, omega_prev_rad_s=w, cov_time_s=time_s,
                         acc_angle_rad=np.zeros(3), acc_omega_sq=0.0), Kf2Diag(False, "first sample"))
     dt = time_s - state.time_s
     if dt <= 0.0:
@@ -219,12 +228,12 @@ def kf2_predict(state: Kf2State, gyro_body_rad_s: np.ndarray, time_s: float,
         # a gap: keep the attitude, grow the attitude uncertainty by the gap's bias effect
         P = st.P.copy()
         P[0:3, 0:3] += np.eye(3) * (params.gyro_bias_sigma_rad_s * dt) ** 2
-        return (replace(st, P=P, time_s=time_s, omega_prev_rad_s=w, cov_time_s=time_s),
+        return (_upd(st, P=P, time_s=time_s, omega_prev_rad_s=w, cov_time_s=time_s),
                 Kf2Diag(False, f"gap of {dt:.3f} s not integrated"))
     dtheta = 0.5 * (state.omega_prev_rad_s + w) * dt
     q = quat_mul(state.q_nav_from_body, quat_from_rotvec(dtheta))
     q = q / math.sqrt(float(q @ q))
-    st = replace(state, q_nav_from_body=q, time_s=time_s, omega_prev_rad_s=w,
+    st = _upd(state, q_nav_from_body=q, time_s=time_s, omega_prev_rad_s=w,
                  acc_angle_rad=state.acc_angle_rad + dtheta,
                  acc_omega_sq=state.acc_omega_sq + float(dtheta @ dtheta) / dt)
     if time_s - state.cov_time_s >= params.cov_period_s - 1e-9:
@@ -246,7 +255,7 @@ def _update(state: Kf2State, z: np.ndarray, H: np.ndarray, R: np.ndarray, n_gate
     dx = kf.x
     q = quat_mul(state.q_nav_from_body, quat_from_rotvec(dx[0:3]))   # C <- C (I + [gamma x])
     q = q / math.sqrt(float(q @ q))
-    new = replace(state, q_nav_from_body=q, gyro_bias_rad_s=state.gyro_bias_rad_s + dx[3:6],
+    new = _upd(state, q_nav_from_body=q, gyro_bias_rad_s=state.gyro_bias_rad_s + dx[3:6],
                   mag_bias=state.mag_bias + dx[6:9], P=0.5 * (kf.P + kf.P.T))
     return new, Kf2Diag(True, "", z.copy(), s_diag, ratio)
 
@@ -263,10 +272,10 @@ def kf2_update_mag(state: Kf2State, mag_body_gauss: np.ndarray, field_nav_gauss:
         raise ValueError("field_nav_gauss must be non-zero")
     m_n = m / norm
     if abs(float(np.linalg.norm(m_n)) - 1.0) > params.mag_norm_tolerance:
-        return (replace(state, n_mag_rejected=state.n_mag_rejected + 1),
+        return (_upd(state, n_mag_rejected=state.n_mag_rejected + 1),
                 Kf2Diag(False, "magnetic disturbance (field magnitude)"))
     if state.omega_prev_rad_s is not None and float(np.linalg.norm(state.omega_prev_rad_s)) > params.max_mag_rate_rad_s:
-        return (replace(state, n_mag_rejected=state.n_mag_rejected + 1), Kf2Diag(False, "rate gate"))
+        return (_upd(state, n_mag_rejected=state.n_mag_rejected + 1), Kf2Diag(False, "rate gate"))
     C = dcm_from_quat(state.q_nav_from_body)
     b0 = C.T @ (Bn / norm)
     z = m_n - b0 - state.mag_bias
@@ -275,8 +284,8 @@ def kf2_update_mag(state: Kf2State, mag_body_gauss: np.ndarray, field_nav_gauss:
     H[:, 6:9] = np.eye(3)
     new, diag = _update(state, z, H, params.mag_sigma ** 2 * np.eye(3), params.mag_gate_sigma, params)
     if diag.fused:
-        return replace(new, n_mag_fused=new.n_mag_fused + 1), diag
-    return replace(new, n_mag_rejected=new.n_mag_rejected + 1), diag
+        return _upd(new, n_mag_fused=new.n_mag_fused + 1), diag
+    return _upd(new, n_mag_rejected=new.n_mag_rejected + 1), diag
 
 
 def kf2_update_air(state: Kf2State, roll_ref_rad: float, pitch_ref_rad: float,
@@ -299,8 +308,8 @@ def kf2_update_air(state: Kf2State, roll_ref_rad: float, pitch_ref_rad: float,
     R = np.diag([sigma_roll_ref_rad ** 2, sigma_pitch_ref_rad ** 2])
     new, diag = _update(state, z, H, R, params.air_gate_sigma, params)
     if diag.fused:
-        return replace(new, n_air_fused=new.n_air_fused + 1), diag
-    return replace(new, n_air_rejected=new.n_air_rejected + 1), diag
+        return _upd(new, n_air_fused=new.n_air_fused + 1), diag
+    return _upd(new, n_air_rejected=new.n_air_rejected + 1), diag
 
 
 def kf2_update_reference(state: Kf2State, euler_ref_rad: np.ndarray, time_ref_s: float,
@@ -326,12 +335,12 @@ def kf2_update_reference(state: Kf2State, euler_ref_rad: np.ndarray, time_ref_s:
         P[0:3, :] = 0.0
         P[:, 0:3] = 0.0
         P[0:3, 0:3] = _gamma_cov_from_euler_sigmas(q_ref, sigma_tilt_rad, sigma_yaw_rad)
-        return (replace(state, q_nav_from_body=q_ref / math.sqrt(float(q_ref @ q_ref)), P=P,
+        return (_upd(state, q_nav_from_body=q_ref / math.sqrt(float(q_ref @ q_ref)), P=P,
                         n_resets=state.n_resets + 1), Kf2Diag(True, "reset to reference", z))
     H = np.zeros((3, N))
     H[:, 0:3] = euler_rate_matrix(roll, pitch)
     R = np.diag([sigma_tilt_rad ** 2, sigma_tilt_rad ** 2, sigma_yaw_rad ** 2])
     new, diag = _update(state, z, H, R, params.ref_gate_sigma, params)
     if diag.fused:
-        return replace(new, n_ref_fused=new.n_ref_fused + 1), diag
-    return replace(new, n_ref_rejected=new.n_ref_rejected + 1), diag
+        return _upd(new, n_ref_fused=new.n_ref_fused + 1), diag
+    return _upd(new, n_ref_rejected=new.n_ref_rejected + 1), diag

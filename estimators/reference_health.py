@@ -12,18 +12,20 @@ the FC's attitude is trusted. Trusted means all of:
 3. agreement with our gyros (silent divergence): the FC's attitude change since an anchor is
    compared with the change of our bias-corrected, gyro-only attitude over the same interval.
    Anchors are laid every ``anchor_period_s`` and kept up to ``window_s``; for each anchor
-   taken at t_a the discrepancy angle
-
-       delta = angle( (C_fc(t_a) C_gyro(t_a)^T C_gyro(t)) ^T C_fc(t) )
-
-   must stay below  n_sigma * sqrt(2 sigma_fc^2 + (sigma_bias (t - t_a))^2) + margin.
+   taken at t_a the FC attitude carried forward by our gyros, P = C_fc(t_a) C_gyro(t_a)^T
+   C_gyro(t), is compared with C_fc(t): C_fc P^T = I + [d x] (d in nav axes); its tilt part
+   |d_xy| and yaw part |d_z| must stay below n_sigma sqrt(2 sigma_fc^2 + (sigma_bias (t -
+   t_a))^2) + margin, with the FC's normal tilt and yaw error sigmas respectively.
    This is the rate-agreement test integrated over the window (a mean rate disagreement
    w over T shows as w T), so a slow drift that a sample-by-sample rate test misses is caught.
    Its threshold is set by the FC's normal error (sigma_fc): a silent drift is detected once it
    exceeds a few sigma_fc; a signalled loss is detected at once.
 
 Losing trust latches: trust returns only after ``retrust_hold_s`` of continuous good signals and
-agreement (the anchors are re-laid after a loss).
+agreement (the anchors are re-laid after a loss). A *silent* divergence latches harder: a
+reference that drifted without saying so is not trusted again on short-term agreement (a slow
+drift passes any short window); only a signalled recovery (its status going bad and then good
+again) or ``health_init`` clears it.
 
 Clocks: every event carries ``time_s`` on the estimator's (FC) clock; the service maps
 HEARTBEAT/EKF receive times onto it.
@@ -53,17 +55,21 @@ class ReferenceHealthParams:
     """A new agreement anchor every this many seconds (s)."""
     window_s: float = 60.0
     """Anchors are kept this long (s): the longest interval over which drift is compared."""
-    sigma_fc_rad: float = math.radians(1.0)
-    """1-sigma of the FC attitude error that is normal (its yaw is the worst axis)."""
+    sigma_fc_tilt_rad: float = math.radians(0.4)
+    """1-sigma of the FC's normal roll/pitch error."""
+    sigma_fc_yaw_rad: float = math.radians(1.0)
+    """1-sigma of the FC's normal yaw error."""
     sigma_bias_rad_s: float = math.radians(0.01)
     """1-sigma of our residual gyro bias (rad/s) after the zero correction."""
+    check_period_s: float = 0.2
+    """The agreement test runs at most this often (s); the anchors' spacing is much longer."""
     n_sigma: float = 4.0
     margin_rad: float = math.radians(0.5)
     retrust_hold_s: float = 10.0
     """Continuous good time (s) needed to trust again after a loss."""
 
     def __post_init__(self):
-        for name in ("max_attitude_age_s", "anchor_period_s", "window_s", "sigma_fc_rad",
+        for name in ("max_attitude_age_s", "anchor_period_s", "window_s", "sigma_fc_tilt_rad", "sigma_fc_yaw_rad", "check_period_s",
                      "sigma_bias_rad_s", "n_sigma", "retrust_hold_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
@@ -82,13 +88,16 @@ class ReferenceHealthState:
     anchors: tuple = ()
     """((t_a, C_fc(t_a), C_gyro(t_a)), ...), oldest first."""
     max_discrepancy_rad: float = 0.0
-    """Largest anchor test ratio seen at the last attitude sample (delta / threshold)."""
+    """Largest anchor test ratio at the last check (delta / threshold; > 1 diverged)."""
+    check_time_s: float | None = None
     diverged: bool = False
     good_since_s: float | None = None
     """Start of the current run of good signals + agreement (None while bad)."""
     ever_trusted: bool = False
     latched_out: bool = False
     """True after a loss until retrust_hold_s of good time."""
+    silent_divergence: bool = False
+    """A divergence seen while the status said healthy; cleared by a signalled bad -> good."""
     reason: str = "no FC attitude yet"
 
 
@@ -115,12 +124,6 @@ def _signals_bad(state: ReferenceHealthState, params: ReferenceHealthParams) -> 
     return ""
 
 
-def _angle_between(C_a: np.ndarray, C_b: np.ndarray) -> float:
-    """Rotation angle of C_a^T C_b (rad)."""
-    c = 0.5 * (float(np.trace(C_a.T @ C_b)) - 1.0)
-    return math.acos(max(-1.0, min(1.0, c)))
-
-
 def health_on_attitude(state: ReferenceHealthState, C_nav_from_body_fc: np.ndarray,
                        C_nav_from_body_gyro: np.ndarray, time_s: float,
                        params: ReferenceHealthParams = ReferenceHealthParams()) -> ReferenceHealthState:
@@ -129,29 +132,35 @@ def health_on_attitude(state: ReferenceHealthState, C_nav_from_body_fc: np.ndarr
     C_g = np.asarray(C_nav_from_body_gyro, dtype=float)
     if not (np.all(np.isfinite(C_fc)) and np.all(np.isfinite(C_g)) and math.isfinite(time_s)):
         raise ValueError("health_on_attitude: non-finite input")
+    if (state.check_time_s is not None and 0.0 <= time_s - state.check_time_s < params.check_period_s
+            and not _signals_bad(state, params)):
+        return replace(state, fc_time_s=time_s)
     worst = 0.0
     for t_a, C_fc_a, C_g_a in state.anchors:
         predicted = C_fc_a @ C_g_a.T @ C_g          # FC attitude carried forward by our gyros
-        delta = _angle_between(predicted, C_fc)
-        dt = time_s - t_a
-        thr = params.n_sigma * math.sqrt(2.0 * params.sigma_fc_rad ** 2
-                                         + (params.sigma_bias_rad_s * dt) ** 2) + params.margin_rad
-        worst = max(worst, delta / thr)
+        # discrepancy as a small nav-frame rotation: C_fc ~ (I + [d x]) predicted
+        D = C_fc @ predicted.T
+        d = 0.5 * np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])
+        drift2 = (params.sigma_bias_rad_s * (time_s - t_a)) ** 2
+        thr_tilt = params.n_sigma * math.sqrt(2.0 * params.sigma_fc_tilt_rad ** 2 + drift2) + params.margin_rad
+        thr_yaw = params.n_sigma * math.sqrt(2.0 * params.sigma_fc_yaw_rad ** 2 + drift2) + params.margin_rad
+        worst = max(worst, math.hypot(d[0], d[1]) / thr_tilt, abs(d[2]) / thr_yaw)
     diverged = worst > 1.0
     signals = _signals_bad(state, params)
     anchors = tuple(a for a in state.anchors if time_s - a[0] <= params.window_s)
-    if diverged or signals:
+    if diverged or signals or state.silent_divergence:
         anchors = ()                                 # re-lay after the reference recovers
     elif not anchors or time_s - anchors[-1][0] >= params.anchor_period_s:
         anchors = anchors + ((time_s, C_fc.copy(), C_g.copy()),)
-    good = not (diverged or signals)
+    silent = (state.silent_divergence or (diverged and not signals)) and not signals
+    good = not (diverged or signals or silent)
     good_since = (state.good_since_s if state.good_since_s is not None else time_s) if good else None
-    latched = state.latched_out or diverged or bool(signals)
+    latched = state.latched_out or diverged or bool(signals) or silent
     if latched and good and time_s - good_since >= params.retrust_hold_s:
         latched = False
-    reason = signals or ("FC attitude disagrees with gyros" if diverged else "")
-    return replace(state, fc_time_s=time_s, anchors=anchors, max_discrepancy_rad=worst,
-                   diverged=diverged, good_since_s=good_since, latched_out=latched,
+    reason = signals or ("FC attitude disagrees with gyros" if (diverged or silent) else "")
+    return replace(state, fc_time_s=time_s, check_time_s=time_s, anchors=anchors, max_discrepancy_rad=worst,
+                   diverged=diverged or silent, silent_divergence=silent, good_since_s=good_since, latched_out=latched,
                    ever_trusted=state.ever_trusted or (good and not latched),
                    reason=reason if reason else ("re-trust hold" if latched else ""))
 

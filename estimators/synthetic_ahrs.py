@@ -19,8 +19,8 @@ Variants (``params.variant``):
   air-data roll/pitch; while the FC is trusted it also fuses the FC attitude (gyro zero
   correction = KF2's bias states, plus alignment), KF1 (``kf1_learn``) learns the magnetometer
   errors and the angle-of-attack coefficient is learnt. When the FC is not trusted: KF1 and the
-  alpha learning stop, and the gyro-bias estimate is set back to its value from
-  ``bias_revert_age_s`` before the loss was detected (a silently failing reference may have
+  alpha learning stop, and the gyro-bias and residual magnetometer-bias estimates are set back
+  to their values from ``bias_revert_age_s`` before the loss was detected (a silently failing reference may have
   pulled it during the detection delay).
 
 Reference health: reference_health (signalled status + agreement of the FC attitude with our
@@ -47,14 +47,23 @@ from estimators.mag_error_kf import Kf1Params, Kf1State, kf1_correct_mag, kf1_in
 from estimators.reference_health import (ReferenceHealthParams, ReferenceHealthState,
                                          health_on_attitude, health_on_ekf_status,
                                          health_on_heartbeat, health_trusted)
-from estimators.rotations import dcm_from_euler, dcm_from_quat, quat_from_euler
-from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init, strapdown_step
+from estimators.rotations import (dcm_from_euler, dcm_from_quat, quat_from_euler, quat_from_rotvec,
+                                  quat_mul)
 
 G_M_S2 = 9.80665
 VARIANTS = ("b1", "b2")
 
 
 # --- events ---------------------------------------------------------------------------------
+
+
+def _upd(state, **changes):
+    """dataclasses.replace for our frozen state records, without re-running __init__ (these
+    records have no __post_init__ validation), ~5x faster on the per-sample path."""
+    new = object.__new__(state.__class__)
+    new.__dict__.update(state.__dict__)
+    new.__dict__.update(changes)
+    return new
 
 @dataclass(frozen=True)
 class ImuEvent:
@@ -117,13 +126,18 @@ class SyntheticAhrsParams:
     fc_sigma_yaw_rad: float = math.radians(1.5)
     ref_update_interval_s: float = 0.1
     mag_update_interval_s: float = 0.1
-    air_update_interval_s: float = 0.2
+    air_update_interval_s: float = 1.0
+    """Air-data roll/pitch updates at most this often (s): their errors (vertical gusts, alpha
+    changes) are correlated over seconds, so denser updates would over-weight them."""
     air_roll_limit_rad: float = math.radians(35.0)
     air_pitch_limit_rad: float = math.radians(20.0)
     air_rate_limit_rad_s: float = math.radians(5.0)
     """|phi_dot| and |theta_dot| above this: no air-data update (transients)."""
     air_sigma_roll_rad: float = math.radians(2.0)
-    air_sigma_pitch_rad: float = math.radians(1.5)
+    air_sigma_pitch_rad: float = math.radians(4.0)
+    """Base 1-sigma of the pitch reference: a vertical gust w gives w / v of error in
+    asin(h_dot / v) (0.8 m/s at 25 m/s: 1.8 deg), correlated over seconds; inflated for the
+    1 s update interval."""
     air_sigma_alt_rate_m_s: float = 0.3
     """Altitude-rate noise used in the pitch-reference sigma (seed eq. 37 sensitivity)."""
     alpha_tau_s: float = 20.0
@@ -166,8 +180,9 @@ class SyntheticAhrsState:
     air: AirDataState = field(default_factory=AirDataState)
     air_last: AirData | None = None
     health: ReferenceHealthState = field(default_factory=ReferenceHealthState)
-    gyro_free: StrapdownState | None = None
-    """Gyro-only attitude (never reset), for the reference agreement test."""
+    q_gyro_free: np.ndarray | None = None
+    """Gyro-only attitude q_free_from_body (started at identity, never reset; trapezoidal
+    increments), for the reference agreement test: only its changes are used."""
     b1: B1State | None = None
     kf2: Kf2State | None = None
     kf1_learn: Kf1State | None = None
@@ -183,7 +198,7 @@ class SyntheticAhrsState:
     trusted: bool = False
     trust_reason: str = "no FC attitude yet"
     bias_snapshots: tuple = ()
-    """((time_s, gyro_bias_rad_s), ...) for the revert on a detected loss."""
+    """((time_s, gyro_bias_rad_s, mag_bias), ...) for the revert on a detected loss."""
     air_active: bool = False
     air_off_reason: str = "no air data yet"
     kf1_learning: bool = False
@@ -293,18 +308,19 @@ def _trust(state: SyntheticAhrsState, time_s: float, params: SyntheticAhrsParams
     trusted, why = health_trusted(state.health, time_s, params.health)
     if state.trusted and not trusted and state.kf2 is not None:
         # revert the gyro bias to a snapshot taken before the reference could have failed
-        old = [b for (t, b) in state.bias_snapshots if time_s - t >= params.bias_revert_age_s]
+        old = [snap for snap in state.bias_snapshots if time_s - snap[0] >= params.bias_revert_age_s]
         if old:
-            state = replace(state, kf2=replace(state.kf2, gyro_bias_rad_s=old[-1].copy()))
-    return replace(state, trusted=trusted, trust_reason=why)
+            _, b_g, b_m = old[-1]
+            state = _upd(state, kf2=_upd(state.kf2, gyro_bias_rad_s=b_g.copy(), mag_bias=b_m.copy()))
+    return _upd(state, trusted=trusted, trust_reason=why)
 
 
 # --- the step -------------------------------------------------------------------------------
 
-def synthetic_ahrs_step(state: SyntheticAhrsState, event, params: SyntheticAhrsParams
-                        ) -> tuple[SyntheticAhrsState, SyntheticAhrsOutput | None]:
+def synthetic_ahrs_step(state: SyntheticAhrsState, event, params: SyntheticAhrsParams,
+                        output: bool = True) -> tuple[SyntheticAhrsState, SyntheticAhrsOutput | None]:
     """Process one event; returns the new state and the output after it (None until the first
-    IMU sample)."""
+    IMU sample, or when ``output`` is False: call ``synthetic_ahrs_output`` when needed)."""
     t = float(event.time_s)
     if not math.isfinite(t):
         raise ValueError(f"event time_s must be finite, got {event.time_s!r}")
@@ -321,19 +337,19 @@ def synthetic_ahrs_step(state: SyntheticAhrsState, event, params: SyntheticAhrsP
         if event.attitude_ok is not None or event.horiz_pos_ok is not None:
             h = health_on_ekf_status(h, h.attitude_ok if event.attitude_ok is None else event.attitude_ok,
                                      h.horiz_pos_ok if event.horiz_pos_ok is None else event.horiz_pos_ok)
-        state = _trust(replace(state, health=h), t if state.time_s is None else state.time_s, params)
+        state = _trust(_upd(state, health=h), t if state.time_s is None else state.time_s, params)
     elif isinstance(event, HeadingEvent):
         if state.b1 is not None:
-            state = replace(state, b1=b1_heading_step(state.b1, event.heading_rad, event.sigma_rad, t, params.b1))
+            state = _upd(state, b1=b1_heading_step(state.b1, event.heading_rad, event.sigma_rad, t, params.b1))
     else:
         raise ValueError(f"unknown event type {type(event).__name__}")
-    return state, synthetic_ahrs_output(state, params)
+    return state, (synthetic_ahrs_output(state, params) if output else None)
 
 
 def _on_imu(state: SyntheticAhrsState, ev: ImuEvent, params: SyntheticAhrsParams) -> SyntheticAhrsState:
     C_bs = _C_bs(params)
     g_s = np.asarray(ev.gyro_sensor_rad_s, dtype=float)
-    if g_s.shape != (3,) or not np.all(np.isfinite(g_s)):
+    if g_s.shape != (3,) or not np.isfinite(g_s).all():
         return state                                     # a dropped/NaN sample is skipped
     gyro_b = C_bs @ g_s
     t = float(ev.time_s)
@@ -341,47 +357,48 @@ def _on_imu(state: SyntheticAhrsState, ev: ImuEvent, params: SyntheticAhrsParams
         return state
     bias = _gyro_bias(state)
     w = gyro_b - bias
-    # gyro-only attitude for the agreement test (body frame, started level-north; only its
-    # changes are used)
-    gf = state.gyro_free if state.gyro_free is not None else strapdown_init(np.array([1.0, 0, 0, 0]))
-    gf, _ = strapdown_step(gf, w, t, StrapdownParams())
-    if state.omega_lp_rad_s is None or state.time_s is None:
-        wlp = w
+    if state.omega_lp_rad_s is None or state.time_s is None or state.q_gyro_free is None:
+        wlp, qf = w, np.array([1.0, 0.0, 0.0, 0.0])
     else:
         dt = t - state.time_s
         wlp = state.omega_lp_rad_s + dt / (params.rate_lp_tau_s + dt) * (w - state.omega_lp_rad_s)
-    state = replace(state, gyro_free=gf, omega_lp_rad_s=wlp, time_s=t)
+        qf = state.q_gyro_free
+        if dt <= params.kf2.max_dt_s:
+            qf = quat_mul(qf, quat_from_rotvec(w * dt))   # rectangular: ample for the test
+            qf = qf / math.sqrt(float(qf @ qf))
+    state = _upd(state, q_gyro_free=qf, omega_lp_rad_s=wlp, time_s=t)
     state = _trust(state, t, params)
     if state.b1 is not None:
-        return replace(state, b1=b1_imu_step(state.b1, gyro_b, t, params.b1))
+        return _upd(state, b1=b1_imu_step(state.b1, gyro_b, t, params.b1))
     if state.kf2 is None:
         return state
     kf2, _ = kf2_predict(state.kf2, gyro_b, t, params.kf2)
-    state = replace(state, kf2=kf2)
+    state = _upd(state, kf2=kf2)
     if state.trusted and (not state.bias_snapshots or t - state.bias_snapshots[-1][0] >= params.bias_snapshot_period_s):
         keep = tuple(s for s in state.bias_snapshots if t - s[0] <= 3.0 * params.bias_revert_age_s)
-        state = replace(state, bias_snapshots=keep + ((t, kf2.gyro_bias_rad_s.copy()),))
+        state = _upd(state, bias_snapshots=keep + ((t, kf2.gyro_bias_rad_s.copy(), kf2.mag_bias.copy()),))
     if ev.mag_sensor_gauss is None:
         return state
     m_s = np.asarray(ev.mag_sensor_gauss, dtype=float)
-    if m_s.shape != (3,) or not np.all(np.isfinite(m_s)):
+    if m_s.shape != (3,) or not np.isfinite(m_s).all():
         return state
     mag_b = C_bs @ m_s
     Bn = np.array(params.field_nav_gauss)
-    kf1_learning = False
-    if state.trusted and state.fc_last is not None:
+    kf1_learning = bool(state.trusted and state.fc_last is not None)
+    k1t = state.kf1_learn.time_s
+    if (state.trusted and state.fc_last is not None
+            and (k1t is None or t - k1t >= params.kf1.min_update_interval_s - 1e-6)):
         C_fc = dcm_from_euler(*state.fc_last[1])
         kf1, d1 = kf1_step(state.kf1_learn, mag_b, C_fc, Bn, wlp, t, params.kf1)
-        kf1_learning = True
-        state = replace(state, kf1_learn=kf1,
+        state = _upd(state, kf1_learn=kf1,
                         n_kf1_rejected=state.n_kf1_rejected + (d1.reason in ("chi2 gate", "rate gate")))
-    state = replace(state, kf1_learning=kf1_learning)
+    state = _upd(state, kf1_learning=kf1_learning)
     if t - state.last_mag_update_s >= params.mag_update_interval_s - 1e-6:
         m = mag_b
         if state.kf1_applied is not None and state.kf1_applied.field_norm_gauss is not None:
             m = kf1_correct_mag(state.kf1_applied, mag_b)
         kf2, _ = kf2_update_mag(state.kf2, m, Bn, params.kf2)
-        state = replace(state, kf2=kf2, last_mag_update_s=t)
+        state = _upd(state, kf2=kf2, last_mag_update_s=t)
     return state
 
 
@@ -389,29 +406,29 @@ def _on_air(state: SyntheticAhrsState, ev: AirEvent, params: SyntheticAhrsParams
     if state.air.time_s is not None and ev.time_s <= state.air.time_s:
         return state
     if not (math.isfinite(ev.press_abs_pa) and ev.press_abs_pa > 0.0):
-        return replace(state, air_active=False, air_off_reason="no valid static pressure")
+        return _upd(state, air_active=False, air_off_reason="no valid static pressure")
     diff = ev.press_diff_pa if ev.press_diff_pa is not None and math.isfinite(ev.press_diff_pa) else None
     temp = ev.temperature_k if ev.temperature_k is not None and math.isfinite(ev.temperature_k) else None
     air_st, air = air_data_step(state.air, ev.press_abs_pa, diff, temp, ev.time_s, params.air)
-    state = replace(state, air=air_st, air_last=air)
+    state = _upd(state, air=air_st, air_last=air)
     if state.b1 is not None:
         if state.trusted:
-            return replace(state, air_active=False, air_off_reason="reference trusted")
+            return _upd(state, air_active=False, air_off_reason="reference trusted")
         b1 = b1_air_step(state.b1, air, params.b1)
-        return replace(state, b1=b1, air_active=b1.air_active, air_off_reason=b1.air_off_reason)
+        return _upd(state, b1=b1, air_active=b1.air_active, air_off_reason=b1.air_off_reason)
     if state.kf2 is None:
-        return replace(state, air_active=False, air_off_reason="not initialised")
+        return _upd(state, air_active=False, air_off_reason="not initialised")
     if state.trusted:
-        return replace(state, air_active=False, air_off_reason="reference trusted")
+        return _upd(state, air_active=False, air_off_reason="reference trusted")
     if ev.time_s - state.last_air_update_s < params.air_update_interval_s - 1e-6:
         return state
     e, _ = kf2_euler_and_cov(state.kf2)
     w = state.omega_lp_rad_s if state.omega_lp_rad_s is not None else np.zeros(3)
     ok, why, phi_ref, theta_ref, s_phi, s_theta, gain = air_references(air, e[0], e[1], w, state.k_alpha_pa, params)
     if not ok:
-        return replace(state, air_active=False, air_off_reason=why)
+        return _upd(state, air_active=False, air_off_reason=why)
     kf2, d = kf2_update_air(state.kf2, phi_ref, theta_ref, s_phi, s_theta, gain, params.kf2)
-    return replace(state, kf2=kf2, last_air_update_s=ev.time_s, air_active=d.fused,
+    return _upd(state, kf2=kf2, last_air_update_s=ev.time_s, air_active=d.fused,
                    air_off_reason="" if d.fused else "gated")
 
 
@@ -421,29 +438,29 @@ def _on_fc_attitude(state: SyntheticAhrsState, ev: FcAttitudeEvent, params: Synt
         return state
     t = float(ev.time_s)
     prev = state.fc_last
-    if state.gyro_free is not None:
+    if state.q_gyro_free is not None:
         C_fc = dcm_from_euler(*e)
-        h = health_on_attitude(state.health, C_fc, dcm_from_quat(state.gyro_free.q_ref_from_sensor), t, params.health)
-        state = replace(state, health=h)
-    state = replace(state, fc_last=(t, e.copy()))
+        h = health_on_attitude(state.health, C_fc, dcm_from_quat(state.q_gyro_free), t, params.health)
+        state = _upd(state, health=h)
+    state = _upd(state, fc_last=(t, e.copy()))
     state = _trust(state, t if state.time_s is None else max(t, state.time_s), params)
     if state.b1 is not None:
-        return replace(state, b1=b1_reference_step(state.b1, e, t, state.trusted, state.air_last, params.b1))
+        return _upd(state, b1=b1_reference_step(state.b1, e, t, state.trusted, state.air_last, params.b1))
     if not state.trusted:
         return state
     dt = 0.0 if prev is None else t - prev[0]
-    state = replace(state, k_alpha_pa=_learn_alpha(state.k_alpha_pa, e, state.air_last, dt, params))
+    state = _upd(state, k_alpha_pa=_learn_alpha(state.k_alpha_pa, e, state.air_last, dt, params))
     if state.kf2 is None:
         if state.time_s is None:
             return state
         kf2 = kf2_init(quat_from_euler(*e), params.kf2, sigma_tilt_rad=params.fc_sigma_tilt_rad,
                        sigma_heading_rad=params.fc_sigma_yaw_rad)
-        kf2 = replace(kf2, time_s=None)
-        return replace(state, kf2=kf2, last_ref_update_s=t)
+        kf2 = _upd(kf2, time_s=None)
+        return _upd(state, kf2=kf2, last_ref_update_s=t)
     if t - state.last_ref_update_s < params.ref_update_interval_s - 1e-6:
         return state
     kf2, _ = kf2_update_reference(state.kf2, e, t, params.fc_sigma_tilt_rad, params.fc_sigma_yaw_rad, params.kf2)
-    return replace(state, kf2=kf2, last_ref_update_s=t)
+    return _upd(state, kf2=kf2, last_ref_update_s=t)
 
 
 def synthetic_ahrs_output(state: SyntheticAhrsState, params: SyntheticAhrsParams) -> SyntheticAhrsOutput | None:
