@@ -19,7 +19,7 @@ set (a sender that leaves fields_updated at 0 is taken to have filled every fiel
 
 Required fields that are not finite raise :class:`NonFiniteField` (the link counts it and hands
 on nothing); non-finite optional fields (mag, differential pressure, temperature, variances)
-become None and are counted through the ``on_optional_non_finite`` callback's return.
+become None and are counted in an :class:`OptionalFieldCounter` passed by the caller.
 Timestamps are integers, converted by mavlink_io.timebase; the decoders here take ``time_fc_s``
 already computed.
 """
@@ -107,7 +107,7 @@ def _vec_req(msg_type: str, msg, names: tuple[str, str, str], scale: float) -> n
     return np.array([_req(msg_type, n, getattr(msg, n)) * scale for n in names])
 
 
-class _Optional:
+class OptionalFieldCounter:
     """Collects how many optional fields were non-finite (the link adds it to its stats)."""
     __slots__ = ("count",)
 
@@ -134,12 +134,12 @@ _GYRO = ("xgyro", "ygyro", "zgyro")
 _MAG = ("xmag", "ymag", "zmag")
 
 
-def decode_raw_imu(msg, time_fc_s: float, time_rx_s: float, opt: _Optional | None = None) -> ImuSample:
+def decode_raw_imu(msg, time_fc_s: float, time_rx_s: float) -> ImuSample:
     """RAW_IMU (ArduPilot): mG, mrad/s, mgauss -> m/s^2, rad/s, gauss."""
     return _decode_milli_imu("RAW_IMU", msg, time_fc_s, time_rx_s, int(getattr(msg, "id", 0) or 0))
 
 
-def decode_scaled_imu(msg, time_fc_s: float, time_rx_s: float, opt: _Optional | None = None) -> ImuSample:
+def decode_scaled_imu(msg, time_fc_s: float, time_rx_s: float) -> ImuSample:
     """SCALED_IMU: mG, mrad/s, mgauss -> m/s^2, rad/s, gauss (imu 0)."""
     return _decode_milli_imu("SCALED_IMU", msg, time_fc_s, time_rx_s, 0)
 
@@ -154,10 +154,10 @@ def _decode_milli_imu(msg_type: str, msg, time_fc_s: float, time_rx_s: float, im
 
 
 def decode_highres_imu(msg, time_fc_s: float, time_rx_s: float,
-                       opt: _Optional | None = None) -> tuple[ImuSample, PressureSample | None]:
+                       opt: OptionalFieldCounter | None = None) -> tuple[ImuSample, PressureSample | None]:
     """HIGHRES_IMU (PX4): m/s^2, rad/s, gauss, hPa, degC -> ImuSample (+ PressureSample if the
     message carries a fresh absolute pressure)."""
-    opt = opt if opt is not None else _Optional()
+    opt = opt if opt is not None else OptionalFieldCounter()
     upd = int(msg.fields_updated) or 0xFFFF
     if (upd & (HR_ACC | HR_GYRO)) != (HR_ACC | HR_GYRO):
         raise NonFiniteField("HIGHRES_IMU", "fields_updated", float("nan"))
@@ -176,16 +176,16 @@ def decode_highres_imu(msg, time_fc_s: float, time_rx_s: float,
 
 
 def decode_scaled_pressure(msg, time_fc_s: float, time_rx_s: float,
-                           opt: _Optional | None = None) -> PressureSample:
+                           opt: OptionalFieldCounter | None = None) -> PressureSample:
     """SCALED_PRESSURE: press_abs/press_diff hPa, temperature cdegC -> Pa, Pa, K."""
-    opt = opt if opt is not None else _Optional()
+    opt = opt if opt is not None else OptionalFieldCounter()
     p_abs = _req("SCALED_PRESSURE", "press_abs", msg.press_abs) * HPA_TO_PA
     p_diff = opt.scalar(msg.press_diff, HPA_TO_PA)
     temp_k = float(msg.temperature) * CDEGC_TO_DEGC + ZERO_CELSIUS_K  # int16: always finite
     return PressureSample(time_fc_s, time_rx_s, p_abs, p_diff, temp_k, "SCALED_PRESSURE")
 
 
-def decode_attitude(msg, time_fc_s: float, time_rx_s: float, opt: _Optional | None = None) -> FcAttitude:
+def decode_attitude(msg, time_fc_s: float, time_rx_s: float) -> FcAttitude:
     """ATTITUDE: roll/pitch/yaw rad, body rates rad/s (all required)."""
     roll = _req("ATTITUDE", "roll", msg.roll)
     pitch = _req("ATTITUDE", "pitch", msg.pitch)
@@ -200,9 +200,9 @@ def decode_heartbeat(msg, time_rx_s: float) -> FcHeartbeat:
                        bool(msg.base_mode & MODE_FLAG_SAFETY_ARMED))
 
 
-def decode_ekf_status_report(msg, time_rx_s: float, opt: _Optional | None = None) -> FcEkfStatus:
+def decode_ekf_status_report(msg, time_rx_s: float, opt: OptionalFieldCounter | None = None) -> FcEkfStatus:
     """EKF_STATUS_REPORT (ArduPilot): flags + normalised innovation variances."""
-    opt = opt if opt is not None else _Optional()
+    opt = opt if opt is not None else OptionalFieldCounter()
     flags = int(msg.flags)
     att_ok = bool(flags & EST_ATTITUDE) and not (flags & EKF_UNINITIALIZED)
     return FcEkfStatus(time_rx_s, att_ok, bool(flags & EST_POS_HORIZ_ABS), flags, "EKF_STATUS_REPORT",
@@ -211,9 +211,9 @@ def decode_ekf_status_report(msg, time_rx_s: float, opt: _Optional | None = None
 
 
 def decode_estimator_status(msg, time_fc_s: float, time_rx_s: float,
-                            opt: _Optional | None = None) -> FcEkfStatus:
+                            opt: OptionalFieldCounter | None = None) -> FcEkfStatus:
     """ESTIMATOR_STATUS (PX4): flags + innovation test ratios."""
-    opt = opt if opt is not None else _Optional()
+    opt = opt if opt is not None else OptionalFieldCounter()
     flags = int(msg.flags)
     return FcEkfStatus(time_rx_s, bool(flags & EST_ATTITUDE), bool(flags & EST_POS_HORIZ_ABS), flags,
                        "ESTIMATOR_STATUS", time_fc_s, opt.scalar(msg.vel_ratio),

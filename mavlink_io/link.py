@@ -683,7 +683,7 @@ class MavlinkLink:
             if self._imu_wanted(mtype, imu.imu_id, rx_s):
                 self._emit_imu(imu, mtype, msg, rx_s, items)
         elif mtype == "HIGHRES_IMU":
-            opt = dec._Optional()
+            opt = dec.OptionalFieldCounter()
             imu, press = dec.decode_highres_imu(msg, nan, rx_s, opt)
             self.stats.non_finite_optional += opt.count
             if self._imu_wanted(mtype, imu.imu_id, rx_s):
@@ -694,7 +694,7 @@ class MavlinkLink:
                 if t is not None:
                     items.append(dataclasses.replace(press, time_fc_s=t))
         elif mtype == "SCALED_PRESSURE":
-            opt = dec._Optional()
+            opt = dec.OptionalFieldCounter()
             press = dec.decode_scaled_pressure(msg, nan, rx_s, opt)
             self.stats.non_finite_optional += opt.count
             t = self._fc_time("PRESSURE", mtype, msg, rx_s, items)
@@ -708,11 +708,11 @@ class MavlinkLink:
         elif mtype == "HEARTBEAT":
             items.append(dec.decode_heartbeat(msg, rx_s))
         elif mtype == "EKF_STATUS_REPORT":
-            opt = dec._Optional()
+            opt = dec.OptionalFieldCounter()
             items.append(dec.decode_ekf_status_report(msg, rx_s, opt))
             self.stats.non_finite_optional += opt.count
         elif mtype == "ESTIMATOR_STATUS":
-            opt = dec._Optional()
+            opt = dec.OptionalFieldCounter()
             st = dec.decode_estimator_status(msg, nan, rx_s, opt)
             self.stats.non_finite_optional += opt.count
             t = self._fc_time("ESTIMATOR_STATUS", mtype, msg, rx_s, items)

@@ -15,7 +15,10 @@ from __future__ import annotations
 
 import struct
 from pathlib import Path
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
+
+if TYPE_CHECKING:
+    from mavlink_io.link import MavlinkLink
 
 _MAGIC_V1 = 0xFE
 _MAGIC_V2 = 0xFD

@@ -73,7 +73,7 @@ def test_highres_imu_fields_updated_bits():
 def test_highres_optional_nan_becomes_none_and_is_counted():
     nan = float("nan")
     m = wire(mavlink2.MAVLink_highres_imu_message(1, 0, 0, -9.8, 0, 0, 0, nan, 0, 0, 1000.0, nan, 0, 20.0, 0xFFFF, 0))
-    opt = dec._Optional()
+    opt = dec.OptionalFieldCounter()
     imu, p = dec.decode_highres_imu(m, 0.0, 0.0, opt)
     assert imu.mag_gauss is None and p.press_diff_pa is None and p.press_abs_pa == pytest.approx(1e5)
     assert opt.count == 2
@@ -121,7 +121,7 @@ def test_ekf_status_and_estimator_status():
 
 
 def test_sys_status_health_none_when_absent():
-    gyro, acc, mag, baro, ahrs = 1, 2, 4, 8, 0x200000
+    gyro, acc, mag, ahrs = 1, 2, 4, 0x200000  # baro (8) absent
     m = wire(mavlink2.MAVLink_sys_status_message(gyro | acc | mag | ahrs, gyro | acc | ahrs, gyro | ahrs,
                                                  999, 0xFFFF, -1, -1, 150, 0, 0, 0, 0, 0, 0, 0, 0))
     s = dec.decode_sys_status(m, 0.0)

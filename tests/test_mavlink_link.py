@@ -3,8 +3,6 @@ pymavlink's own encoder talks to the link; we check identity, heartbeats, rate r
 filtering, fault counting and recovery."""
 from __future__ import annotations
 
-import math
-import os
 import socket
 import time
 
