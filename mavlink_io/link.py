@@ -1,20 +1,37 @@
 """MavlinkLink: one connection to the flight controller, polled from the daemon's loop.
 
+Usage::
+
+    link = MavlinkLink(LinkConfig(url="udpin:0.0.0.0:14550"))
+    while running:
+        for item in link.poll(timeout_s=0.005):
+            ...  # ImuSample | PressureSample | FcAttitude | FcHeartbeat | FcEkfStatus |
+                 # FcSysStatus | CommandAck | LinkEvent
+    link.send(link.mav.attitude_encode(...))  # outputs, from our identity; never raises
+    link.close()
+
 What ``poll()`` does, in order, without ever raising on bad input:
-1. (re)open the transport if it is down and its backoff has expired;
+1. (re)open the transport if it is down and its backoff has expired (tcp/serial/udp alike);
 2. wait up to ``timeout_s`` for bytes (less if a timer is due), read everything available;
-3. parse with pymavlink (MAVLink 2, ardupilotmega dialect); bad CRC / framing / unknown ids are
-   counted in :class:`~mavlink_io.stats.LinkStats`;
+3. parse with pymavlink (MAVLink 2 out, 1 or 2 in, ardupilotmega dialect); bad CRC / framing /
+   unknown ids are counted in :class:`~mavlink_io.stats.LinkStats`;
 4. keep only the autopilot's messages (its system id, its component; our own echoes and other
    components are counted and ignored), learn the autopilot from its HEARTBEAT;
 5. decode into the typed samples of :mod:`mavlink_io.samples` (SI units, FC time via
-   :mod:`mavlink_io.timebase`: unwrap, reboot, gap), rejecting non-finite values;
-6. timers: our HEARTBEAT (1 Hz), the SET_MESSAGE_INTERVAL round (mavlink_io.rates), link timeout,
-   silent-stream re-requests.
+   :mod:`mavlink_io.timebase`: unwrap, reboot, gap), rejecting non-finite values; one IMU
+   stream and one pressure stream are chosen (``imu_source``);
+6. timers: our HEARTBEAT (1 Hz), the SET_MESSAGE_INTERVAL round (mavlink_io.rates, fallback
+   REQUEST_DATA_STREAM), link timeout, re-requests of streams that went silent.
+
+Rates are (re)requested when the autopilot is first seen, after an FC reboot, when the link
+comes back, and when a requested stream stays silent. LinkEvent kinds: autopilot_detected,
+rates_requested, rates_acked, fc_reboot, time_gap, time_wrap, link_lost, link_restored,
+reconnect, transport_error (a port that cannot be opened or died; retried with backoff).
 
 Identity: HEARTBEAT type MAV_TYPE_ONBOARD_CONTROLLER, autopilot MAV_AUTOPILOT_INVALID, component
 ``component_id`` (191), system id = the vehicle's (configured, or learned from the autopilot's
-heartbeat; 1 until then). MAVLink 2 framing.
+heartbeat; 1 until then). MAVLink 2 framing. ``time_rx_s`` is the link clock (time.monotonic by
+default) when a read returned, shared by the messages of that read.
 """
 from __future__ import annotations
 

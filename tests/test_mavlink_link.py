@@ -3,6 +3,7 @@ pymavlink's own encoder talks to the link; we check identity, heartbeats, rate r
 filtering, fault counting and recovery."""
 from __future__ import annotations
 
+import json
 import socket
 import time
 
@@ -142,7 +143,7 @@ def test_heartbeat_at_1hz_with_our_identity(pair):
     hbs = fc.of_type("HEARTBEAT")
     assert len(hbs) == 3  # t = 0 (as soon as the FC's address is known), 1, 2 s
     dt = np.diff([fc.rx_times[id(h)] for h in hbs])
-    np.testing.assert_allclose(dt, [1.0, 1.0], atol=0.03)
+    np.testing.assert_allclose(dt, [1.0, 1.0], atol=0.1)
     for hb in hbs:
         assert hb.type == mavlink2.MAV_TYPE_ONBOARD_CONTROLLER
         assert hb.autopilot == mavlink2.MAV_AUTOPILOT_INVALID
@@ -222,6 +223,7 @@ def test_corrupt_bytes_are_counted_not_raised(pair):
     assert [i.time_fc_s for i in items if isinstance(i, ImuSample)] == [pytest.approx(3.005)]
     d = link.stats.as_dict()
     assert d["crc_errors"] == 1 and d["bad_data"] >= 2
+    assert json.loads(json.dumps(d))["unknown_id_set"] == [39321]  # JSON-ready
 
 
 def test_non_finite_rejected_and_counted(pair):
