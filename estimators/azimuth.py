@@ -76,8 +76,9 @@ class AzimuthParams:
     """Delay line before the levelling; must exceed the launch detector's latency."""
     mag_decimation_s: float = 0.1
     """Smallest interval between magnetometer samples entering the fit (10 Hz)."""
-    mag_skip_after_launch_s: float = 0.5
-    """Magnetometer samples this close to launch are not used (launcher/site distortion)."""
+    mag_skip_after_launch_s: float = 2.0
+    """Magnetometer samples this close to launch are not used: the launcher's own field and the
+    site distortion fade within 10-20 m, ~40 m is flown in 2 s."""
     max_fit_samples: int = 1500
     """Samples kept for the fit; later ones are not added (they carry the most drift)."""
     resolve_period_s: float = 1.0
@@ -434,6 +435,25 @@ def _output(st: AzimuthState, C_isf_sf: np.ndarray, time_s: float) -> AzimuthOut
     az0 = af.azimuth_of(af.r3(psi).T @ (st.C_isf_af.T @ st.u_sf))   # C_ISF<-SF = I at launch
     return AzimuthOutput(time_s, status, "; ".join(flags), True, azimuth_rad=az,
                          azimuth_sigma_rad=az_s, launch_azimuth_rad=az0, **out, **diag)
+
+
+def output_for_publishing(out: AzimuthOutput) -> dict:
+    """The output with degrees and units in the keys, for the publishers (MAVLink/Zenoh edges).
+    NaN where not available; ``valid`` says whether azimuth/heading may be used."""
+    def deg(x: float) -> float:
+        return math.degrees(x) if x is not None and math.isfinite(x) else math.nan
+    return {
+        "time_s": float(out.time_s), "status": out.status, "reason": out.reason, "valid": out.valid,
+        "azimuth_deg": deg(out.azimuth_rad), "azimuth_sigma_deg": deg(out.azimuth_sigma_rad),
+        "launch_azimuth_deg": deg(out.launch_azimuth_rad),
+        "heading_deg": deg(out.heading_rad), "heading_sigma_deg": deg(out.heading_sigma_rad),
+        "roll_deg": deg(out.roll_rad), "pitch_deg": deg(out.pitch_rad),
+        "psi_s_deg": deg(out.psi_s_rad), "psi_s_sigma_deg": deg(out.psi_s_sigma_rad),
+        "n_samples": int(out.n_samples), "orientation_diversity_deg": deg(out.diversity_rad),
+        "condition_number": float(out.condition_number), "normalised_residual": float(out.normalised_residual),
+        "flight_direction_cross_check_deg": deg(out.cross_check_rad),
+        "launch_elevation_check_deg": deg(out.elevation_check_rad),
+    }
 
 
 class AzimuthEstimator:

@@ -235,3 +235,16 @@ def test_sigma_chain_predicts_the_effect_of_gyro_errors():
                                                          st0.G_gyro, fit0, np.outer(c, c), 0.0)
     assert abs(actual) > math.radians(0.2)          # a sizeable effect ...
     assert abs(abs(actual) - predicted_abs) < 0.02 * abs(actual), (math.degrees(actual), math.degrees(predicted_abs))
+
+
+def test_output_for_publishing_uses_degrees():
+    C_nf_isf = launcher_attitude(math.radians(123.0), math.radians(55.0), C_BS)
+    fl = make_flight(C_nf_isf=C_nf_isf, u_sf=C_BS[0], segments=MANOEUVRE[:3])
+    _, outs = run(fl, params_for("aligned"))
+    i, o = outs[-1]
+    d = az.output_for_publishing(o)
+    assert d["valid"] and d["status"] == "solved"
+    assert abs(d["launch_azimuth_deg"] - 123.0) < 1e-6
+    assert abs(d["azimuth_deg"] - math.degrees(truth_azimuth(fl, i, C_BS[0]))) < 1e-6
+    early = az.output_for_publishing(outs[0][1])
+    assert not early["valid"] and math.isnan(early["azimuth_deg"])

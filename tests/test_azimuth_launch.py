@@ -88,3 +88,21 @@ def test_launch_detector_ignores_a_short_knock():
         knock = np.array([30.0, 0, 0]) if k in (20, 21) else np.zeros(3)
         st = launch_detect_step(st, f_rest + knock, k * 0.01)
     assert st.launch_time_s is None
+
+
+def test_inclined_direction_ignores_the_pull_up_after_the_thrust():
+    """After the thrust ends the airframe pulls up (centripetal acceleration normal to the nose,
+    8 m/s^2): the direction is taken from the thrust phase only, so it stays on the nose."""
+    C_nf_isf = launcher_attitude(1.0, math.radians(20.0), C_BS)
+    f_rest = C_nf_isf.T @ np.array([0.0, 0.0, -G])
+    u = C_BS[0]
+    normal = np.cross(u, C_BS[1])                   # a direction normal to the nose
+    st = boost_init(f_rest, 0.0)
+    for k in range(100):
+        t = k * 0.01
+        a_sf = 60.0 * u if t < 0.4 else -2.0 * u + 8.0 * normal   # thrust, then drag + pull-up
+        f = a_sf + f_rest
+        st = boost_step(st, f, np.eye(3), t)
+    assert st.done
+    u_est, why = boost_direction(st)
+    assert why == "" and angle_between(u_est, u) < 1e-12
