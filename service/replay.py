@@ -153,14 +153,14 @@ def _deg(rad) -> float:
     return math.degrees(rad) if rad is not None and math.isfinite(rad) else math.nan
 
 
-def _fmt(v: float, spec: str = ".10g") -> str:
+def _fmt(v: float, spec: str = ".12g") -> str:
     return "" if v is None or not math.isfinite(v) else format(v, spec)
 
 
 class _Progress:
-    def __init__(self, enabled: bool, stream=sys.stderr):
+    def __init__(self, enabled: bool, stream=None):
         self.enabled = enabled
-        self.stream = stream
+        self.stream = stream = stream if stream is not None else sys.stderr
         self.tty = enabled and stream.isatty()
         self.t0 = time.monotonic()
         self.next_s = self.t0 + 1.0
@@ -375,7 +375,8 @@ def summary(res: ReplayResult) -> dict:
     return out
 
 
-def print_summary(s: dict, res: ReplayResult, notes: list[str], log: Path, out=sys.stdout) -> None:
+def print_summary(s: dict, res: ReplayResult, notes: list[str], log: Path, out=None) -> None:
+    out = out if out is not None else sys.stdout
     p = lambda *a: print(*a, file=out)  # noqa: E731
     p(f"replay of {log}")
     for n in notes + s["notes"]:

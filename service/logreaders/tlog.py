@@ -16,6 +16,8 @@ from typing import Iterator
 from service.logreaders import LogError, LogSite, LogSummary, decimal_year_from_unix
 
 _SITE_MESSAGES = ("GPS_RAW_INT", "GLOBAL_POSITION_INT", "HOME_POSITION")
+_ROTORCRAFT = {2, 3, 4, 13, 14, 15, 29, 35}
+"""MAV_TYPE quadrotor, coaxial, helicopter, hexa, octo, tricopter, dodeca, decarotor."""
 
 
 class TlogLogReader:
@@ -81,8 +83,11 @@ class TlogLogReader:
 
     def items(self) -> Iterator:
         from mavlink_io.link import LinkConfig, MavlinkLink
+        from mavlink_io.samples import FcHeartbeat
         from mavlink_io.tlog import TlogReader
         from mavlink_io.transport import NullTransport
+
+        self._vehicle_type = None
 
         clock_s = [0.0]
         cfg = LinkConfig(url="udpin:127.0.0.1:0", imu_gap_s=self.imu_gap_s)  # never opened
@@ -93,7 +98,10 @@ class TlogLogReader:
             clock_s[0] = t_s
             record_bytes += 8 + len(frame)
             self._consumed = record_bytes + reader.skipped_bytes
-            yield from link.feed(frame, t_s)
+            for item in link.feed(frame, t_s):
+                if type(item) is FcHeartbeat:
+                    self._vehicle_type = item.vehicle_type
+                yield item
             yield from link.poll(0.0)  # timers: link timeout etc. (sent nowhere)
         self._consumed = self._size
         s = self.summary
@@ -109,6 +117,10 @@ class TlogLogReader:
             s.notes.append(f"the last {tail} bytes are an incomplete record (truncated log)")
         if st.get("crc_errors"):
             s.notes.append(f"{st['crc_errors']} frames with bad CRC dropped (radio link)")
+        if link.fc_autopilot == "ardupilot" and self._vehicle_type in _ROTORCRAFT:
+            s.notes.append("SCALED_PRESSURE.press_diff of an ArduPilot rotorcraft: older ArduPilot sent the "
+                           "barometric pressure minus the ground pressure there, not a pitot pressure; it "
+                           "is handed on as the link decodes it")
         if link.fc_autopilot is None:
             s.notes.append("no autopilot HEARTBEAT in the log: the link kept no vehicle's messages")
 

@@ -32,6 +32,8 @@ Times are the FC's boot clock in microseconds (``timestamp_sample`` where the to
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import math
 from pathlib import Path
 from typing import Iterator
@@ -73,8 +75,10 @@ class UlogReader:
             from pyulog import ULog
         except ImportError:
             raise LogError("reading .ulg needs pyulog: pip install pyulog") from None
+        said = io.StringIO()
         try:
-            self.ulog = ULog(str(self.path), _TOPICS)
+            with contextlib.redirect_stdout(said):  # pyulog prints its warnings
+                self.ulog = ULog(str(self.path), _TOPICS)
         except Exception as exc:  # noqa: BLE001 - pyulog raises anything on a corrupt file
             raise LogError(f"{self.path}: not a readable PX4 ULog ({type(exc).__name__}: {exc})") from None
         self._data = {}
@@ -85,7 +89,7 @@ class UlogReader:
         self._total = 1
         if "sensor_combined" not in self._data or len(self._data["sensor_combined"]["timestamp"]) == 0:
             raise LogError(f"{self.path}: no sensor_combined topic (no IMU data) in this ULog")
-        if getattr(self.ulog, "file_corruption", False):
+        if getattr(self.ulog, "file_corruption", False) or "corrupt" in said.getvalue().lower():
             self.summary.notes.append("pyulog reports file corruption: data after the damage may be missing")
 
     def _topic(self, name: str) -> dict | None:
