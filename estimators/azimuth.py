@@ -145,6 +145,8 @@ class Solution:
     fit: af.FitResult
     psi_sigma_rad: float
     diversity_rad: float
+    C_nf_isf: np.ndarray
+    """R3(psi)^T C_AF<-ISF (eq. 6 without the gyro part)."""
 
 
 @dataclass(frozen=True)
@@ -163,6 +165,8 @@ class AzimuthState:
     P_consider: np.ndarray | None = None
     # in flight
     strapdown: StrapdownState | None = None
+    C_isf_sf: np.ndarray = field(default_factory=lambda: np.eye(3))
+    """C_ISF<-SF of the strapdown quaternion (cached)."""
     G_gyro: np.ndarray = field(default_factory=lambda: np.zeros((3, N_GYRO_CONSIDER)))
     """Attitude-error sensitivity alpha_ISF = G c_g to the gyro errors c_g = [bias error (3),
     T row-major (9): scale on the diagonal, misalignment off it] (see azimuth_fit)."""
@@ -332,7 +336,7 @@ def _solve(state: AzimuthState, time_s: float) -> AzimuthState:
     reason = af.gate_reason(fit, n, diversity, psi_sigma_fit, p.gate)
     sol = state.solution
     if reason == "":
-        sol = Solution(time_s, fit, psi_sigma, diversity)
+        sol = Solution(time_s, fit, psi_sigma, diversity, af.r3(fit.psi_rad).T @ state.C_isf_af.T)
     return replace(state, last_solve_s=time_s, last_fit=fit, last_diversity_rad=diversity,
                    last_gate_reason=reason, solution=sol)
 
@@ -347,40 +351,39 @@ def azimuth_step(state: AzimuthState, gyro_rad_s: np.ndarray, accel_m_s2: np.nda
     p = state.params
     g = np.asarray(gyro_rad_s, float)
     sd, diag = strapdown_step(state.strapdown, g - state.gyro_bias_rad_s, time_s, p.strapdown)
-    C_isf_sf = dcm_from_quat(sd.q_ref_from_sensor)
     if diag.integrated:  # G: bias columns -int C dt, T columns int C[:, i] w_j dt (trapezoid)
-        C0 = dcm_from_quat(state.strapdown.q_ref_from_sensor)
+        C_isf_sf = dcm_from_quat(sd.q_ref_from_sensor)
+        C0 = state.C_isf_sf
         w0, w1 = state.strapdown.gyro_prev_rad_s, sd.gyro_prev_rad_s
         h = 0.5 * diag.dt_s
         G = state.G_gyro.copy()
         G[:, :3] -= h * (C0 + C_isf_sf)
-        G[:, 3:] += h * ((C0[:, :, None] * w0).reshape(3, 9) + (C_isf_sf[:, :, None] * w1).reshape(3, 9))
+        G[:, 3:] += h * (C0[:, :, None] * w0 + C_isf_sf[:, :, None] * w1).reshape(3, 9)
     else:
-        G = state.G_gyro
-    upd = {"strapdown": sd, "G_gyro": G}
-    st = state
+        C_isf_sf, G = state.C_isf_sf, state.G_gyro
+    upd = {"strapdown": sd, "G_gyro": G, "C_isf_sf": C_isf_sf}
+    u_new = None
     # flight direction from the boost window (inclined case)
-    if st.boost is not None and st.u_sf is None:
+    if state.boost is not None and state.u_sf is None:
         a = np.asarray(accel_m_s2, float)
-        b = boost_step(st.boost, a, C_isf_sf.T, time_s, p.boost) if a.shape == (3,) else st.boost
+        b = boost_step(state.boost, a, C_isf_sf.T, time_s, p.boost) if a.shape == (3,) else state.boost
         upd["boost"] = b
         if b.done:
-            u, why = boost_direction(b, p.boost)
-            if u is None:
+            u_new, why = boost_direction(b, p.boost)
+            if u_new is None:
                 upd["u_reason"] = "flight direction: " + why
                 upd["boost"] = None
-            else:
-                st = _with_checks(replace(st, **upd), u)
-                upd = {}
-    if upd:
-        st = replace(st, **upd)
     # magnetometer sample into the fit
-    if mag_gauss is not None and st.launch_time_s is not None:
+    if mag_gauss is not None:
         h = np.asarray(mag_gauss, float)
-        if (h.shape == (3,) and np.all(np.isfinite(h)) and time_s - st.launch_time_s >= p.mag_skip_after_launch_s
-                and time_s - st.last_mag_s >= p.mag_decimation_s - 1e-9 and len(st.samples) < p.max_fit_samples):
-            st = replace(st, samples=st.samples + (MagRecord(float(time_s), h.copy(), C_isf_sf.T.copy(), G.copy()),),
-                         last_mag_s=float(time_s))
+        if (h.shape == (3,) and time_s - state.launch_time_s >= p.mag_skip_after_launch_s
+                and time_s - state.last_mag_s >= p.mag_decimation_s - 1e-9
+                and len(state.samples) < p.max_fit_samples and np.all(np.isfinite(h))):
+            upd["samples"] = state.samples + (MagRecord(float(time_s), h.copy(), C_isf_sf.T.copy(), G.copy()),)
+            upd["last_mag_s"] = float(time_s)
+    st = replace(state, **upd)
+    if u_new is not None:
+        st = _with_checks(st, u_new)
     period = p.resolve_period_s if st.solution is not None else p.resolve_period_unsolved_s
     if time_s - st.last_solve_s >= period and len(st.samples) > 0:
         st = _solve(st, time_s)
@@ -404,7 +407,7 @@ def _output(st: AzimuthState, C_isf_sf: np.ndarray, time_s: float) -> AzimuthOut
         flags.append(f"launch elevation differs from the configured one by "
                      f"{math.degrees(st.elevation_check_rad):.1f} deg")
     psi = sol.fit.psi_rad if sol is not None else 0.0
-    C_nf_sf = af.r3(psi).T @ st.C_isf_af.T @ C_isf_sf
+    C_nf_sf = (sol.C_nf_isf if sol is not None else st.C_isf_af.T) @ C_isf_sf
     C_nf_body = C_nf_sf @ C_sf_body
     roll, pitch, yaw = euler_from_dcm(C_nf_body)
     if sol is None:
@@ -432,7 +435,7 @@ def _output(st: AzimuthState, C_isf_sf: np.ndarray, time_s: float) -> AzimuthOut
         az, az_s, _ = af.direction_azimuth_and_sigma(st.u_sf, psi, st.C_isf_af, C_isf_sf, st.G_gyro,
                                                      sol.fit, st.P_consider, arw_var)
         az_s = math.sqrt(az_s ** 2 + fm2)
-    az0 = af.azimuth_of(af.r3(psi).T @ (st.C_isf_af.T @ st.u_sf))   # C_ISF<-SF = I at launch
+    az0 = af.azimuth_of(sol.C_nf_isf @ st.u_sf)   # C_ISF<-SF = I at launch
     return AzimuthOutput(time_s, status, "; ".join(flags), True, azimuth_rad=az,
                          azimuth_sigma_rad=az_s, launch_azimuth_rad=az0, **out, **diag)
 
