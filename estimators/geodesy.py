@@ -20,8 +20,10 @@ What is here and how exact it is:
       (x_E, y_N) = (e, n) * R / (R + u)
   On that sphere this is the gnomonic projection: every great circle is a straight line, and the
   distance from T to a point or to a line at planar distance rho is exactly R atan(rho / R).
-  On the ellipsoid, geodesics through and near T are straight to first order in e^2 (rho/R)^2;
-  tests show < 5 mm against Vincenty at 20 km and the analytic equator/meridian cases.
+  On the ellipsoid, geodesics near T are straight up to O(e^2 (L/R)^2) (L: distance to the edge's
+  vertices). Measured (tests/test_geodesy.py): ranges to points 20 km away agree with Vincenty to
+  0.1 mm (14 mm at 100 km); the distance to the equator from 11 km north agrees with the analytic
+  meridian arc to 0.5 mm when the edge's vertices are 22 km away, 6 mm when they are 111 km away.
   Projecting the fence about the vehicle's position each update therefore gives the distance
   from the vehicle to every fence edge (a geodesic between two vertices) on the ellipsoid. No
   longitude wrap, no pole problem; vertices must be within 2000 km of T (ValueError otherwise).
