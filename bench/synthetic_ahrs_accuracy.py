@@ -34,7 +34,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from estimators.geomag import earth_field_ned_gauss  # noqa: E402
 from estimators.mag_error_kf import kf1_from_dict, kf1_to_dict  # noqa: E402
-from estimators.rotations import dcm_from_quat, euler_from_dcm, quat_mul, quat_conj  # noqa: E402
+from estimators.rotations import dcm_from_quat, euler_from_dcm  # noqa: E402
 from estimators.strapdown import strapdown_init, strapdown_step  # noqa: E402
 from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent, ImuEvent,  # noqa: E402
                                        SyntheticAhrsParams, synthetic_ahrs_init, synthetic_ahrs_step)

@@ -49,9 +49,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from estimators.euler_kinematics import euler_rate_matrix
-from estimators.rotations import (dcm_from_quat, euler_from_dcm, quat_from_rotvec, quat_mul,
-                                  skew, wrap_pi)
+from estimators.euler_kinematics import body_rate_matrix, euler_rate_matrix
+from estimators.rotations import (dcm_from_quat, euler_from_dcm, quat_from_euler, quat_from_rotvec,
+                                  quat_mul, skew, wrap_pi)
 
 N = 9
 G_M_S2 = 9.80665
@@ -165,7 +165,6 @@ def kf2_init(q_nav_from_body: np.ndarray, params: Kf2Params = Kf2Params(),
 def _gamma_cov_from_euler_sigmas(q: np.ndarray, sigma_tilt: float, sigma_heading: float) -> np.ndarray:
     """Body-frame gamma covariance for given roll/pitch and heading sigmas: gamma = W d_euler."""
     roll, pitch, _ = euler_from_dcm(dcm_from_quat(q))
-    from estimators.euler_kinematics import body_rate_matrix
     W = body_rate_matrix(roll, pitch)
     return W @ np.diag([sigma_tilt ** 2, sigma_tilt ** 2, sigma_heading ** 2]) @ W.T
 
@@ -327,7 +326,6 @@ def kf2_update_reference(state: Kf2State, euler_ref_rad: np.ndarray, time_ref_s:
     e = np.asarray(euler_ref_rad, dtype=float)
     z = np.array([wrap_pi(e[0] - roll), e[1] - pitch, wrap_pi(e[2] - yaw)])
     if float(np.max(np.abs(z))) > params.ref_reset_rad:
-        from estimators.rotations import quat_from_euler
         q_ref = quat_from_euler(*e)
         if state.time_s is not None and state.omega_prev_rad_s is not None:
             q_ref = quat_mul(q_ref, quat_from_rotvec(state.omega_prev_rad_s * (state.time_s - time_ref_s)))

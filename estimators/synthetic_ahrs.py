@@ -43,6 +43,7 @@ from estimators.ahrs_kf2 import (Kf2Params, Kf2State, kf2_euler_and_cov, kf2_ini
                                  kf2_update_air, kf2_update_mag, kf2_update_reference)
 from estimators.air_data import AirData, AirDataParams, AirDataState, air_data_step
 from estimators.euler_kinematics import euler_rates
+from estimators.geomag import earth_field_ned_gauss
 from estimators.mag_error_kf import Kf1Params, Kf1State, kf1_correct_mag, kf1_init, kf1_step
 from estimators.reference_health import (ReferenceHealthParams, ReferenceHealthState,
                                          health_on_attitude, health_on_ekf_status,
@@ -145,6 +146,11 @@ class SyntheticAhrsParams:
     """Low-pass of the body rate used for the turn rate in phi_ref and the gates."""
     bias_revert_age_s: float = 30.0
     bias_snapshot_period_s: float = 5.0
+    init_without_reference_s: float = 5.0
+    """b2: with no trusted reference this long after the first IMU sample, start from the
+    magnetometer (level, wide sigmas) instead of waiting."""
+    init_sigma_tilt_rad: float = math.radians(10.0)
+    init_sigma_heading_rad: float = math.radians(30.0)
     air: AirDataParams = AirDataParams()
     b1: B1Params = B1Params()
     kf1: Kf1Params = Kf1Params()
@@ -165,7 +171,8 @@ class SyntheticAhrsParams:
         for name in ("fc_sigma_tilt_rad", "fc_sigma_yaw_rad", "air_roll_limit_rad", "air_pitch_limit_rad",
                      "air_rate_limit_rad_s", "air_sigma_roll_rad", "air_sigma_pitch_rad",
                      "air_sigma_alt_rate_m_s", "alpha_tau_s", "rate_lp_tau_s", "bias_revert_age_s",
-                     "bias_snapshot_period_s"):
+                     "bias_snapshot_period_s", "init_without_reference_s", "init_sigma_tilt_rad",
+                     "init_sigma_heading_rad"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
@@ -203,6 +210,7 @@ class SyntheticAhrsState:
     air_off_reason: str = "no air data yet"
     kf1_learning: bool = False
     n_kf1_rejected: int = 0
+    first_imu_time_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -231,6 +239,17 @@ class SyntheticAhrsOutput:
     air_rejected: int = 0
     ref_fused: int = 0
     kf1_rejected: int = 0
+
+
+def synthetic_ahrs_params_for_site(lat_deg: float, lon_deg: float, alt_m: float, decimal_year: float,
+                                   variant: str = "b2", C_body_from_sensor=None,
+                                   **overrides) -> SyntheticAhrsParams:
+    """Params with the model field at the site (estimators.geomag, WMM), for the service."""
+    field_ned = earth_field_ned_gauss(lat_deg, lon_deg, alt_m, decimal_year)
+    kw = dict(overrides)
+    if C_body_from_sensor is not None:
+        kw["C_body_from_sensor"] = C_body_from_sensor
+    return SyntheticAhrsParams(variant=variant, field_nav_gauss=tuple(float(v) for v in field_ned), **kw)
 
 
 def synthetic_ahrs_init(params: SyntheticAhrsParams, kf1_learn: Kf1State | None = None,
@@ -371,7 +390,8 @@ def _on_imu(state: SyntheticAhrsState, ev: ImuEvent, params: SyntheticAhrsParams
     if state.b1 is not None:
         return _upd(state, b1=b1_imu_step(state.b1, gyro_b, t, params.b1))
     if state.kf2 is None:
-        return state
+        state = _upd(state, first_imu_time_s=t if state.first_imu_time_s is None else state.first_imu_time_s)
+        return _init_without_reference(state, ev, C_bs, t, params)
     kf2, _ = kf2_predict(state.kf2, gyro_b, t, params.kf2)
     state = _upd(state, kf2=kf2)
     if state.trusted and (not state.bias_snapshots or t - state.bias_snapshots[-1][0] >= params.bias_snapshot_period_s):
@@ -400,6 +420,28 @@ def _on_imu(state: SyntheticAhrsState, ev: ImuEvent, params: SyntheticAhrsParams
         kf2, _ = kf2_update_mag(state.kf2, m, Bn, params.kf2)
         state = _upd(state, kf2=kf2, last_mag_update_s=t)
     return state
+
+
+def _init_without_reference(state: SyntheticAhrsState, ev: ImuEvent, C_bs: np.ndarray, t: float,
+                            params: SyntheticAhrsParams) -> SyntheticAhrsState:
+    """No trusted reference ``init_without_reference_s`` after the first IMU sample (e.g. a
+    restart after the GNSS loss): start KF2 level, heading from the magnetometer (level:
+    m_x = cos(psi) B_N + sin(psi) B_E, m_y = -sin(psi) B_N + cos(psi) B_E, so
+    psi = atan2(B_E, B_N) - atan2(m_y, m_x)), with wide sigmas; air data and the magnetometer
+    then pull it in."""
+    if (state.trusted or ev.mag_sensor_gauss is None
+            or t - state.first_imu_time_s < params.init_without_reference_s):
+        return state
+    m = C_bs @ np.asarray(ev.mag_sensor_gauss, dtype=float)
+    if not np.isfinite(m).all() or math.hypot(m[0], m[1]) <= 0.0:
+        return state
+    if state.kf1_applied is not None and state.kf1_applied.field_norm_gauss is not None:
+        m = kf1_correct_mag(state.kf1_applied, m)
+    Bn = params.field_nav_gauss
+    psi = math.atan2(Bn[1], Bn[0]) - math.atan2(m[1], m[0])
+    kf2 = kf2_init(quat_from_euler(0.0, 0.0, psi), params.kf2, sigma_tilt_rad=params.init_sigma_tilt_rad,
+                   sigma_heading_rad=params.init_sigma_heading_rad)
+    return _upd(state, kf2=kf2)
 
 
 def _on_air(state: SyntheticAhrsState, ev: AirEvent, params: SyntheticAhrsParams) -> SyntheticAhrsState:
@@ -455,7 +497,6 @@ def _on_fc_attitude(state: SyntheticAhrsState, ev: FcAttitudeEvent, params: Synt
             return state
         kf2 = kf2_init(quat_from_euler(*e), params.kf2, sigma_tilt_rad=params.fc_sigma_tilt_rad,
                        sigma_heading_rad=params.fc_sigma_yaw_rad)
-        kf2 = _upd(kf2, time_s=None)
         return _upd(state, kf2=kf2, last_ref_update_s=t)
     if t - state.last_ref_update_s < params.ref_update_interval_s - 1e-6:
         return state
@@ -488,3 +529,16 @@ def synthetic_ahrs_output(state: SyntheticAhrsState, params: SyntheticAhrsParams
                                heading_sigma_rad=math.sqrt(cov[2, 2]), mag_fused=k.n_mag_fused,
                                mag_rejected=k.n_mag_rejected, air_fused=k.n_air_fused,
                                air_rejected=k.n_air_rejected, ref_fused=k.n_ref_fused, **common)
+
+
+class SyntheticAhrs:
+    """Thin stateful wrapper around the pure step (holds the state, nothing else)."""
+
+    def __init__(self, params: SyntheticAhrsParams, kf1_learn: Kf1State | None = None,
+                 kf1_applied: Kf1State | None = None):
+        self.params = params
+        self.state = synthetic_ahrs_init(params, kf1_learn=kf1_learn, kf1_applied=kf1_applied)
+
+    def step(self, event, output: bool = True) -> SyntheticAhrsOutput | None:
+        self.state, out = synthetic_ahrs_step(self.state, event, self.params, output)
+        return out

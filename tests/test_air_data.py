@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from estimators.air_data import (AirDataParams, AirDataState, P0_PA, air_data_step,
+from estimators.air_data import (AirDataParams, AirDataState, air_data_step,
                                  air_density_kg_m3, isa_temperature_k, pressure_altitude_m,
                                  true_airspeed_m_s)
 
