@@ -270,7 +270,7 @@ def dr_predict_covariance(P: np.ndarray, heading_rad: float, v_h_m_s: float, sig
         if dt < 0:
             raise ValueError("times_s must increase")
         if dt > 0:
-            n_sub = max(1, math.ceil(dt / 2.0))  # the look-ahead tolerates coarser steps
+            n_sub = max(1, math.ceil(dt / params.max_dt_s - 1e-9))
             h = dt / n_sub
             key = round(h, 9)
             if key not in cache:
