@@ -29,7 +29,10 @@ Measurement: magnetic heading from the levelled magnetometer plus the site decli
     R = (sigma_m / H)^2 + (sigma_D^2 + G P_rp G^T + sigma_floor^2) * tau_m / dt_m,
     G = d psi_m / d(phi, theta)
 (G grows like Z/H: near the magnetic pole a tiny tilt error is a large heading error; the
-bracket is correlated over tau_m, so it is counted once per correlation time, not per sample).
+bracket is correlated over tau_m, so it is counted once per correlation time, not per sample,
+and the heading variance after a fusion is kept >= the running mean of the bracket: a
+consider floor, since e.g. a tilt error from an accelerometer bias lasts the whole flight and
+never averages out).
 The source is declared UNAVAILABLE when the measured horizontal field H is below
 ``min_horizontal_field_gauss``: no update, the heading variance then grows with the process
 noise while roll/pitch (the attitude filter) are unaffected. An innovation gate rejects
@@ -124,6 +127,9 @@ class PolarHeadingState:
     n_fused: int = 0
     n_rejected: int = 0
     n_resets: int = 0
+    r_corr_avg_rad2: float | None = None
+    """Running mean (time constant mag_error_tau_s) of the correlated measurement variance:
+    the consider floor of the heading variance."""
 
     def to_dict(self) -> dict:
         return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()}
@@ -325,8 +331,20 @@ def _measure(st, u, Prp, p):
     I_KH = np.eye(4)
     I_KH[:, 0] -= K
     P = I_KH @ st.P @ I_KH.T + np.outer(K, K) * R
+    # consider floor: the correlated part of the source error (tilt, declination, residual
+    # deviation) does not average out however long the source is fused, so the heading variance
+    # is kept >= its running mean over mag_error_tau_s (row/column 0 scaled: a congruence, P
+    # stays positive semi-definite)
+    dt_m = p.mag_update_period_s
+    avg = r_corr if st.r_corr_avg_rad2 is None else (
+        st.r_corr_avg_rad2 + (r_corr - st.r_corr_avg_rad2) * min(1.0, dt_m / p.mag_error_tau_s))
+    if P[0, 0] < avg:
+        sc = math.sqrt(avg / P[0, 0])
+        P[0, :] *= sc
+        P[:, 0] *= sc
     P = 0.5 * (P + P.T)
-    st = replace(st, x=x, P=P, rejected_since_s=None, source_available=True, n_fused=st.n_fused + 1)
+    st = replace(st, x=x, P=P, rejected_since_s=None, source_available=True, n_fused=st.n_fused + 1,
+                 r_corr_avg_rad2=avg)
     return st, HeadingDiag(**diag_kw, fused=True)
 
 
