@@ -22,6 +22,12 @@ import numpy as np
 TWO_PI = 2.0 * math.pi
 
 
+def _floats(v) -> list | tuple:
+    """Python floats of a small vector: scalar arithmetic on them is several times faster than
+    on numpy scalars (the per-IMU-sample hot path; bench/speed.py)."""
+    return v.tolist() if isinstance(v, np.ndarray) else v
+
+
 def wrap_2pi(angle_rad: float) -> float:
     """Wrap an angle to [0, 2pi)."""
     a = math.fmod(angle_rad, TWO_PI)
@@ -96,8 +102,8 @@ def euler_from_dcm(C_nav_from_body: np.ndarray) -> tuple[float, float, float]:
 
 def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product p * q (scalar first)."""
-    pw, px, py, pz = p
-    qw, qx, qy, qz = q
+    pw, px, py, pz = _floats(p)
+    qw, qx, qy, qz = _floats(q)
     return np.array([
         pw * qw - px * qx - py * qy - pz * qz,
         pw * qx + px * qw + py * qz - pz * qy,
@@ -108,28 +114,32 @@ def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 def quat_conj(q: np.ndarray) -> np.ndarray:
     """Conjugate (= inverse for a unit quaternion): q_b_from_a from q_a_from_b."""
-    return np.array([q[0], -q[1], -q[2], -q[3]])
+    w, x, y, z = _floats(q)
+    return np.array([w, -x, -y, -z])
 
 
 def quat_normalize(q: np.ndarray) -> np.ndarray:
     """Unit quaternion with non-negative scalar part (one representative of +-q)."""
-    n = math.sqrt(float(q @ q))
+    w, x, y, z = _floats(q)
+    n = math.sqrt(w * w + x * x + y * y + z * z)
     if not n > 0.0 or not math.isfinite(n):
         raise ValueError(f"cannot normalise quaternion {q!r}")
-    q = q / n
-    return -q if q[0] < 0.0 else q
+    if w < 0.0:
+        n = -n
+    return np.array([w / n, x / n, y / n, z / n])
 
 
 def quat_from_rotvec(rotvec_rad: np.ndarray) -> np.ndarray:
     """Quaternion of the rotation by |v| about v/|v| (exact, series near zero)."""
-    angle = math.sqrt(float(rotvec_rad @ rotvec_rad))
+    vx, vy, vz = _floats(rotvec_rad)
+    angle = math.sqrt(vx * vx + vy * vy + vz * vz)
     half = 0.5 * angle
     if angle < 1e-6:
         # sin(h)/angle = 1/2 - angle^2/48 + ...
         k = 0.5 - angle * angle / 48.0
-        return np.array([math.cos(half), k * rotvec_rad[0], k * rotvec_rad[1], k * rotvec_rad[2]])
+        return np.array([math.cos(half), k * vx, k * vy, k * vz])
     k = math.sin(half) / angle
-    return np.array([math.cos(half), k * rotvec_rad[0], k * rotvec_rad[1], k * rotvec_rad[2]])
+    return np.array([math.cos(half), k * vx, k * vy, k * vz])
 
 
 def rotvec_from_quat(q: np.ndarray) -> np.ndarray:
@@ -145,7 +155,7 @@ def rotvec_from_quat(q: np.ndarray) -> np.ndarray:
 
 def dcm_from_quat(q: np.ndarray) -> np.ndarray:
     """C_a_from_b from q_a_from_b (unit quaternion)."""
-    w, x, y, z = q
+    w, x, y, z = _floats(q)
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
@@ -186,8 +196,16 @@ def quat_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.nda
 
 
 def euler_from_quat(q_nav_from_body: np.ndarray) -> tuple[float, float, float]:
-    """(roll, pitch, yaw) in rad from q_nav_from_body; yaw in [0, 2pi)."""
-    return euler_from_dcm(dcm_from_quat(q_nav_from_body))
+    """(roll, pitch, yaw) in rad from q_nav_from_body; yaw in [0, 2pi).
+
+    ``euler_from_dcm(dcm_from_quat(q))`` with only the five DCM elements it reads, computed by the
+    same expressions (so the result is bit for bit the same)."""
+    w, x, y, z = _floats(q_nav_from_body)
+    c20 = 2 * (x * z - w * y)
+    pitch = -math.asin(max(-1.0, min(1.0, c20)))
+    roll = math.atan2(2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+    yaw = wrap_2pi(math.atan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z)))
+    return roll, pitch, yaw
 
 
 def orthonormalize(C: np.ndarray) -> np.ndarray:

@@ -57,7 +57,11 @@ def strapdown_step(state: StrapdownState, gyro_rad_s: np.ndarray, time_s: float,
                    params: StrapdownParams = StrapdownParams()) -> tuple[StrapdownState, StrapdownDiag]:
     """Integrate one bias-corrected rate sample (rad/s, sensor axes) taken at ``time_s``."""
     w = np.asarray(gyro_rad_s, dtype=float)
-    if w.shape != (3,) or not np.all(np.isfinite(w)) or not math.isfinite(time_s):
+    if w.shape != (3,):
+        return state, StrapdownDiag(False, "non-finite sample")
+    # scalar arithmetic on Python floats: ~5x cheaper than numpy on 3-vectors (bench/speed.py)
+    wx, wy, wz = w.tolist()
+    if not (math.isfinite(wx) and math.isfinite(wy) and math.isfinite(wz) and math.isfinite(time_s)):
         return state, StrapdownDiag(False, "non-finite sample")
     if state.time_s is None or state.gyro_prev_rad_s is None:
         return StrapdownState(state.q_ref_from_sensor, time_s, w), StrapdownDiag(False, "first sample")
@@ -68,8 +72,26 @@ def strapdown_step(state: StrapdownState, gyro_rad_s: np.ndarray, time_s: float,
         # restart the increments at the new sample; the attitude is kept, the gap reported
         return (StrapdownState(state.q_ref_from_sensor, time_s, w),
                 StrapdownDiag(False, f"gap of {dt:.3f} s not integrated", dt))
-    w0 = state.gyro_prev_rad_s
-    phi = 0.5 * (w0 + w) * dt + (dt * dt / 12.0) * np.cross(w0, w)
-    q = quat_mul(state.q_ref_from_sensor, quat_from_rotvec(phi))
-    q = q / math.sqrt(float(q @ q))
+    ax, ay, az = state.gyro_prev_rad_s.tolist()
+    h = 0.5 * dt
+    c = dt * dt / 12.0
+    # phi = (w0 + w)/2 dt + dt^2/12 (w0 x w)
+    px = (ax + wx) * h + c * (ay * wz - az * wy)
+    py = (ay + wy) * h + c * (az * wx - ax * wz)
+    pz = (az + wz) * h + c * (ax * wy - ay * wx)
+    # q(phi), exact with the series near zero (rotations.quat_from_rotvec)
+    angle = math.sqrt(px * px + py * py + pz * pz)
+    if angle < 1e-6:
+        k = 0.5 - angle * angle / 48.0
+    else:
+        k = math.sin(0.5 * angle) / angle
+    rw, rx, ry, rz = math.cos(0.5 * angle), k * px, k * py, k * pz
+    qw, qx, qy, qz = state.q_ref_from_sensor.tolist()
+    # q_k = q_{k-1} * q(phi)  (Hamilton product, rotations.quat_mul), then renormalised
+    nw = qw * rw - qx * rx - qy * ry - qz * rz
+    nx = qw * rx + qx * rw + qy * rz - qz * ry
+    ny = qw * ry - qx * rz + qy * rw + qz * rx
+    nz = qw * rz + qx * ry - qy * rx + qz * rw
+    n = math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+    q = np.array([nw / n, nx / n, ny / n, nz / n])
     return StrapdownState(q, time_s, w), StrapdownDiag(True, "", dt)
