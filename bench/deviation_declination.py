@@ -136,10 +136,8 @@ def deviation_flight(seed: int, grade: str, n_cal_turn_legs: int | None = None) 
     pa = ATT[grade]
     sa = polar_attitude_init(pa, gyro_bias_rad_s=lev.gyro_mean_rad_s, gyro_bias_sigma_rad_s=BIAS_PRIOR[grade])
     ph_params = PolarHeadingParams()
-    sh = polar_heading_init(math.radians(site["launcher_azimuth_deg"]), math.radians(1.0), ph_params)
-    x = sh.x.copy()
-    x[3] = lev.gyro_mean_rad_s[2]
-    sh = replace(sh, x=x)
+    sh = polar_heading_init(math.radians(site["launcher_azimuth_deg"]), math.radians(1.0), ph_params,
+                            gyro_bias_yz_rad_s=(0.0, lev.gyro_mean_rad_s[2]))
     dev = deviation_init(DEV_PARAMS)
     dev_ext = deviation_init(DEV_PARAMS_EXT)
     est = None

@@ -108,12 +108,8 @@ def run_flight(lat_deg: float, seed: int, grade: str, duration_s: float | None) 
                             mag_heading_floor_rad=math.radians(0.5),   # compensated magnetometer
                             vertical_rate_sigma_rad_s=vertical_rate_sigma_for_site(math.radians(lat_deg), CRUISE_M_S),
                             vertical_rate_tau_s=60.0)
-    sh = polar_heading_init(math.radians(site["launcher_azimuth_deg"]), math.radians(2.0), ph)
-    sh_x = sh.x.copy()
-    sh_x[3] = lev.gyro_mean_rad_s[2]          # vertical gyro bias prior (+ Earth rate) from levelling
-    sh_x[1] = 0.0
-    from dataclasses import replace
-    sh = replace(sh, x=sh_x)
+    sh = polar_heading_init(math.radians(site["launcher_azimuth_deg"]), math.radians(2.0), ph,
+                            gyro_bias_yz_rad_s=(0.0, lev.gyro_mean_rad_s[2]))
 
     est = None
     rows = []

@@ -31,7 +31,7 @@ Pure: ``rest_accumulate(state, gyro, accel, mag)`` (Welford) and
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 

@@ -184,16 +184,25 @@ class HeadingEstimate:
 
 
 def polar_heading_init(heading_rad: float | None = None, sigma_rad: float | None = None,
-                       params: PolarHeadingParams = PolarHeadingParams()) -> PolarHeadingState:
+                       params: PolarHeadingParams = PolarHeadingParams(),
+                       gyro_bias_yz_rad_s: tuple[float, float] | None = None) -> PolarHeadingState:
     """A filter waiting for its first measurement, or seeded with a known heading (e.g. the
-    launcher azimuth) and its sigma."""
+    launcher azimuth) and its sigma. ``gyro_bias_yz_rad_s``: optional prior of the lateral and
+    vertical gyro biases, e.g. the pre-launch mean rate at rest (it then also holds the Earth
+    rate seen at rest, which is what w_v + b_z must cancel: only their sum is observable level)."""
+    x = np.zeros(4)
+    if gyro_bias_yz_rad_s is not None:
+        b = np.asarray(gyro_bias_yz_rad_s, float)
+        if b.shape != (2,) or not np.all(np.isfinite(b)):
+            raise ValueError(f"gyro_bias_yz_rad_s must be 2 finite numbers, got {gyro_bias_yz_rad_s!r}")
+        x[2:4] = b
     if heading_rad is None:
-        return PolarHeadingState()
+        return PolarHeadingState(x=x)
     if not (math.isfinite(heading_rad) and sigma_rad is not None and math.isfinite(sigma_rad)
             and sigma_rad > 0.0):
         raise ValueError(f"heading_rad and sigma_rad > 0 must be finite, got {heading_rad}, {sigma_rad}")
-    return PolarHeadingState(initialised=True, x=np.array([wrap_2pi(heading_rad), 0.0, 0.0, 0.0]),
-                             P=_prior_P(sigma_rad ** 2, params))
+    x[0] = wrap_2pi(heading_rad)
+    return PolarHeadingState(initialised=True, x=x, P=_prior_P(sigma_rad ** 2, params))
 
 
 def _prior_P(var_psi: float, p: PolarHeadingParams) -> np.ndarray:
@@ -302,7 +311,7 @@ def _measure(st, u, Prp, p):
     R_single = r_white + r_corr          # the error of ONE measurement (initialisation, reset)
     z = wrap_2pi(psi_m + u.declination_rad)
     if not st.initialised:
-        st = replace(st, initialised=True, x=np.array([z, 0.0, 0.0, 0.0]), P=_prior_P(R_single, p),
+        st = replace(st, initialised=True, x=np.array([z, 0.0, st.x[2], st.x[3]]), P=_prior_P(R_single, p),
                      source_available=True)
         return st, HeadingDiag(measured=True, fused=True, source_available=True,
                                horizontal_field_gauss=H, heading_meas_rad=z, innovation_rad=0.0,

@@ -30,7 +30,7 @@ The rule
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 TWO_PI = 2.0 * math.pi
 
