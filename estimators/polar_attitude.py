@@ -33,7 +33,7 @@ Derivation of eps': with C = C_hat (I + E), E = [eps x], C' = C[w x] - [W x]C an
 C_hat' = C_hat[w_hat x] - [W_hat x]C_hat, keeping first-order terms,
 E' = [dw x] + E[w_hat x] - [w_hat x]E - [(C_hat^T dW) x] and E[w x] - [w x]E = [(eps x w) x],
 so eps' = eps x w_hat + dw - C_BP dW with dw = w - w_hat = -(db_g + n_g).
-(tests/test_polar_attitude.py checks this against a finite-difference propagation.)
+(tests/test_polar_filters.py checks the attitude block against an exact rotation.)
 
 Measurement (METHODS.md C): the specific force residual, averaged over ``update_period_s``:
 
@@ -42,9 +42,13 @@ Measurement (METHODS.md C): the specific force residual, averaged over ``update_
     z = f_meas - f_hat = db_a + da_v - [g_B_hat x] eps - C_BP_hat[:, 2] dg + n_a
 
 The vehicle-acceleration GM state is what keeps manoeuvre accelerations out of the attitude
-(they are absorbed as a_v for ~tau_av); the accelerometer bias and the gravity variation are
-slow, the Earth and transport rates in P make the horizontal drift of P observable through the
-tilt it causes, at any latitude.
+(they are absorbed as a_v for ~tau_av); beyond the seed its variance is raised while the gyros
+show a turn (centripetal w x [V, 0, 0], see ``manoeuvre_speed_m_s``), so a sustained banked turn
+is carried by the gyros rather than levelled by the accelerometer. The accelerometer bias and
+the gravity variation are slow; the Earth and transport rates in P make the horizontal drift of
+P observable through the tilt it causes, at any latitude. The unobservable azimuth of P is kept
+bounded (``max_platform_yaw_sigma_rad``). A horizontal accelerometer bias is indistinguishable
+from a tilt except through attitude changes: it is the accuracy floor (0.1 m/s^2 ~ 0.6 deg).
 
 Output: roll and pitch of B relative to the local level (= P's level) and their 2x2
 covariance, from the attitude-error covariance through d(roll, pitch)/d(eps).
