@@ -61,9 +61,11 @@ class DrParams:
     """Upper bound on the true airspeed, used when heading or airspeed is unknown."""
     max_dt_s: float = 0.5
     """A longer step is split (the discretisation is second order)."""
+    predict_dt_s: float = 1.0
+    """Step of the look-ahead covariance prediction (constant inputs: 1 s keeps it within 0.3 %)."""
 
     def __post_init__(self):
-        for name in ("tau_heading_s", "tau_airspeed_s", "tau_wind_s", "max_airspeed_m_s", "max_dt_s"):
+        for name in ("tau_heading_s", "tau_airspeed_s", "tau_wind_s", "max_airspeed_m_s", "max_dt_s", "predict_dt_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"DrParams.{name} must be finite and > 0, got {v!r}")
@@ -270,7 +272,7 @@ def dr_predict_covariance(P: np.ndarray, heading_rad: float, v_h_m_s: float, sig
         if dt < 0:
             raise ValueError("times_s must increase")
         if dt > 0:
-            n_sub = max(1, math.ceil(dt / params.max_dt_s - 1e-9))
+            n_sub = max(1, math.ceil(dt / params.predict_dt_s - 1e-9))
             h = dt / n_sub
             key = round(h, 9)
             if key not in cache:

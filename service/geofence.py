@@ -107,7 +107,7 @@ class GeofenceMonitor:
                 raise ValueError(f"GeofenceMonitor needs a finite {name} (config site.*), got {v!r}")
         self.cfg = cfg
         self.home = (float(home_lat_deg), float(home_lon_deg), float(home_alt_m))
-        self.dr_params = dr_params or DrParams(max_airspeed_m_s=cfg.max_airspeed_m_s)
+        self.dr_params = dataclasses.replace(dr_params or DrParams(), max_airspeed_m_s=cfg.max_airspeed_m_s)
         incl = [np.radians(np.array(p)) for p in cfg.inclusion]
         if cfg.corridor_azimuth_deg is not None:
             incl.append(np.radians(np.array(corridor_polygon(home_lat_deg, home_lon_deg, cfg.corridor_azimuth_deg,
@@ -210,7 +210,7 @@ class GeofenceMonitor:
         self._last_time_s = t
         if t < self._next_update_s:
             return []
-        self._next_update_s = t + self._period_s
+        self._next_update_s = t + self._period_s * (1.0 - 1e-3)  # float-safe: a 10 Hz feed is not skipped
         flying = sol.phase in ("launch", "in-flight")
         if not flying:
             self.dr = None

@@ -132,8 +132,8 @@ def test_predicted_covariance_equals_stepping():
                                np.array([0.0, 10.0, 20.0]), params)
     s2, _ = fly(s, D(200.0), 20.0, n=200, dt=0.1, heading_sigma=D(2.0), params=params)
     assert pk[0] == pytest.approx(s.P[0:2, 0:2], rel=1e-12)
-    # 0.5 s vs 0.1 s steps (second-order discretisation): within 1e-3 of the largest variance
-    assert pk[2] == pytest.approx(s2.P[0:2, 0:2], abs=1e-3 * float(np.max(np.diag(s2.P[0:2, 0:2]))))
+    # 1 s vs 0.1 s steps (second-order discretisation): within 3e-3 of the largest variance
+    assert pk[2] == pytest.approx(s2.P[0:2, 0:2], abs=3e-3 * float(np.max(np.diag(s2.P[0:2, 0:2]))))
 
 
 def test_transition_is_second_order_accurate():
