@@ -17,7 +17,7 @@ separate processes at 400 Hz.
    forwards to the daemon and every ATTITUDE the daemon sends back. The daemon stamps ATTITUDE
    with ``time_boot_ms = int(time_fc_s * 1000)`` of the IMU sample the solution is for, and
    RAW_IMU carries that sample's ``time_usec``: an ATTITUDE is matched to the one RAW_IMU (400 Hz:
-   2.5 ms apart) whose time_usec falls in [time_boot_ms, time_boot_ms + 1) ms. Latency = tap
+   2.5 ms apart) whose time_usec falls in [time_boot_ms, time_boot_ms + 1] ms (closed: the daemon's int() truncation). Latency = tap
    receive time of the ATTITUDE - tap forward time of its RAW_IMU: the daemon's receive, decode,
    estimators and send, plus two loopback hops and the tap's own scheduling (an upper bound).
    The daemon sends ATTITUDE at ``outputs.attitude_hz`` (50 Hz, the default): each measured
@@ -340,7 +340,7 @@ def time_case(factory, run, items, n_imu: int, budget_s: float) -> dict:
 
 # --- latency and CPU through two processes -------------------------------------------------------
 
-def sitl_latency_cpu(quick: bool) -> dict:
+def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | None = None) -> dict:
     import socket
     import tempfile
 
@@ -395,6 +395,14 @@ def sitl_latency_cpu(quick: bool) -> dict:
     scenario.write_text(scen_text)
     sitl = Sitl(scenario=str(scenario), speed=1.0, workdir=workdir,
                 config_overrides={"mavlink": {"imu_rate_hz": RATE_HZ}}, tap=False)
+    if profile_out:
+        # the daemon under cProfile with a CPU-time clock (waiting in select and being preempted by
+        # other processes on this shared machine do not count)
+        i = sitl.daemon_cmd.index("-m")
+        code = ("import cProfile, sys, time; from service.cli import main; "
+                "p = cProfile.Profile(time.process_time); p.enable(); rc = main(sys.argv[1:]); "
+                f"p.disable(); p.dump_stats({str(profile_out)!r}); sys.exit(rc)")
+        sitl.daemon_cmd[i:i + 2] = ["-c", code]
     tap = ImuTap(sitl.fc_port)
     sitl.tap = tap
     port = tap.sim_side_port
@@ -421,13 +429,17 @@ def sitl_latency_cpu(quick: bool) -> dict:
     lat = []
     unmatched = 0
     for ms, t_rx in tap.att_rx:
+        # the daemon truncates: int(t_s * 1000) of a whole millisecond can give 1 ms less
+        # (3.24 * 1000 = 3239.99...): the window includes its upper end
         lo = np.searchsorted(imu_us, ms * 1000, side="left")
-        hi = np.searchsorted(imu_us, ms * 1000 + 1000, side="left")
+        hi = np.searchsorted(imu_us, ms * 1000 + 1000, side="right")
         if hi - lo != 1:
             unmatched += 1
             continue
         lat.append(t_rx - imu_t[lo])
     lat_ms = np.array(lat) * 1e3
+    if raw is not None:
+        raw.update(imu_fwd=tap.imu_fwd, att_rx=tap.att_rx, workdir=str(workdir))
     out.update({"attitude_matched": int(lat_ms.size), "attitude_unmatched": unmatched,
                 "raw_imu_forwarded": len(tap.imu_fwd)})
     if lat_ms.size:
@@ -446,6 +458,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=str(ROOT / "bench" / "results" / "speed.json"))
     ap.add_argument("--no-install", action="store_true", help="do not pip-install missing reference filters")
     ap.add_argument("--no-sitl", action="store_true", help="skip the two-process latency/CPU part")
+    ap.add_argument("--profile-daemon", metavar="PATH",
+                    help="run the SITL daemon under cProfile, stats to PATH (figures then include its overhead)")
     args = ap.parse_args(argv)
     t_all = time.monotonic()
     versions = ensure_references(not args.no_install)
@@ -488,7 +502,7 @@ def main(argv=None) -> int:
     if not args.no_sitl:
         print("\nSITL: simulator + daemon as processes at 400 Hz (loopback UDP) ...", flush=True)
         try:
-            s = sitl_latency_cpu(args.quick)
+            s = sitl_latency_cpu(args.quick, args.profile_daemon)
         except Exception as exc:  # noqa: BLE001 - report, keep the compute figures
             s = {"error": f"{type(exc).__name__}: {exc}"}
         result["sitl"] = s
