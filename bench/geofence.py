@@ -44,7 +44,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from estimators.air_data import air_data_init, air_data_step  # noqa: E402
-from estimators.geodesy import LocalGnomonic, signed_distance_polygon  # noqa: E402
+from estimators.geodesy import LocalGnomonic, signed_distance_polygon, vincenty_inverse  # noqa: E402
 from service.geofence import GeofenceMonitor  # noqa: E402
 from service.geofence_config import validate_geofence  # noqa: E402
 
@@ -149,6 +149,7 @@ def run_offline(kind: str, seed: int, raw: dict | None = None, rate_hz: float = 
     lost = run.gnss_lost_time_s
     latch_t = None
     first_cmd = None
+    dr_err_m = dr_sigma_m = None
     step = max(1, int(round(run.baro_time_s.size / (run.baro_time_s[-1] * rate_hz))))
     for j in range(0, run.baro_time_s.size, 1):
         tb = float(run.baro_time_s[j])
@@ -171,12 +172,17 @@ def run_offline(kind: str, seed: int, raw: dict | None = None, rate_hz: float = 
             first_cmd = (tb, cmds[0].name)
         if mon.latched and latch_t is None:
             latch_t = tb
+            st = mon.state()
+            dr_err_m, _a, _b = vincenty_inverse(float(tr.lat_rad[k]), float(tr.lon_rad[k]),
+                                                math.radians(st["lat_deg"]), math.radians(st["lon_deg"]))
+            dr_sigma_m = st["pos_sigma_major_m"]
     clear = true_clearance_m(tr.lat_rad, tr.lon_rad, cfg)
     out_idx = np.nonzero(clear < 0.0)[0]
     cross_t = float(t_imu[out_idx[0]]) if out_idx.size else None
     return {"kind": kind, "seed": seed, "latch_time_s": latch_t, "true_cross_time_s": cross_t,
             "lead_time_s": (cross_t - latch_t) if (cross_t is not None and latch_t is not None) else None,
             "first_command": first_cmd[1] if first_cmd else None,
+            "dr_error_at_latch_m": dr_err_m, "dr_sigma_major_at_latch_m": dr_sigma_m,
             "launch_azimuth_deg": sc["launcher"]["azimuth_deg"], "gnss_lost_time_s": lost}
 
 
@@ -357,7 +363,11 @@ def _summarise(results: list[dict], margin_m: float, mode: str) -> dict:
         ok = [r for r in out if r["latch_time_s"] is not None and r["true_cross_time_s"] is not None
               and r["lead_time_s"] > 0]
         leads = [r["lead_time_s"] for r in out if r["lead_time_s"] is not None]
+        ratios = [r["dr_error_at_latch_m"] / r["dr_sigma_major_at_latch_m"] for r in out
+                  if r["dr_error_at_latch_m"] is not None and r["dr_sigma_major_at_latch_m"]]
         s.update({"offline_outbound_latched_before_true_crossing": len(ok),
+                  "offline_dr_error_over_sigma_at_latch_max": max(ratios) if ratios else None,
+                  "offline_dr_error_over_sigma_at_latch_rms": float(np.sqrt(np.mean(np.square(ratios)))) if ratios else None,
                   "offline_lead_time_min_s": min(leads) if leads else None,
                   "offline_lead_time_median_s": float(np.median(leads)) if leads else None,
                   "offline_inside_no_latch": sum(r["latch_time_s"] is None for r in ins)})
@@ -404,8 +414,10 @@ def main(argv=None) -> int:
             for seed in range(n):
                 if mode == "offline":
                     r = run_offline(kind, seed, raw)
-                    line = (f"latch {r['latch_time_s']}  true crossing {r['true_cross_time_s']}  "
-                            f"lead {r['lead_time_s']}")
+                    lead = "-" if r["lead_time_s"] is None else f"{r['lead_time_s']:.1f} s"
+                    err = ("" if r["dr_error_at_latch_m"] is None else
+                           f"  DR error {r['dr_error_at_latch_m']:.0f} m (sigma {r['dr_sigma_major_at_latch_m']:.0f} m)")
+                    line = f"latch {r['latch_time_s']}  true crossing {r['true_cross_time_s']}  lead {lead}{err}"
                 elif mode == "closed":
                     r = run_closed(kind, seed, raw, speed=args.speed, flight_s=160.0 if args.quick else 200.0)
                     line = (f"diverts {r['diverts_sent']} {r['actions']} {r['outcomes']}  "

@@ -295,37 +295,45 @@ def dr_sigmas(inp: DrInputs, params: DrParams = DrParams()) -> tuple[float, floa
 class WindEstState:
     wind_ne_m_s: tuple[float, float] = (0.0, 0.0)
     var_ne_m2_s2: tuple[float, float] = (0.0, 0.0)
-    """Exponential mean of the squared residual per component (spread of the samples)."""
-    n_eff: float = 0.0
+    """Spread (variance) of the single-sample wind per component, (m/s)^2."""
+    n: int = 0
+    duration_s: float = 0.0
+    """Time span the mean averages over (grows to tau_s)."""
     time_s: float | None = None
 
 
 def wind_estimate_step(state: WindEstState, time_s: float, v_ground_ne_m_s: tuple[float, float],
-                       heading_rad: float, heading_sigma_rad: float, v_h_m_s: float, tau_s: float = 60.0
+                       heading_rad: float, v_h_m_s: float, tau_s: float = 60.0, max_gap_s: float = 5.0
                        ) -> WindEstState:
-    """Wind = ground velocity (FC, GNSS healthy) - air velocity (our heading, air data), averaged
-    exponentially with time constant tau_s. Each sample's own error includes V sigma_psi."""
+    """Wind = ground velocity (FC, GNSS healthy) - air velocity (our heading, horizontal TAS).
+
+    Averaged with gain g = max(1/n, 1 - exp(-dt/tau_s)): the plain mean of the samples so far
+    until it spans tau_s, then an exponential average with time constant tau_s (so the first
+    sample does not dominate, and a changing wind is followed). A gap longer than max_gap_s
+    restarts the average."""
     if not all(math.isfinite(x) for x in (time_s, *v_ground_ne_m_s, heading_rad, v_h_m_s)):
         raise ValueError("wind_estimate_step: non-finite input")
-    wN = v_ground_ne_m_s[0] - v_h_m_s * math.cos(heading_rad)
-    wE = v_ground_ne_m_s[1] - v_h_m_s * math.sin(heading_rad)
-    if state.time_s is None or time_s - state.time_s > tau_s:
-        return WindEstState((wN, wE), (0.0, 0.0), 1.0, time_s)
-    dt = max(time_s - state.time_s, 0.0)
-    a = math.exp(-dt / tau_s)
-    mN = a * state.wind_ne_m_s[0] + (1 - a) * wN
-    mE = a * state.wind_ne_m_s[1] + (1 - a) * wE
-    vN = a * state.var_ne_m2_s2[0] + (1 - a) * (wN - mN) ** 2
-    vE = a * state.var_ne_m2_s2[1] + (1 - a) * (wE - mE) ** 2
-    n_eff = min(a * state.n_eff + 1.0, 1.0 / max(1 - a, 1e-9))
-    return WindEstState((mN, mE), (vN, vE), n_eff, time_s)
+    w = (v_ground_ne_m_s[0] - v_h_m_s * math.cos(heading_rad), v_ground_ne_m_s[1] - v_h_m_s * math.sin(heading_rad))
+    if state.time_s is None or time_s - state.time_s > max_gap_s or time_s < state.time_s:
+        return WindEstState(w, (0.0, 0.0), 1, 0.0, time_s)
+    dt = time_s - state.time_s
+    n = state.n + 1
+    g = max(1.0 / n, 1.0 - math.exp(-dt / tau_s))
+    m_old = state.wind_ne_m_s
+    m = tuple(m_old[i] + g * (w[i] - m_old[i]) for i in range(2))
+    var = tuple(state.var_ne_m2_s2[i] + g * ((w[i] - m_old[i]) * (w[i] - m[i]) - state.var_ne_m2_s2[i])
+                for i in range(2))
+    return WindEstState(m, var, n, min(state.duration_s + dt, tau_s), time_s)
 
 
 def wind_estimate_sigma_m_s(state: WindEstState, heading_sigma_rad: float, v_h_m_s: float,
-                            floor_m_s: float) -> float:
-    """1-sigma of the estimated wind per component: the sample spread over sqrt(n_eff) (the sample
-    noise averages out), plus V sigma_psi (a heading bias does not average out), at least floor."""
-    spread = math.sqrt(max(state.var_ne_m2_s2)) / math.sqrt(max(state.n_eff, 1.0))
+                            floor_m_s: float, correlation_s: float = 5.0) -> float:
+    """1-sigma of the estimated wind per component: the single-sample spread over the square root
+    of the number of INDEPENDENT samples (duration / correlation_s: gusts and heading noise are
+    correlated over seconds), plus V sigma_psi (a heading bias does not average out), at least
+    floor_m_s."""
+    n_ind = max(1.0, state.duration_s / correlation_s)
+    spread = math.sqrt(max(max(state.var_ne_m2_s2), 0.0) / n_ind)
     return max(floor_m_s, math.hypot(spread, v_h_m_s * heading_sigma_rad))
 
 

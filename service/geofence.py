@@ -49,6 +49,11 @@ from mavlink_io.commands import (CommandOutcome, CommandSpec, cmd_reposition, cm
 from service.geofence_config import GeofenceConfig
 
 SCHEMA = "azimuthd.geofence/1"
+WIND_SETTLE_S = 5.0
+"""The wind is estimated only from this long after the launch (off the launcher, wind captured)."""
+WIND_MIN_TAS_M_S = 8.0
+WIND_MIN_SPAN_S = 10.0
+"""The estimated wind replaces the configured one once it averages over this long."""
 STATES = ("inactive", "ok", "warning", "breach")
 
 
@@ -144,6 +149,7 @@ class GeofenceMonitor:
         self._events: list[GeofenceEvent] = []
         self._heading_known = True
         self._alt_min_armed = False
+        self._flight_start_s: float | None = None
         self.counters = {"updates": 0, "breaches": 0, "actions_sent": 0, "clears": 0}
 
     # --- inputs from the daemon ------------------------------------------------------------
@@ -215,10 +221,13 @@ class GeofenceMonitor:
         if not flying:
             self.dr = None
             self._alt_min_armed = False
+            self._flight_start_s = None
             self.position_source = "none"
             self.state_name = "inactive"
             return []
         self.counters["updates"] += 1
+        if self._flight_start_s is None:
+            self._flight_start_s = t
         inp = self._inputs(sol, air_data, t)
         self._update_position(inp, t)
         ev = self._evaluate(inp)
@@ -247,7 +256,7 @@ class GeofenceMonitor:
         if self._last_press_alt_m is not None:
             ref = self._press_alt_launch_m if self._press_alt_launch_m is not None else self._last_press_alt_m
             alt = self.home[2] + (self._last_press_alt_m - ref)
-        wind, wind_sigma = self._wind_now(hdg, hdg_sigma, tas, alt_rate)
+        wind, wind_sigma = self._wind_now(hdg, hdg_sigma, tas, alt_rate, t)
         if (hdg is None) == self._heading_known:
             self._heading_known = hdg is not None
             if hdg is None:
@@ -258,14 +267,15 @@ class GeofenceMonitor:
                         tas_sigma_m_s=tas_sigma, wind_ne_m_s=wind, wind_sigma_m_s=wind_sigma, alt_m=alt,
                         alt_rate_m_s=alt_rate)
 
-    def _wind_now(self, hdg, hdg_sigma, tas, alt_rate) -> tuple[tuple[float, float], float]:
+    def _wind_now(self, hdg, hdg_sigma, tas, alt_rate, t: float) -> tuple[tuple[float, float], float]:
         cfg = self.cfg
         if cfg.wind_source == "estimate":
-            if self.gnss_healthy and self._fix is not None and hdg is not None and tas is not None:
+            settled = self._flight_start_s is not None and t - self._flight_start_s >= WIND_SETTLE_S
+            if (self.gnss_healthy and self._fix is not None and hdg is not None and tas is not None
+                    and tas >= WIND_MIN_TAS_M_S and settled and self._wind.time_s != self._fix[0]):
                 vh = horizontal_airspeed_m_s(tas, alt_rate)
-                self._wind = wind_estimate_step(self._wind, self._fix[0], (self._fix[4], self._fix[5]), hdg,
-                                                hdg_sigma, vh) if self._wind.time_s != self._fix[0] else self._wind
-            if self._wind.time_s is not None and self._wind.n_eff >= 5:
+                self._wind = wind_estimate_step(self._wind, self._fix[0], (self._fix[4], self._fix[5]), hdg, vh)
+            if self._wind.time_s is not None and self._wind.duration_s >= WIND_MIN_SPAN_S:
                 vh = horizontal_airspeed_m_s(tas or 0.0, alt_rate)
                 return self._wind.wind_ne_m_s, wind_estimate_sigma_m_s(self._wind, hdg_sigma or 0.0, vh,
                                                                        cfg.wind_sigma_min_m_s)
