@@ -133,12 +133,15 @@ def true_clearance_m(lat_rad: np.ndarray, lon_rad: np.ndarray, cfg) -> np.ndarra
 
 # --- offline, open loop --------------------------------------------------------------------------
 
-def run_offline(kind: str, seed: int, raw: dict | None = None, rate_hz: float = 10.0) -> dict:
+def run_offline(kind: str, seed: int, raw: dict | None = None, rate_hz: float = 10.0,
+                flight_s: float | None = None) -> dict:
     """Open loop on sim.offline data: when does the monitor latch vs when does the truth cross?"""
     from sim.offline import simulate
     raw = raw or fence_raw()
     cfg = validate_geofence(raw)
     sc = scenario(kind, seed)
+    if flight_s is not None:
+        sc["scenario"]["duration_s"] = REST_S + flight_s
     run = simulate(sc, seed=seed, imu_rate_hz=50.0)
     tr = run.truth
     mon = GeofenceMonitor(cfg, SITE["lat_deg"], SITE["lon_deg"], SITE["alt_m"])
