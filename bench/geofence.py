@@ -8,7 +8,10 @@ launch, random wind (0-8 m/s, any direction, gusts 0.5 m/s).
 * ``outbound``: the vehicle flies a straight leg toward the fence at an angle drawn per seed
   (launch azimuth 0..360 deg: incidence 0..45 deg on an edge); without a divert it crosses the
   fence after ~110-160 s.
-* ``inside``: out-and-back legs and loiters that stay > 1 km inside the fence for 240 s.
+* ``inside``: a climb-out, back to the launch site, loiters around it and a 600 m excursion:
+  within ~1 km of the launch site (> 1.4 km inside the fence) for 240 s. The look-ahead is a straight line along the current
+  track: a vehicle circling closer than ground speed x look-ahead + margin + k sigma to the fence
+  is diverted (conservative by design).
 
 Heading input (the daemon's azimuth/AHRS heading is not integrated yet): the TRUE yaw plus a
 constant bias drawn N(0, 1.5 deg) per seed plus white noise 0.5 deg, and the monitor is told a
@@ -94,15 +97,13 @@ def scenario(kind: str, seed: int) -> dict:
         sc["legs"] = [{"type": "climb", "alt_m": 150.0, "rate_m_s": 4.0, "heading_deg": az},
                       {"type": "level", "duration_s": 600.0, "heading_deg": az}]
     else:
-        back = (az + 180.0) % 360.0
-        sc["legs"] = [{"type": "climb", "alt_m": 150.0, "rate_m_s": 4.0, "heading_deg": az},
-                      {"type": "level", "duration_s": 20.0, "heading_deg": az},
-                      {"type": "turn", "heading_deg": back, "bank_deg": 25.0},
-                      {"type": "level", "duration_s": 40.0},
-                      {"type": "loiter", "radius_m": 200.0, "duration_s": 60.0},
-                      {"type": "turn", "by_deg": 90.0, "bank_deg": 25.0},
-                      {"type": "level", "duration_s": 30.0},
-                      {"type": "loiter", "radius_m": 250.0}]
+        side = math.radians(az + 90.0)
+        sc["legs"] = [{"type": "climb", "alt_m": 120.0, "rate_m_s": 6.0, "heading_deg": az},
+                      {"type": "goto", "north_m": 0.0, "east_m": 0.0},
+                      {"type": "loiter", "radius_m": 200.0, "duration_s": 60.0,
+                       "lat_deg": SITE["lat_deg"], "lon_deg": SITE["lon_deg"]},
+                      {"type": "goto", "north_m": 600.0 * math.cos(side), "east_m": 600.0 * math.sin(side)},
+                      {"type": "loiter", "radius_m": 300.0, "lat_deg": SITE["lat_deg"], "lon_deg": SITE["lon_deg"]}]
     return sc
 
 

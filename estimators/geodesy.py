@@ -82,10 +82,8 @@ def ecef_to_geodetic(xyz_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                          p - WGS84_E2 * WGS84_A_M * np.cos(beta) ** 3)
         beta = np.arctan2((1.0 - WGS84_F) * np.sin(lat), np.cos(lat))
     s = np.sin(lat)
-    n = WGS84_A_M / np.sqrt(1.0 - WGS84_E2 * s * s)
-    # h from the component along the normal (well conditioned at every latitude)
+    # h from the component along the normal (well conditioned at every latitude): p cos + z sin - a W
     h = p * np.cos(lat) + z * s - WGS84_A_M * np.sqrt(1.0 - WGS84_E2 * s * s)
-    del n
     return lat, lon, h
 
 

@@ -69,6 +69,11 @@ class GeofenceEvent:
     time_fc_s: float
     fields: dict = field(default_factory=dict)
 
+    def to_dict(self) -> dict:
+        """The Zenoh ``events`` payload (schema azimuthd.geofence/1)."""
+        return {"schema": SCHEMA, "kind": self.kind, "severity": self.severity, "text": self.text,
+                "time_fc_s": self.time_fc_s, **self.fields}
+
 
 @dataclass(frozen=True)
 class Evaluation:

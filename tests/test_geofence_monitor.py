@@ -42,7 +42,6 @@ def monitor(dr_params=DrParams(sideslip_sigma_rad=0.0), **kw):
 
 
 def air(t, tas=20.0, alt_rel=100.0, rate=0.0):
-    from estimators.air_data import P0_PA  # noqa: F401 - the ISA the monitor's altitude uses
     return SimpleNamespace(time_s=t, pressure_altitude_m=1000.0 + alt_rel, pitot_blocked=False, pitot_noisy=False,
                            tas_m_s=tas, tas_noise_std_m_s=0.0, alt_rate_m_s=rate, rate_valid=True)
 
@@ -283,3 +282,15 @@ def test_state_payload_units_and_schema():
         assert key in st
     assert st["alt_m"] == pytest.approx(HOME[2] + 100.0)
     assert st["distance_to_fence_m"] == pytest.approx(2000.0 - 20.0 * 1.9, abs=0.01)
+
+
+def test_events_payload_and_statustext_length():
+    m = monitor()
+    prelaunch(m)
+    run(m, 0.0, 80.0, 90.0)
+    evs = m.drain_events()
+    assert all(len(e.text) <= 50 for e in evs)
+    d = [e.to_dict() for e in evs if e.kind == "geofence_breach"][0]
+    assert d["schema"] == "azimuthd.geofence/1" and d["severity"] == "critical"
+    assert d["time_to_breach_s"] == pytest.approx(20.0) and d["source"] == "dead_reckoning"
+    assert m.drain_events() == []
