@@ -66,8 +66,9 @@ def main(argv: list[str] | None = None) -> int:
     wall = duration / args.speed
     print(f"azimuthd demo: scenario {args.scenario}, {duration:.0f} s of flight at {args.speed:g}x "
           f"(~{wall:.0f} s); simulator and daemon run as two processes on loopback UDP.", flush=True)
+    # Zenoh on, so `azimuthd watch` in another terminal shows the flight live
     sitl = Sitl(scenario=args.scenario, speed=args.speed, seed=args.seed, status_interval_s=1.0,
-                sim_args=["--duration", str(duration)])
+                sim_args=["--duration", str(duration)], config_overrides={"zenoh": {"enabled": True}})
     with sitl:
         print(f"  daemon: {' '.join(sitl.daemon_cmd[2:])}\n  sim:    {' '.join(sitl.sim_cmd[2:])}\n", flush=True)
         shown = 0

@@ -75,8 +75,8 @@ def _str_list(v: list):
 
 
 def _vehicle_name(v: str):
-    if not v or any(c in v for c in "/*$#? "):
-        return f"must be a non-empty name without '/', '*', '$', '#', '?' or spaces; got {v!r}"
+    if not 1 <= len(v) <= 32 or not all(c.isascii() and (c.isalnum() or c in "_-") for c in v):
+        return f"must be 1..32 characters of A-Z a-z 0-9 _ -; got {v!r}"
     return None
 
 
@@ -92,7 +92,7 @@ _F = (int, float)
 
 SPEC: dict[str, dict[str, Key]] = {
     "vehicle": {
-        "name": Key(str, "uav1", "vehicle name in Zenoh keys azimuthd/<name>/...", _vehicle_name),
+        "name": Key(str, "uav1", "vehicle name in Zenoh keys azimuthd/<name>/... (1..32 of A-Z a-z 0-9 _ -)", _vehicle_name),
     },
     "mavlink": {
         "url": Key(str, "udpin:0.0.0.0:14550", "flight controller link (udpin:, udpout:, tcp:, tcpin:, serial:DEV:BAUD, /dev/tty...:BAUD)", _mavlink_url),

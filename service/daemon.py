@@ -3,25 +3,38 @@
 One loop keeps latency low and the order of events obvious: poll the FC link for a few
 milliseconds, hand each decoded sample to the Pipeline, send what is due, repeat. Nothing in the
 loop may raise out of it because of bad input: the link counts bad bytes, the pipeline rejects
-bad samples with a reason, the outputs count send failures.
+bad samples with a reason, the outputs count send failures, a Zenoh session that cannot open is
+retried while MAVLink carries on.
+
+systemd (Type=notify): READY=1 once the FC link is up (the autopilot's HEARTBEAT seen),
+WATCHDOG=1 from this loop, STATUS= with the phase and heading every few seconds.
 """
 from __future__ import annotations
 
 import logging
 import math
 import signal
-import sys
 import time
 
 from pymavlink.dialects.v20 import common as mavlink2
 
 from mavlink_io.link import LinkConfig, LinkEvent, MavlinkLink
-from mavlink_io.samples import FcAttitude, FcEkfStatus, FcHeartbeat, ImuSample, PressureSample
+from mavlink_io.outputs import OutputScheduler, odometry_profile_for_autopilot
+from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcHeartbeat, FcSysStatus,
+                                ImuSample, PressureSample)
 from service.logs import RateLimitedLog
 from service.pipeline import Pipeline
+from service.sdnotify import Notifier
 from service.solution import NavSolution
 
 log = logging.getLogger("azimuthd.daemon")
+
+ZENOH_RETRY_S = 30.0
+HEALTH_PERIOD_S = 1.0
+SD_STATUS_PERIOD_S = 5.0
+_SHOWN_RATES = ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU", "SCALED_PRESSURE", "ATTITUDE")
+_EVENT_SEVERITY = {"link_lost": "warning", "fc_reboot": "warning", "time_gap": "warning",
+                   "transport_error": "error", "not_still": "info", "strapdown": "warning"}
 
 
 def _fmt_angle(rad: float | None, sigma: float | None, width: int = 6) -> str:
@@ -40,17 +53,15 @@ def status_line(sol: NavSolution | None, rates: dict[str, float], link_up: bool)
     if sol is None:
         head = "phase=boot"
     else:
-        hdg = None
+        hdg = "     -         "
         if sol.heading_valid and sol.heading_rad is not None:
-            hdg = _fmt_angle(sol.heading_rad, sol.heading_sigma_rad).replace("+", " ", 1)
+            hdg = f"{math.degrees(sol.heading_rad) % 360.0:6.1f}"
+            hdg += (f" +/-{math.degrees(sol.heading_sigma_rad):4.1f}"
+                    if sol.heading_sigma_rad is not None else "         ")
         head = (f"phase={sol.phase:<9} roll={_fmt_angle(sol.roll_rad, sol.roll_sigma_rad)} "
-                f"pitch={_fmt_angle(sol.pitch_rad, sol.pitch_sigma_rad)} "
-                f"hdg={hdg if hdg else '     -         '} src={sol.heading_source}")
+                f"pitch={_fmt_angle(sol.pitch_rad, sol.pitch_sigma_rad)} hdg={hdg} src={sol.heading_source}")
     r = " ".join(f"{k.lower()}={v:.0f}Hz" for k, v in sorted(rates.items()) if k in _SHOWN_RATES)
     return f"{head} | link={'up' if link_up else 'DOWN'} {r}"
-
-
-_SHOWN_RATES = ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU", "SCALED_PRESSURE", "ATTITUDE")
 
 
 class Daemon:
@@ -66,18 +77,23 @@ class Daemon:
                                    link_timeout_s=m["link_timeout_s"], imu_gap_s=m["imu_gap_s"],
                                    stream_rates_hz=rates)
         self.pipeline = Pipeline(cfg)
+        out = cfg["outputs"]
+        self.scheduler = OutputScheduler({"ATTITUDE": out["attitude_hz"], "ATTITUDE_QUATERNION": out["attitude_hz"],
+                                          "ODOMETRY": out["odometry_hz"],
+                                          "NAMED_VALUE_FLOAT": out["named_value_hz"]})
+        self.status_interval_s = out["status_interval_s"]
         self.link: MavlinkLink | None = None
         self.extra_ports: list = []
+        self.bus = None
+        self.notifier = Notifier.from_env()
         self.stop_requested = False
         self.last_solution: NavSolution | None = None
         self.rl = RateLimitedLog(log, 10.0, clock)
-        out = cfg["outputs"]
-        self.attitude_period_s = 1.0 / out["attitude_hz"]
-        self.status_interval_s = out["status_interval_s"]
-        self._next_attitude_rx_s = 0.0
-        self._next_status_s = 0.0
-        self._next_extra_heartbeat_s = 0.0
-        self.sent = {"ATTITUDE": 0}
+        self.sent: dict[str, int] = {}
+        self.fc_heartbeat: FcHeartbeat | None = None
+        self.ready_sent = False
+        self.started_s = clock()
+        self._next = {"status": 0.0, "extra_hb": 0.0, "health": 0.0, "sd_status": 0.0, "zenoh_retry": 0.0}
 
     # --- lifecycle ----------------------------------------------------------------------------
 
@@ -89,13 +105,33 @@ class Daemon:
         self.link = MavlinkLink(self.link_cfg, clock=self.clock)
         from pymavlink import mavutil
         for url in self.cfg["outputs"]["extra_mavlink_urls"]:
-            conn = mavutil.mavlink_connection(url, source_system=1, source_component=self.link_cfg.component_id,
-                                              dialect="ardupilotmega")
+            from mavlink_io.url import parse_url
+            conn = mavutil.mavlink_connection(parse_url(url).pymavlink_url, source_system=1,
+                                              source_component=self.link_cfg.component_id, dialect="ardupilotmega")
             self.extra_ports.append(conn)
-        log.info("started", extra={"fields": {"mavlink": self.link_cfg.url,
-                                              "extra_outputs": len(self.extra_ports)}})
+        self._open_zenoh()
+        log.info("started", extra={"fields": {"mavlink": self.link_cfg.url, "extra_outputs": len(self.extra_ports),
+                                              "zenoh": self.bus is not None}})
+        self.notifier.notify("STATUS=waiting for the flight controller")
+
+    def _open_zenoh(self) -> None:
+        z = self.cfg["zenoh"]
+        if not z["enabled"] or self.bus is not None:
+            return
+        from service.zenoh_bus import ZenohBus, ZenohBusError
+        tls = {k: z[f"tls_{k}"] for k in ("root_ca", "cert", "key") if z[f"tls_{k}"]}
+        try:
+            self.bus = ZenohBus(self.cfg["vehicle"]["name"], mode=z["mode"], listen=z["listen"],
+                                connect=z["connect"], tls=tls or None)
+        except (ZenohBusError, ValueError) as exc:
+            self.rl.log(logging.ERROR, "zenoh_open", "zenoh unavailable; MAVLink outputs continue, retrying",
+                        error=str(exc), retry_s=ZENOH_RETRY_S)
+            self._next["zenoh_retry"] = self.clock() + ZENOH_RETRY_S
 
     def close(self) -> None:
+        self.notifier.notify("STOPPING=1")
+        if self.bus is not None:
+            self.bus.close()
         if self.link is not None:
             self.link.close()
         for p in self.extra_ports:
@@ -103,9 +139,9 @@ class Daemon:
                 p.close()
             except OSError:
                 pass
-        log.info("stopped", extra={"fields": {"imu_samples": self.pipeline.counters.imu_samples,
-                                              "imu_rejected": self.pipeline.counters.imu_rejected,
-                                              "attitude_sent": self.sent["ATTITUDE"]}})
+        c = self.pipeline.counters
+        log.info("stopped", extra={"fields": {"imu_samples": c.imu_samples, "imu_rejected": c.imu_rejected,
+                                              "sent": self.sent}})
 
     def run(self, duration_s: float | None = None) -> int:
         for sig in (signal.SIGTERM, signal.SIGINT):
@@ -126,17 +162,33 @@ class Daemon:
     def step(self, timeout_s: float) -> None:
         for item in self.link.poll(timeout_s=timeout_s):
             self.dispatch(item)
-        now = self.clock()
-        if self.extra_ports and now >= self._next_extra_heartbeat_s:
+        self._periodic(self.clock())
+
+    def _due(self, name: str, now: float, period_s: float) -> bool:
+        if now < self._next[name]:
+            return False
+        self._next[name] = now + period_s
+        return True
+
+    def _periodic(self, now: float) -> None:
+        if self.notifier.watchdog_due(now):
+            self.notifier.notify("WATCHDOG=1")
+        if self.extra_ports and self._due("extra_hb", now, 1.0 / self.cfg["mavlink"]["heartbeat_hz"]):
             # ground stations and MAVLink clients discover a component by its HEARTBEAT
-            self._next_extra_heartbeat_s = now + 1.0 / self.cfg["mavlink"]["heartbeat_hz"]
             self._send_extra(self.link.mav.heartbeat_encode(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
                                                             mavlink2.MAV_AUTOPILOT_INVALID, 0, 0,
                                                             mavlink2.MAV_STATE_ACTIVE))
-        if self.status_interval_s > 0 and now >= self._next_status_s:
-            self._next_status_s = now + self.status_interval_s
-            print(status_line(self.last_solution, self.link.stats.rates_hz(), self.link.connected),
-                  flush=True)
+        line = None
+        if self.status_interval_s > 0 and self._due("status", now, self.status_interval_s):
+            line = status_line(self.last_solution, self.link.stats.rates_hz(), self.link.connected)
+            print(line, flush=True)
+        if self.notifier.enabled and self._due("sd_status", now, SD_STATUS_PERIOD_S):
+            line = line or status_line(self.last_solution, self.link.stats.rates_hz(), self.link.connected)
+            self.notifier.notify("STATUS=" + line.split(" | ")[0])
+        if self.bus is None and self.cfg["zenoh"]["enabled"] and now >= self._next["zenoh_retry"]:
+            self._open_zenoh()
+        if self.bus is not None and self._due("health", now, HEALTH_PERIOD_S):
+            self._publish_health(now)
 
     def dispatch(self, item) -> None:
         if isinstance(item, ImuSample):
@@ -145,23 +197,42 @@ class Daemon:
                 self.last_solution = sol
                 self.publish(sol)
             for kind, detail in self.pipeline.drain_events():
-                log.info(detail, extra={"fields": {"event": kind}})
+                self._event(kind, detail)
         elif isinstance(item, PressureSample):
             self.pipeline.on_pressure(item)
         elif isinstance(item, FcAttitude):
             self.pipeline.on_fc_attitude(item)
         elif isinstance(item, LinkEvent):
-            log.info(item.detail, extra={"fields": {"event": item.kind}})
+            self._event(item.kind, item.detail)
             if item.kind == "fc_reboot":
                 self.pipeline.on_fc_reboot()
-        elif isinstance(item, (FcHeartbeat, FcEkfStatus)):
+            elif item.kind == "autopilot_detected":
+                self.scheduler.set_profile(odometry_profile_for_autopilot(self.link.fc_autopilot))
+        elif isinstance(item, FcHeartbeat):
+            self.fc_heartbeat = item
+            if not self.ready_sent:
+                self.ready_sent = True
+                self.notifier.notify("READY=1\nSTATUS=flight controller link up")
+                log.info("flight controller link up", extra={"fields": {"autopilot": item.autopilot,
+                                                                        "system_id": item.system_id}})
+        elif isinstance(item, (FcEkfStatus, FcSysStatus, CommandAck)):
             pass
+
+    def _event(self, kind: str, detail: str) -> None:
+        severity = _EVENT_SEVERITY.get(kind, "info")
+        level = {"info": logging.INFO, "warning": logging.WARNING, "error": logging.ERROR}[severity]
+        self.rl.log(level, f"event:{kind}:{detail[:40]}", detail, event=kind)
+        if self.bus is not None:
+            from service.zenoh_bus import event_payload
+            self.bus.publish("events", event_payload(kind, severity, detail, time_rx_s=self.clock()))
 
     # --- outputs ------------------------------------------------------------------------------
 
     def _send(self, msg) -> None:
         self.link.send(msg)
         self._send_extra(msg)
+        t = msg.get_type()
+        self.sent[t] = self.sent.get(t, 0) + 1
 
     def _send_extra(self, msg) -> None:
         for p in self.extra_ports:
@@ -172,19 +243,19 @@ class Daemon:
                 self.rl.log(logging.WARNING, "extra_send", "extra output send failed", error=str(exc))
 
     def publish(self, sol: NavSolution) -> None:
-        if sol.q_nav_from_body is None or sol.time_rx_s < self._next_attitude_rx_s:
-            return
-        self._next_attitude_rx_s = sol.time_rx_s + self.attitude_period_s * 0.98
-        yaw = float("nan")
-        if sol.heading_valid and sol.heading_rad is not None:
-            yaw = math.remainder(sol.heading_rad, 2 * math.pi)  # MAVLink ATTITUDE yaw is in (-pi, pi]
-        p, q, r = (float(v) for v in sol.rates_body_rad_s)
-        msg = self.link.mav.attitude_encode(int(sol.time_fc_s * 1000) & 0xFFFFFFFF, sol.roll_rad, sol.pitch_rad,
-                                            yaw, p, q, r)
-        self._send(msg)
-        self.sent["ATTITUDE"] += 1
+        now = sol.time_rx_s
+        for msg in self.scheduler.messages(sol, now):
+            self._send(msg)
+        if self.bus is not None:
+            self.bus.publish_solution(sol, now)
 
-
-def main() -> int:  # pragma: no cover - the console entry is service.cli
-    from service.cli import main as cli_main
-    return cli_main(["run", *sys.argv[1:]])
+    def _publish_health(self, now: float) -> None:
+        from service.zenoh_bus import health_payload
+        c = self.pipeline.counters
+        sol = self.last_solution
+        self.bus.publish("health", health_payload(
+            self.link.connected, sol.phase if sol else "boot", now - self.started_s, self.link.stats.rates_hz(),
+            {"imu_samples": c.imu_samples, "imu_rejected": c.imu_rejected,
+             "pressure_samples": c.pressure_samples, **{f"sent_{k}": v for k, v in self.sent.items()}},
+            status=status_line(sol, self.link.stats.rates_hz(), self.link.connected).split(" | ")[0],
+            autopilot=self.link.fc_autopilot, time_rx_s=now))

@@ -47,7 +47,7 @@ def test_defaults_filled_in():
     ({"site": {}}, "site.lat_deg", "required"),
     ({"site": {"earth_field_ned_gauss": [0.2, 0.0]}}, "site.earth_field_ned_gauss", "three finite numbers"),
     ({"outputs": {"extra_mavlink_urls": ["udpout:127.0.0.1:99999"]}}, "outputs.extra_mavlink_urls", "item 0"),
-    ({"vehicle": {"name": "a/b"}}, "vehicle.name", "without '/'"),
+    ({"vehicle": {"name": "a/b"}}, "vehicle.name", "1..32 characters"),
 ])
 def test_bad_values_name_the_key(raw, key, words):
     merged = {**MINIMAL, **raw} if "site" not in raw else raw
