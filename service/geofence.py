@@ -155,6 +155,7 @@ class GeofenceMonitor:
         self._heading_known = True
         self._alt_min_armed = False
         self._flight_start_s: float | None = None
+        self.alt_reference = "none"
         self.counters = {"updates": 0, "breaches": 0, "actions_sent": 0, "clears": 0}
 
     # --- inputs from the daemon ------------------------------------------------------------
@@ -259,8 +260,14 @@ class GeofenceMonitor:
             alt_rate = float(air_data.alt_rate_m_s) if air_data.rate_valid else 0.0
         alt = None
         if self._last_press_alt_m is not None:
-            ref = self._press_alt_launch_m if self._press_alt_launch_m is not None else self._last_press_alt_m
-            alt = self.home[2] + (self._last_press_alt_m - ref)
+            if self._press_alt_launch_m is not None:
+                alt = self.home[2] + (self._last_press_alt_m - self._press_alt_launch_m)
+                self.alt_reference = "launch"
+            else:
+                # no baro sample on the launcher (daemon started in flight): ISA pressure altitude,
+                # off by the day's QNH deviation (~8 m per hPa); reported in state()
+                alt = self._last_press_alt_m
+                self.alt_reference = "isa"
         wind, wind_sigma = self._wind_now(hdg, hdg_sigma, tas, alt_rate, t)
         if (hdg is None) == self._heading_known:
             self._heading_known = hdg is not None
@@ -494,6 +501,7 @@ class GeofenceMonitor:
         dr, ev = self.dr, self._last_eval
         out = {"schema": SCHEMA, "time_fc_s": self._last_time_s, "state": self.state_name, "latched": self.latched,
                "position_source": self.position_source, "armed": self.armed, "gnss_healthy": self.gnss_healthy,
+               "alt_reference": self.alt_reference,
                "action": self.cfg.actions[self._action_idx] if self._action_idx >= 0 else None,
                "action_status": self._action_status}
         if dr is not None:

@@ -294,3 +294,13 @@ def test_events_payload_and_statustext_length():
     assert d["schema"] == "azimuthd.geofence/1" and d["severity"] == "critical"
     assert d["time_to_breach_s"] == pytest.approx(20.0) and d["source"] == "dead_reckoning"
     assert m.drain_events() == []
+
+
+def test_height_reference_is_the_launcher_baro_else_isa():
+    m = monitor()
+    prelaunch(m)                       # pressure altitude 1000 m on the launcher
+    run(m, 0.0, 1.0, 90.0, alt_rel=100.0)
+    assert m.state()["alt_reference"] == "launch" and m.state()["alt_m"] == pytest.approx(HOME[2] + 100.0)
+    m2 = monitor()                     # started in flight: no launcher sample
+    run(m2, 0.0, 1.0, 90.0, alt_rel=100.0)
+    assert m2.state()["alt_reference"] == "isa" and m2.state()["alt_m"] == pytest.approx(1100.0)
