@@ -165,21 +165,24 @@ def dcm_from_quat(q: np.ndarray) -> np.ndarray:
 
 def quat_from_dcm(C: np.ndarray) -> np.ndarray:
     """q_a_from_b from C_a_from_b (Shepperd's method, numerically safe for any rotation)."""
-    tr = C[0, 0] + C[1, 1] + C[2, 2]
-    k = int(np.argmax([tr, C[0, 0], C[1, 1], C[2, 2]]))
+    (c00, c01, c02), (c10, c11, c12), (c20, c21, c22) = (C.tolist() if isinstance(C, np.ndarray)
+                                                          else [list(r) for r in C])
+    tr = c00 + c11 + c22
+    cand = (tr, c00, c11, c22)
+    k = cand.index(max(cand))  # first maximum, as np.argmax
     if k == 0:
         s = 2.0 * math.sqrt(1.0 + tr)
-        q = [0.25 * s, (C[2, 1] - C[1, 2]) / s, (C[0, 2] - C[2, 0]) / s, (C[1, 0] - C[0, 1]) / s]
+        q = [0.25 * s, (c21 - c12) / s, (c02 - c20) / s, (c10 - c01) / s]
     elif k == 1:
-        s = 2.0 * math.sqrt(1.0 + C[0, 0] - C[1, 1] - C[2, 2])
-        q = [(C[2, 1] - C[1, 2]) / s, 0.25 * s, (C[0, 1] + C[1, 0]) / s, (C[0, 2] + C[2, 0]) / s]
+        s = 2.0 * math.sqrt(1.0 + c00 - c11 - c22)
+        q = [(c21 - c12) / s, 0.25 * s, (c01 + c10) / s, (c02 + c20) / s]
     elif k == 2:
-        s = 2.0 * math.sqrt(1.0 - C[0, 0] + C[1, 1] - C[2, 2])
-        q = [(C[0, 2] - C[2, 0]) / s, (C[0, 1] + C[1, 0]) / s, 0.25 * s, (C[1, 2] + C[2, 1]) / s]
+        s = 2.0 * math.sqrt(1.0 - c00 + c11 - c22)
+        q = [(c02 - c20) / s, (c01 + c10) / s, 0.25 * s, (c12 + c21) / s]
     else:
-        s = 2.0 * math.sqrt(1.0 - C[0, 0] - C[1, 1] + C[2, 2])
-        q = [(C[1, 0] - C[0, 1]) / s, (C[0, 2] + C[2, 0]) / s, (C[1, 2] + C[2, 1]) / s, 0.25 * s]
-    return quat_normalize(np.array(q))
+        s = 2.0 * math.sqrt(1.0 - c00 - c11 + c22)
+        q = [(c10 - c01) / s, (c02 + c20) / s, (c12 + c21) / s, 0.25 * s]
+    return quat_normalize(q)
 
 
 def quat_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
