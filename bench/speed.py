@@ -22,6 +22,8 @@ separate processes at 400 Hz.
    estimators and send, plus two loopback hops and the tap's own scheduling (an upper bound).
    The daemon sends ATTITUDE at ``outputs.attitude_hz`` (50 Hz, the default): each measured
    ATTITUDE is the solution of the sample that made it due.
+   The harness floor (a datagram through a trivial Python echo process and back, at 400 Hz) is
+   measured after the SITL on the same machine: what the SITL figure has above it is the daemon.
 3. CPU. ``psutil`` cpu_times of the daemon process over a window (30 s; 12 s with --quick) in
    flight at 400 Hz: (user + system) / wall, in percent of one core. The simulator's share is
    reported apart.
@@ -340,7 +342,8 @@ def time_case(factory, run, items, n_imu: int, budget_s: float) -> dict:
 
 # --- latency and CPU through two processes -------------------------------------------------------
 
-def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | None = None) -> dict:
+def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | None = None,
+                     rt_priority: int = 0) -> dict:
     import socket
     import tempfile
 
@@ -409,6 +412,16 @@ def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | No
     sitl.sim_cmd = [c if not c.startswith("udpout:127.0.0.1:") else f"udpout:127.0.0.1:{port}" for c in sitl.sim_cmd]
     out: dict = {"window_s": window_s, "rate_hz": RATE_HZ, "attitude_out_hz": 50.0}
     with sitl:
+        if rt_priority > 0:
+            # what a unit file can grant the daemon (CPUSchedulingPolicy=fifo): not preempted by
+            # the other users of a shared machine; the tap (this process) too, so it timestamps
+            # promptly. Both sleep in select() between packets.
+            param = os.sched_param(rt_priority)
+            for pid in (sitl.daemon.pid, os.getpid()):
+                os.sched_setscheduler(pid, os.SCHED_FIFO, param)
+            out["sched"] = f"SCHED_FIFO {rt_priority} (daemon and tap)"
+        else:
+            out["sched"] = "SCHED_OTHER (default)"
         if not sitl.wait_for(lambda: len(tap.att_rx) > 20, 60.0):
             raise RuntimeError(f"the daemon sent no ATTITUDE within 60 s; see {workdir}")
         dproc, sproc = psutil.Process(sitl.daemon.pid), psutil.Process(sitl.sim.pid)
@@ -450,6 +463,60 @@ def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | No
     return out
 
 
+def harness_floor(seconds: float, rt_priority: int = 0) -> dict:
+    """Latency floor of the measurement itself on this machine: a UDP datagram every 2.5 ms to a
+    trivial Python echo process and back (two loopback hops + waking a Python process), timed by
+    the same kind of thread as the tap. What is left of the SITL latency above this is the daemon."""
+    import socket
+    import threading
+    code = ("import socket, sys; s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM); "
+            "s.bind(('127.0.0.1', 0)); print(s.getsockname()[1], flush=True)\n"
+            "while True:\n    d, a = s.recvfrom(2048)\n    s.sendto(d, a)")
+    echo = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        port = int(echo.stdout.readline())
+        if rt_priority > 0:
+            os.sched_setscheduler(echo.pid, os.SCHED_FIFO, os.sched_param(rt_priority))
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(("127.0.0.1", 0))
+        sent: dict[int, float] = {}
+        rtt: list[float] = []
+        stop = threading.Event()
+
+        def rx():
+            sock.settimeout(0.2)
+            while not stop.is_set():
+                try:
+                    d, _ = sock.recvfrom(2048)
+                except (TimeoutError, socket.timeout):
+                    continue
+                now = time.monotonic()
+                k = int.from_bytes(d[:4], "little")
+                if k in sent:
+                    rtt.append(now - sent.pop(k))
+        th = threading.Thread(target=rx, daemon=True)
+        th.start()
+        payload = bytes(40)  # a RAW_IMU frame's size
+        n = int(seconds * RATE_HZ)
+        t_next = time.monotonic()
+        for k in range(n):
+            t_next += 1.0 / RATE_HZ
+            sent[k] = time.monotonic()
+            sock.sendto(k.to_bytes(4, "little") + payload, ("127.0.0.1", port))
+            time.sleep(max(0.0, t_next - time.monotonic()))
+        time.sleep(0.2)
+        stop.set()
+        th.join(1.0)
+        sock.close()
+    finally:
+        echo.kill()
+        echo.wait(5)
+    r = np.array(rtt) * 1e3
+    return {"echo_samples": int(r.size), "echo_lost": n - int(r.size),
+            "floor_p50_ms": float(np.percentile(r, 50)) if r.size else math.nan,
+            "floor_p99_ms": float(np.percentile(r, 99)) if r.size else math.nan}
+
+
 # --- main -------------------------------------------------------------------------------------
 
 def main(argv=None) -> int:
@@ -458,6 +525,9 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=str(ROOT / "bench" / "results" / "speed.json"))
     ap.add_argument("--no-install", action="store_true", help="do not pip-install missing reference filters")
     ap.add_argument("--no-sitl", action="store_true", help="skip the two-process latency/CPU part")
+    ap.add_argument("--rt", type=int, metavar="PRIO", default=0,
+                    help="run the SITL daemon (and the tap) SCHED_FIFO at this priority (needs root): "
+                         "latency without preemption by other processes")
     ap.add_argument("--profile-daemon", metavar="PATH",
                     help="run the SITL daemon under cProfile, stats to PATH (figures then include its overhead)")
     args = ap.parse_args(argv)
@@ -502,18 +572,26 @@ def main(argv=None) -> int:
     if not args.no_sitl:
         print("\nSITL: simulator + daemon as processes at 400 Hz (loopback UDP) ...", flush=True)
         try:
-            s = sitl_latency_cpu(args.quick, args.profile_daemon)
+            s = sitl_latency_cpu(args.quick, args.profile_daemon, rt_priority=args.rt)
         except Exception as exc:  # noqa: BLE001 - report, keep the compute figures
             s = {"error": f"{type(exc).__name__}: {exc}"}
+        try:
+            s.update(harness_floor(4.0 if args.quick else 10.0, args.rt))
+        except Exception as exc:  # noqa: BLE001
+            s["floor_error"] = f"{type(exc).__name__}: {exc}"
         result["sitl"] = s
         if "error" in s:
             print(f"  SITL failed: {s['error']}")
         else:
+            print(f"  scheduling: {s['sched']}")
             print(f"  RAW_IMU received by the daemon: {s['imu_rate_received_hz']:.0f} Hz; ATTITUDE matched "
                   f"{s['attitude_matched']} (unmatched {s['attitude_unmatched']})")
             if "latency_p50_ms" in s:
                 print(f"  latency RAW_IMU in -> ATTITUDE out: p50 {s['latency_p50_ms']:.3f} ms, p99 "
                       f"{s['latency_p99_ms']:.3f} ms, max {s['latency_max_ms']:.3f} ms")
+            if "floor_p99_ms" in s:
+                print(f"  harness floor (UDP echo through a trivial Python process, same machine): "
+                      f"p50 {s['floor_p50_ms']:.3f} ms, p99 {s['floor_p99_ms']:.3f} ms")
             print(f"  CPU over {s['window_s']:.0f} s: daemon {s['daemon_cpu_pct']:.1f} % of a core, "
                   f"simulator {s['sim_cpu_pct']:.1f} %")
     print("\ntargets:")
