@@ -46,7 +46,7 @@ from estimators.launch_direction import (LAUNCH_CASES, BoostParams, BoostState, 
 from estimators.azimuth_fit import angle_between
 from estimators.levelling import (LevellingParams, LevellingResult,
                                   LevellingState, levelling_result, levelling_step)
-from estimators.rotations import dcm_from_quat, euler_from_dcm, quat_from_dcm
+from estimators.rotations import dcm_from_quat, euler_from_dcm, quat_from_dcm, skew
 from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init, strapdown_step
 
 STATUS = ("prelaunch", "failed", "collecting", "withheld", "solved", "holding")
@@ -95,6 +95,9 @@ class AzimuthParams:
     """1-sigma gyro scale-factor error (consider parameter, per axis)."""
     gyro_misalign_sigma_rad: float = 3e-3
     """1-sigma gyro axis misalignment / cross-coupling (consider parameter, 6 elements)."""
+    estimate_errors: bool = True
+    """Estimate the gyro bias change, gyro scale/misalignment and levelling tilt jointly with psi_s
+    (MAP with their priors); False: only consider them (their effect widens the sigma)."""
     drift_weighting: bool = True
     """Weight samples by the gyro drift their attitude carries (False: white noise only)."""
     field_model_sigma_rad: float = 0.0
@@ -145,8 +148,12 @@ class Solution:
     fit: af.FitResult
     psi_sigma_rad: float
     diversity_rad: float
-    C_nf_isf: np.ndarray
-    """R3(psi)^T C_AF<-ISF (eq. 6 without the gyro part)."""
+    C_nf_af: np.ndarray
+    """R3(psi)^T."""
+    C_af_isf: np.ndarray
+    """C_AF<-ISF corrected by the estimated tilt: (I - [beta]x) C_AF<-ISF."""
+    c_gyro: np.ndarray
+    """Estimated gyro errors (K); the attitude is corrected by alpha = G(t) c_gyro."""
 
 
 @dataclass(frozen=True)
@@ -177,6 +184,9 @@ class AzimuthState:
     """Angle between the configured-case u_SF and the other available one (nan: none)."""
     elevation_check_rad: float = math.nan
     """Elevation of u_SF minus the configured launcher elevation (nan: not configured)."""
+    du_dbeta_sf: np.ndarray | None = None
+    """(3, 2) error of u_SF per levelling tilt error (vertical case: u is the measured up);
+    derivation: up_meas = C_ISF<-AF (I - [beta]x) z_up, so d up = C_ISF<-AF [z_up]x beta."""
     samples: tuple = ()
     last_mag_s: float = -math.inf
     last_solve_s: float = -math.inf
@@ -274,8 +284,10 @@ def azimuth_launch(state: AzimuthState, launch_time_s: float) -> tuple[AzimuthSt
     T_var = [p.gyro_scale_sigma ** 2 if i == j else p.gyro_misalign_sigma_rad ** 2 for i in range(3) for j in range(3)]
     P_c = np.diag([p.gyro_bias_sigma_rad_s ** 2] * 3 + T_var + [tilt_var] * 2)
     u_sf, u_reason, cross, elev = None, "", math.nan, math.nan
+    du_dbeta = None
     if p.launch_case == "vertical":
         u_sf = u_vertical(f_rest)
+        du_dbeta = (C_isf_af @ skew(np.array([0.0, 0.0, -1.0])))[:, :2]
     elif p.launch_case == "aligned":
         u_sf = u_aligned(p.C_body_from_sensor)
     else:
@@ -285,7 +297,8 @@ def azimuth_launch(state: AzimuthState, launch_time_s: float) -> tuple[AzimuthSt
                   gyro_bias_rad_s=res.gyro_bias_rad_s, P_consider=P_c,
                   strapdown=strapdown_init(np.array([1.0, 0.0, 0.0, 0.0]), None),
                   boost=boost_init(f_rest, launch_time_s) if p.launch_case == "inclined" else None,
-                  u_sf=u_sf, u_reason=u_reason, cross_check_rad=cross, elevation_check_rad=elev)
+                  u_sf=u_sf, u_reason=u_reason, cross_check_rad=cross, elevation_check_rad=elev,
+                  du_dbeta_sf=du_dbeta)
     if u_sf is not None:
         new = _with_checks(new, u_sf)
     # the first integration interval starts at the launch instant, at rest (corrected rate 0)
@@ -326,17 +339,22 @@ def _solve(state: AzimuthState, time_s: float) -> AzimuthState:
     var_white = p.mag_noise_sigma_gauss ** 2 + (2.0 / 3.0) * e2 * p.gyro_arw_rad_sqrt_s ** 2 * tau
     var_drift = (2.0 / 3.0) * e2 * (p.gyro_bias_sigma_rad_s * tau) ** 2 if p.drift_weighting else 0.0
     data = af.FitData(C, h, var_white, 1.0 / (var_white + var_drift), G)
-    fit = af.fit_psi(data, state.C_isf_af, e, p.distortion_model)
+    fit = af.fit_psi(data, state.C_isf_af, e, p.distortion_model, P_prior=state.P_consider,
+                     estimate_errors=p.estimate_errors)
     psi_for_div = fit.psi_rad if fit.ok else 0.0
     diversity = af.orientation_diversity_rad(C @ state.C_isf_af, psi_for_div, e)
     # the gate judges what the data determine (white + gyro terms); the levelling-tilt share does
     # not shrink with more samples, it is reported in the sigma instead
-    psi_sigma_fit = math.sqrt(af.psi_variance(fit, state.P_consider, include_tilt=False)) if fit.ok else math.inf
-    psi_sigma = math.sqrt(af.psi_variance(fit, state.P_consider)) if fit.ok else math.inf
+    ok = fit.ok and fit.P_psi_c[0, 0] > 0.0 and math.isfinite(fit.psi_sigma_gate_rad)
+    psi_sigma_fit = fit.psi_sigma_gate_rad if ok else math.inf
+    psi_sigma = math.sqrt(fit.P_psi_c[0, 0]) if ok else math.inf
     reason = af.gate_reason(fit, n, diversity, psi_sigma_fit, p.gate)
     sol = state.solution
     if reason == "":
-        sol = Solution(time_s, fit, psi_sigma, diversity, af.r3(fit.psi_rad).T @ state.C_isf_af.T)
+        K = N_GYRO_CONSIDER
+        beta = np.array([fit.c_hat[K], fit.c_hat[K + 1], 0.0])
+        sol = Solution(time_s, fit, psi_sigma, diversity, af.r3(fit.psi_rad).T,
+                       (np.eye(3) - skew(beta)) @ state.C_isf_af.T, fit.c_hat[:K].copy())
     return replace(state, last_solve_s=time_s, last_fit=fit, last_diversity_rad=diversity,
                    last_gate_reason=reason, solution=sol)
 
@@ -407,7 +425,11 @@ def _output(st: AzimuthState, C_isf_sf: np.ndarray, time_s: float) -> AzimuthOut
         flags.append(f"launch elevation differs from the configured one by "
                      f"{math.degrees(st.elevation_check_rad):.1f} deg")
     psi = sol.fit.psi_rad if sol is not None else 0.0
-    C_nf_sf = (sol.C_nf_isf if sol is not None else st.C_isf_af.T) @ C_isf_sf
+    if sol is not None:   # apply the estimated errors: C_true = (I - [err]x) C_propagated
+        C_isf_sf = (np.eye(3) - skew(st.G_gyro @ sol.c_gyro)) @ C_isf_sf
+        C_nf_sf = sol.C_nf_af @ sol.C_af_isf @ C_isf_sf
+    else:
+        C_nf_sf = st.C_isf_af.T @ C_isf_sf
     C_nf_body = C_nf_sf @ C_sf_body
     roll, pitch, yaw = euler_from_dcm(C_nf_body)
     if sol is None:
@@ -419,8 +441,8 @@ def _output(st: AzimuthState, C_isf_sf: np.ndarray, time_s: float) -> AzimuthOut
     if status == "holding":
         flags.insert(0, "holding last solution: " + st.last_gate_reason)
     arw_var = p.gyro_arw_rad_sqrt_s ** 2 * max(time_s - st.launch_time_s, 0.0)
-    hd, hs, _ = af.direction_azimuth_and_sigma(C_sf_body[:, 0], psi, st.C_isf_af, C_isf_sf, st.G_gyro,
-                                               sol.fit, st.P_consider, arw_var)
+    hd, hs, _ = af.direction_azimuth_and_sigma(C_sf_body[:, 0], sol.C_nf_af, sol.C_af_isf, C_isf_sf, st.G_gyro,
+                                               sol.fit.P_psi_c, arw_var)
     fm2 = p.field_model_sigma_rad ** 2
     hs = math.sqrt(hs ** 2 + fm2)
     out = dict(heading_rad=hd, heading_sigma_rad=hs, roll_rad=roll, pitch_rad=pitch,
@@ -432,10 +454,13 @@ def _output(st: AzimuthState, C_isf_sf: np.ndarray, time_s: float) -> AzimuthOut
     if np.array_equal(st.u_sf, C_sf_body[:, 0]):   # aligned case: u is the body x axis
         az, az_s = hd, hs
     else:
-        az, az_s, _ = af.direction_azimuth_and_sigma(st.u_sf, psi, st.C_isf_af, C_isf_sf, st.G_gyro,
-                                                     sol.fit, st.P_consider, arw_var)
+        u = st.u_sf
+        if st.du_dbeta_sf is not None:   # the measured up carries the estimated tilt error too
+            u = u - st.du_dbeta_sf @ sol.fit.c_hat[N_GYRO_CONSIDER:N_GYRO_CONSIDER + 2]
+        az, az_s, _ = af.direction_azimuth_and_sigma(u, sol.C_nf_af, sol.C_af_isf, C_isf_sf, st.G_gyro,
+                                                     sol.fit.P_psi_c, arw_var, st.du_dbeta_sf)
         az_s = math.sqrt(az_s ** 2 + fm2)
-    az0 = af.azimuth_of(sol.C_nf_isf @ st.u_sf)   # C_ISF<-SF = I at launch
+    az0 = af.azimuth_of(sol.C_nf_af @ sol.C_af_isf @ st.u_sf)   # C_ISF<-SF = I at launch
     return AzimuthOutput(time_s, status, "; ".join(flags), True, azimuth_rad=az,
                          azimuth_sigma_rad=az_s, launch_azimuth_rad=az0, **out, **diag)
 

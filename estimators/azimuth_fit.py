@@ -147,6 +147,12 @@ class FitResult:
     n_samples: int
     iterations: int
     reason: str = ""
+    c_hat: np.ndarray | None = None
+    """(K + 2) estimated gyro errors and levelling tilt (zeros when only considered)."""
+    P_psi_c: np.ndarray | None = None
+    """(1 + K + 2)^2 joint covariance of [psi, c] (white + prior), for the output sigma."""
+    psi_sigma_gate_rad: float = math.nan
+    """psi sigma without the levelling-tilt share (what the data determine; used by the gate)."""
 
 
 def n_unknowns(model: str) -> int:
@@ -218,12 +224,21 @@ def _profile_costs(model, psis, U, V, Z, h, w):
         sc = np.where(ok, (S1 * Sxh - Sx * Sh) / det, 0.0)        # 2x2 normal equations per axis
         bb = np.where(ok, (Sxx * Sh - Sx * Sxh) / det, Sh / S1)
         r = h - sc[:, None, :] * m - bb[:, None, :]
+        physical = np.all(sc >= 0.0, axis=1)
     else:
         X = np.concatenate([m, np.ones(m.shape[:2] + (1,))], axis=2)  # (K, N, 4)
         Xw = X * w[:, None]
         beta = np.linalg.pinv(np.einsum("kni,knj->kij", Xw, X)) @ np.einsum("kni,nj->kij", Xw, h)
         r = h - X @ beta
-    return np.einsum("n,kni,kni->k", w, r, r)
+        physical = np.linalg.det(beta[:, :3, :]) > -1e-9
+    cost = np.einsum("n,kni,kni->k", w, r, r)
+    if model != "none":
+        # near the magnetic equator (e_D ~ 0) m(psi + pi) ~ -m(psi): A -> -A fits as well; only
+        # distortion matrices that keep the field's handedness (det A > 0, scales > 0) are physical;
+        # when none is (degenerate data) the plain minimum is kept and the gate will say why
+        if np.any(physical):
+            cost = np.where(physical, cost, np.inf)
+    return cost
 
 
 def _residual_and_jacobian(model, theta, Cfa, e, h):
@@ -274,8 +289,14 @@ def consider_jacobian(model: str, theta: np.ndarray, C_sf_from_isf: np.ndarray, 
 
 
 def fit_psi(data: FitData, C_isf_af: np.ndarray, e_ned: np.ndarray, model: str = "seed7",
-            grid_points: int = 36, max_iterations: int = 20, tol_rad: float = 1e-12) -> FitResult:
-    """Solve for psi_s (and the distortion unknowns of ``model``) from the samples in ``data``."""
+            grid_points: int = 36, max_iterations: int = 20, tol_rad: float = 1e-12,
+            P_prior: np.ndarray | None = None, estimate_errors: bool = False) -> FitResult:
+    """Solve for psi_s (and the distortion unknowns of ``model``) from the samples in ``data``.
+
+    ``P_prior`` ((K+2)^2): prior covariance of the gyro errors and the levelling tilt. With
+    ``estimate_errors`` False they are consider parameters (their effect enters the covariance
+    only); with True they are estimated jointly (MAP with the prior, see ``_estimate_errors``).
+    """
     if model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
     e = np.asarray(e_ned, float)
@@ -294,7 +315,8 @@ def fit_psi(data: FitData, C_isf_af: np.ndarray, e_ned: np.ndarray, model: str =
     # candidates: closed-form 2-D fit of the undistorted model, and a grid over [0, 2pi)
     h_af = np.einsum("nji,nj->ni", Cfa, h)                            # C_AF<-SF h
     cands = np.concatenate([[psi_closed_form(h_af, e, w)], np.linspace(0.0, 2 * math.pi, grid_points, endpoint=False)])
-    psi0 = float(cands[int(np.argmin(_profile_costs(model, cands, U, V, Z, h, w)))])
+    costs = _profile_costs(model, cands, U, V, Z, h, w)
+    psi0 = float(cands[int(np.argmin(costs))])
     m0 = math.cos(psi0) * U + math.sin(psi0) * V + Z
     A0, b0 = _solve_linear(model, m0, h, w)
     theta = _pack(model, psi0, A0, b0)
@@ -304,7 +326,7 @@ def fit_psi(data: FitData, C_isf_af: np.ndarray, e_ned: np.ndarray, model: str =
     it = 0
     for it in range(1, max_iterations + 1):
         Jw = J * sw[:, None]
-        step = -(np.linalg.pinv(J.T @ Jw) @ (Jw.T @ r))           # Gauss-Newton normal equations
+        step = -(_inv_spd(J.T @ Jw) @ (Jw.T @ r))                 # Gauss-Newton normal equations
         lam = 1.0
         while True:  # step halving keeps the cost non-increasing
             th_new = theta + lam * step
@@ -322,7 +344,7 @@ def fit_psi(data: FitData, C_isf_af: np.ndarray, e_ned: np.ndarray, model: str =
     r, J, m = _residual_and_jacobian(model, theta, Cfa, e, h)
     Jw = J * sw[:, None]
     H = J.T @ Jw
-    H_inv = np.linalg.pinv(H)
+    H_inv = _inv_spd(H)
     dof = 3 * N - p
     s2_raw = float(sw @ (r * r)) / dof
     R_white = np.repeat(data.var_white_gauss2, 3)
@@ -334,9 +356,98 @@ def fit_psi(data: FitData, C_isf_af: np.ndarray, e_ned: np.ndarray, model: str =
     dn = np.where(dn > 0, dn, 1.0)
     ev = np.linalg.eigvalsh(H / np.outer(dn, dn))
     cond = float(math.sqrt(ev[-1] / ev[0])) if ev[0] > ev[-1] * 1e-30 else math.inf
+    Kc = D.shape[1]
+    P_c = np.zeros((Kc, Kc)) if P_prior is None else np.asarray(P_prior, float)
+    if P_c.shape != (Kc, Kc):
+        raise ValueError(f"P_prior must be {Kc}x{Kc}, got {P_c.shape}")
+    if estimate_errors and np.any(np.diag(P_c) > 0):
+        return _estimate_errors(model, theta, Cfa, e, h, data.var_white_gauss2, D, P_c, P_w, S, s2_raw,
+                                cond, N, it)
+    s0 = S[0]
+    P_psi_c = np.empty((1 + Kc, 1 + Kc))
+    P_psi_c[0, 0] = P_w[0, 0] + s0 @ P_c @ s0
+    P_psi_c[0, 1:] = P_psi_c[1:, 0] = s0 @ P_c
+    P_psi_c[1:, 1:] = P_c
+    s_nt = s0.copy()
+    s_nt[-N_TILT:] = 0.0
     psi, A, b = unpack(model, theta)
     return FitResult(True, model, psi, theta, A, b, P_w, S, s2_raw,
-                     float(math.sqrt(float(r @ r) / (3 * N))), cond, N, it)
+                     float(math.sqrt(float(r @ r) / (3 * N))), cond, N, it,
+                     c_hat=np.zeros(Kc), P_psi_c=P_psi_c,
+                     psi_sigma_gate_rad=math.sqrt(max(P_w[0, 0] + s_nt @ P_c @ s_nt, 0.0)))
+
+
+def _estimate_errors(model, theta, Cfa, e, h, var_white, D, P_c, P_w, S, s2_raw, cond, N, it,
+                     iterations: int = 3) -> FitResult:
+    """Joint MAP of [theta, c] with the prior c ~ N(0, P_c) (c with zero prior variance stay 0).
+
+    The propagated attitude carries the errors c_true, so the residual at c = 0 is r(theta) =
+    D c_true (D from ``consider_jacobian``); correcting by an estimate c leaves
+    r(theta, c) ~ r(theta) - D c (first order in the small c). Data weights 1/var_white (the drift
+    is now modelled, not inflated):
+        minimise  r^T W r + c^T P_c^-1 c
+    by Gauss-Newton on [theta, c], J_a = [J, -D]; posterior covariance
+    (J_a^T W J_a + diag(0, P_c^-1))^-1, scaled by max(1, normalised residual). The returned
+    P_psi_c is the covariance of (psi error, c_true - c_hat), the attitude error left after the
+    correction, so the output sigma uses the same v = [1, k] as in the consider case. The unobservable direction (a rotation about the field
+    vector mixes psi and tilt) is held by the tilt prior, so psi's sigma keeps that share.
+    """
+    p = len(theta)
+    free = np.flatnonzero(np.diag(P_c) > 0)
+    info = 1.0 / np.diag(P_c)[free]
+    Df = -D[:, free]                      # d r / d c_hat
+    Ww = np.repeat(1.0 / var_white, 3)
+    c = np.zeros(len(free))
+
+    def normal_eqs(th, c_, prior_info):
+        r_, J_, _ = _residual_and_jacobian(model, th, Cfa, e, h)
+        r_lin = r_ + Df @ c_
+        Ja = np.hstack([J_, Df])
+        JaW = Ja * Ww[:, None]
+        H = Ja.T @ JaW
+        H[p:, p:] += np.diag(prior_info)
+        g = JaW.T @ r_lin
+        g[p:] += prior_info * c_
+        return H, g, r_lin
+
+    for _ in range(iterations):
+        H, g, _ = normal_eqs(theta, c, info)
+        step = -(_inv_spd(H) @ g)
+        theta = theta + step[:p]
+        c = c + step[p:]
+    H, _, r_lin = normal_eqs(theta, c, info)
+    dof = max(len(r_lin) - p, 1)
+    s2 = float(Ww @ (r_lin * r_lin)) / dof
+    scale = max(1.0, s2)
+    Hinv = _inv_spd(H) * scale
+    Kc = D.shape[1]
+    idx = np.concatenate([[0], p + np.arange(len(free))])
+    P_psi_c = np.zeros((1 + Kc, 1 + Kc))
+    sel = np.concatenate([[0], 1 + free])
+    P_psi_c[np.ix_(sel, sel)] = Hinv[np.ix_(idx, idx)]
+    P_psi_c[0, 1:] *= -1.0                # cov(psi err, c_hat - c) -> cov(psi err, c - c_hat)
+    P_psi_c[1:, 0] *= -1.0
+    # gate: the same posterior with the tilt held fixed (its share does not shrink with data)
+    info_nt = info.copy()
+    info_nt[free >= Kc - N_TILT] = 1e16
+    H_nt, _, _ = normal_eqs(theta, c, info_nt)
+    psi_var_nt = float(_inv_spd(H_nt)[0, 0]) * scale
+    c_full = np.zeros(Kc)
+    c_full[free] = c
+    theta[0] = wrap_2pi(theta[0])
+    psi, A, b = unpack(model, theta)
+    return FitResult(True, model, psi, theta, A, b, P_w, S, s2,
+                     float(math.sqrt(float(r_lin @ r_lin) / len(r_lin))), cond, N, it,
+                     c_hat=c_full, P_psi_c=P_psi_c, psi_sigma_gate_rad=math.sqrt(max(psi_var_nt, 0.0)))
+
+
+def _inv_spd(H: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive (semi)definite matrix with Jacobi scaling (the unknowns
+    span gauss, radians, scale factors and rad/s: scaling keeps the pseudo-inverse accurate)."""
+    d = np.sqrt(np.abs(np.diag(H)))
+    d = np.where(d > 0, d, 1.0)
+    Hs = H / np.outer(d, d)
+    return np.linalg.pinv(0.5 * (Hs + Hs.T), rcond=1e-13, hermitian=True) / np.outer(d, d)
 
 
 def _pack(model, psi, A, b):
@@ -383,8 +494,9 @@ class GateParams:
     """Smallest angle the field direction must have swept in the sensor frame."""
     max_condition_number: float = 1.0e4
     """Largest condition number of the weighted, column-normalised Jacobian."""
-    max_psi_sigma_rad: float = math.radians(3.0)
-    """Largest accepted 1-sigma of psi_s (white + consider)."""
+    max_psi_sigma_rad: float = math.radians(1.5)
+    """Largest accepted 1-sigma of psi_s as the data determine it (without the levelling-tilt
+    share, which no amount of data reduces); early solutions above it were found to be biased."""
     max_normalised_residual: float = 25.0
     """Largest r^T W r / dof: above it the distortion model does not describe the data."""
 
@@ -412,6 +524,8 @@ def gate_reason(fit: FitResult | None, n_samples: int, diversity_rad: float, psi
     if fit.condition_number > params.max_condition_number:
         return (f"Jacobian condition number {fit.condition_number:.3g} > "
                 f"{params.max_condition_number:.3g} (unknowns not observable yet)")
+    if not np.linalg.det(fit.A) > 0.0:
+        return "distortion solution not physical (det A <= 0)"
     if fit.s2 > params.max_normalised_residual:
         return (f"normalised residual {fit.s2:.1f} > {params.max_normalised_residual:.1f} "
                 f"(residual RMS {fit.residual_rms_gauss * 1e3:.1f} mG: model does not fit)")
@@ -423,33 +537,37 @@ def gate_reason(fit: FitResult | None, n_samples: int, diversity_rad: float, psi
 
 # --- output: azimuth of a sensor-fixed direction and its sigma ------------------------------
 
-def direction_azimuth_and_sigma(u_sf: np.ndarray, psi_rad: float, C_isf_af: np.ndarray,
-                                C_isf_from_sf: np.ndarray, G_now: np.ndarray, fit: FitResult,
-                                P_consider: np.ndarray, arw_var_rad2: float) -> tuple[float, float, np.ndarray]:
+def direction_azimuth_and_sigma(u_sf: np.ndarray, C_nf_af: np.ndarray, C_af_isf: np.ndarray,
+                                C_isf_sf: np.ndarray, G_now: np.ndarray, P_psi_c: np.ndarray,
+                                arw_var_rad2: float, du_dbeta_sf: np.ndarray | None = None) -> tuple[float, float, np.ndarray]:
     """Azimuth (eq. 6-8) of the sensor-fixed direction u_sf now, with its 1-sigma.
 
-    u_NF = R3(psi)^T C_AF<-ISF C_ISF<-SF(t) u_SF. Errors, to first order (g = d az / d u_NF):
+    u_NF = R3(psi)^T C_AF<-ISF C_ISF<-SF(t) u_SF (the matrices as corrected by any estimated
+    errors). Errors, to first order (g = d az / d u_NF):
       psi error           : d az = d psi                       (a rotation about down)
       gyro errors c_g     : d u_NF = -C_NF<-ISF [u_ISF]x G(t) c_g  (alpha = G c_g, du = alpha x u)
       levelling tilt beta : d u_NF = -R3(psi)^T [u_AF]x beta
       ARW (white)         : var = |g C_NF<-ISF [u_ISF]x|^2 * arw_var (isotropic per axis)
-    and d psi itself = S_psi c + white, correlated with the consider terms, so
-    var = P_w[psi] + (S_psi + k)^T P_c (S_psi + k) + ARW, k = d az / d c at this instant.
+      u from gravity      : d u_NF = C_NF<-SF du_dbeta beta  (vertical launcher: u_SF is the
+                            measured up, which carries the same tilt error as the levelling)
+    psi and c are correlated (the fit trades them), so with v = [1, k], k = d az / d c now:
+        var = v^T P_[psi,c] v + ARW.
     Returns (azimuth, sigma, u_NF).
     """
-    C_nf_af = r3(psi_rad).T
-    u_isf = C_isf_from_sf @ u_sf
-    u_af = C_isf_af.T @ u_isf
+    u_isf = C_isf_sf @ u_sf
+    u_af = C_af_isf @ u_isf
     u_nf = C_nf_af @ u_af
     g = azimuth_gradient(u_nf)
-    C_nf_isf = C_nf_af @ C_isf_af.T
+    gC = g @ C_nf_af
+    L = np.cross(gC @ C_af_isf, u_isf)           # = g C_NF<-ISF [u_ISF]x  (a^T [u]x = (a x u)^T)
     K = G_now.shape[1]
-    k = np.empty(K + N_TILT)
-    L = g @ C_nf_isf @ skew(u_isf)
-    k[:K] = -(L @ G_now)
-    k[K:] = -(g @ C_nf_af @ skew(u_af))[:2]
-    s = fit.S_consider[0] + k
-    var = fit.cov_white[0, 0] + s @ P_consider @ s + float(L @ L) * arw_var_rad2
+    v = np.empty(1 + K + N_TILT)
+    v[0] = 1.0
+    v[1:1 + K] = -(L @ G_now)
+    v[1 + K:] = -np.cross(gC, u_af)[:2]
+    if du_dbeta_sf is not None:
+        v[1 + K:] += (gC @ C_af_isf @ C_isf_sf) @ du_dbeta_sf
+    var = v @ P_psi_c @ v + float(L @ L) * arw_var_rad2
     return azimuth_of(u_nf), math.sqrt(max(var, 0.0)), u_nf
 
 

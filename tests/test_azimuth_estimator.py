@@ -211,12 +211,11 @@ def test_sigma_chain_predicts_the_effect_of_gyro_errors():
     scale/misalignment matrix T, THEN the azimuth moves by (S_psi + k) . c as the consider
     analysis predicts (c = [-db, vec(T)]), to 2 % of the effect: this checks the estimator's G
     accumulation, the fit sensitivity S and the output sensitivity k together."""
-    from dataclasses import replace as dc_replace
     from estimators import azimuth_fit as af
     C_nf_isf = launcher_attitude(math.radians(200.0), math.radians(40.0), C_BS)
     fl = make_flight(C_nf_isf=C_nf_isf, u_sf=C_BS[0], segments=MANOEUVRE, A=np.diag([1.05, 0.95, 1.1]),
                      b=np.array([0.05, -0.03, 0.02]))
-    p = params_for("aligned")
+    p = params_for("aligned", estimate_errors=False)
     st0, outs0 = run(fl, p)
     db = np.array([2e-4, -1e-4, 1.5e-4])
     T = np.array([[2e-3, -1e-3, 5e-4], [1e-3, -2e-3, 1e-3], [-5e-4, 1.5e-3, 1e-3]])
@@ -229,10 +228,13 @@ def test_sigma_chain_predicts_the_effect_of_gyro_errors():
     o1 = outs1[-1][1]
     actual = wrap_pi(o1.azimuth_rad - o0.azimuth_rad)
     c = np.concatenate([-db, T.reshape(-1), [0.0, 0.0]])
-    fit0 = dc_replace(st0.solution.fit, cov_white=np.zeros_like(st0.solution.fit.cov_white))
+    sol = st0.solution
+    s0 = sol.fit.S_consider[0]
+    Pc = np.outer(c, c)
+    P_joint = np.block([[np.array([[s0 @ Pc @ s0]]), (s0 @ Pc)[None, :]], [(Pc @ s0)[:, None], Pc]])
     C_isf_sf = dcm_from_quat(st0.strapdown.q_ref_from_sensor)
-    _, predicted_abs, _ = af.direction_azimuth_and_sigma(st0.u_sf, fit0.psi_rad, st0.C_isf_af, C_isf_sf,
-                                                         st0.G_gyro, fit0, np.outer(c, c), 0.0)
+    _, predicted_abs, _ = af.direction_azimuth_and_sigma(st0.u_sf, sol.C_nf_af, sol.C_af_isf, C_isf_sf,
+                                                         st0.G_gyro, P_joint, 0.0)
     assert abs(actual) > math.radians(0.2)          # a sizeable effect ...
     assert abs(abs(actual) - predicted_abs) < 0.02 * abs(actual), (math.degrees(actual), math.degrees(predicted_abs))
 
@@ -248,3 +250,36 @@ def test_output_for_publishing_uses_degrees():
     assert abs(d["azimuth_deg"] - math.degrees(truth_azimuth(fl, i, C_BS[0]))) < 1e-6
     early = az.output_for_publishing(outs[0][1])
     assert not early["valid"] and math.isnan(early["azimuth_deg"])
+
+
+def test_vertical_case_sigma_predicts_the_accelerometer_bias_effect():
+    """GIVEN a vertical launch whose accelerometer has a bias (so the levelling and u = measured up
+    are tilted together), WHEN the tilt is only considered, THEN the azimuth error equals the
+    linear prediction (S_psi + k_tilt + k_u) . beta within 5 %: the u-tilt correlation term
+    (du_dbeta) is needed for this."""
+    from estimators import azimuth_fit as af
+    C_nf_isf = launcher_attitude(math.radians(70.0), math.pi / 2, C_BS, roll=0.2)
+    fl = make_flight(C_nf_isf=C_nf_isf, u_sf=C_BS[0], segments=MANOEUVRE, A=np.diag([1.05, 0.95, 1.1]),
+                     b=np.array([0.05, -0.03, 0.02]))
+    fl.accel_m_s2 = fl.accel_m_s2 + np.array([0.15, -0.1, 0.05])
+    st, outs = run(fl, params_for("vertical", estimate_errors=False))
+    i, o = outs[-1]
+    actual = wrap_pi(o.azimuth_rad - truth_azimuth(fl, i, C_BS[0]))
+    # the tilt error beta (AF axes) of the levelling: C^_AF<-ISF = (I + [beta]x) C_AF<-ISF
+    psi = fl.psi_s_rad
+    C_af_isf_true = af.r3(psi) @ fl.C_nf_isf
+    dC = st.C_isf_af.T @ C_af_isf_true.T
+    beta = np.array([dC[2, 1], dC[0, 2], dC[1, 0]])
+    c = np.concatenate([np.zeros(12), beta[:2]])
+    sol = st.solution
+    s0 = sol.fit.S_consider[0]
+    Pc = np.outer(c, c)
+    P_joint = np.block([[np.array([[s0 @ Pc @ s0]]), (s0 @ Pc)[None, :]], [(Pc @ s0)[:, None], Pc]])
+    C_isf_sf = dcm_from_quat(st.strapdown.q_ref_from_sensor)
+    _, pred, _ = af.direction_azimuth_and_sigma(st.u_sf, sol.C_nf_af, sol.C_af_isf, C_isf_sf, st.G_gyro,
+                                                P_joint, 0.0, st.du_dbeta_sf)
+    _, pred_without_u, _ = af.direction_azimuth_and_sigma(st.u_sf, sol.C_nf_af, sol.C_af_isf, C_isf_sf,
+                                                          st.G_gyro, P_joint, 0.0)
+    assert abs(actual) > math.radians(0.1)   # (beta_z is a yaw: psi_s absorbs it exactly)
+    assert abs(abs(actual) - pred) < 0.05 * abs(actual), (math.degrees(actual), math.degrees(pred))
+    assert abs(abs(actual) - pred_without_u) > 0.1 * abs(actual)

@@ -68,11 +68,9 @@ def test_known_launch_attitude_gives_exact_azimuth():
     roll = math.atan2(C_nf_isf[2, 1], C_nf_isf[2, 2])
     pitch = -math.asin(C_nf_isf[2, 0])
     C_isf_af = af.C_isf_from_af(roll, pitch)
-    fit = af.FitResult(True, "none", psi, np.array([psi]), np.eye(3), np.zeros(3), np.zeros((1, 1)),
-                       np.zeros((1, 5)), 1.0, 0.0, 1.0, 10, 1)
     u_sf = C_bs[0]  # nose in SF
-    az, sig, _ = af.direction_azimuth_and_sigma(u_sf, psi, C_isf_af, np.eye(3), np.zeros((3, 3)), fit,
-                                                np.zeros((5, 5)), 0.0)
+    az, sig, _ = af.direction_azimuth_and_sigma(u_sf, af.r3(psi).T, C_isf_af.T, np.eye(3), np.zeros((3, 0)),
+                                                np.zeros((3, 3)), 0.0)
     assert abs(math.degrees(az) - 37.0) < 1e-12
     assert sig == 0.0
 
@@ -248,3 +246,86 @@ def test_consider_jacobian_matches_finite_differences():
         C_af_isf_hat = (np.eye(3) + skew(beta)) @ C_isf_af.T
         np.testing.assert_allclose((resid(C0[sel], C_af_isf_hat.T) - r0) / eps, D[:, 12 + j], atol=2e-6)
     assert np.abs(D[:, :3]).max() > 1e-2 and np.abs(D[:, 3:12]).max() > 1e-3  # non-trivial sensitivities
+
+
+def _propagated_with_gyro_errors(db, T):
+    """Attitudes and G (as the estimator accumulates it) from a gyro with bias change db and
+    scale/misalignment T in flight; plus the flight with its truth."""
+    from estimators.rotations import dcm_from_quat
+    from estimators.strapdown import strapdown_init, strapdown_step
+    C_nf_isf = launcher_attitude(0.9, 0.7, rot_z(0.4) @ rot_x(0.3))
+    fl = make_flight(C_nf_isf=C_nf_isf, u_sf=[1, 0, 0], segments=MANOEUVRE * 2, rest_s=0.1, boost_s=0.5)
+    i0 = int(np.searchsorted(fl.time_s, fl.launch_time_s))
+    st = strapdown_init(np.array([1.0, 0, 0, 0]))
+    Cs, Gs, G = [], [], np.zeros((3, 12))
+    for i in range(i0, len(fl.time_s)):
+        C0, w0 = dcm_from_quat(st.q_ref_from_sensor), st.gyro_prev_rad_s
+        st, d = strapdown_step(st, (np.eye(3) + T) @ fl.gyro_rad_s[i] + db, fl.time_s[i])
+        C = dcm_from_quat(st.q_ref_from_sensor)
+        if d.integrated:
+            G = G.copy()
+            G[:, :3] -= 0.5 * d.dt_s * (C0 + C)
+            G[:, 3:] += 0.5 * d.dt_s * ((C0[:, :, None] * w0).reshape(3, 9) + (C[:, :, None] * st.gyro_prev_rad_s).reshape(3, 9))
+        Cs.append(C.T)
+        Gs.append(G)
+    sel = np.arange(0, len(Cs), 10)
+    roll = math.atan2(C_nf_isf[2, 1], C_nf_isf[2, 2])
+    pitch = -math.asin(C_nf_isf[2, 0])
+    return fl, i0, np.array(Cs)[sel], np.array(Gs)[sel], sel, af.C_isf_from_af(roll, pitch)
+
+
+DB = np.array([2e-5, -1e-5, 1.5e-5])
+TG = np.array([[3e-4, -2e-4, 1e-4], [2e-4, -3e-4, 2e-4], [-1e-4, 2.5e-4, 3e-4]])
+P_WIDE = np.diag([1e-2] * 3 + [1.0] * 9 + [1e-20] * 2)   # no prior shrinkage; tilt held at its true 0
+
+
+def test_joint_estimation_recovers_gyro_errors_on_noiseless_data():
+    """GIVEN attitudes propagated with a gyro bias change db and a scale/misalignment matrix T,
+    undistorted field samples, WHEN the fit estimates c = [-db, vec(T), tilt] jointly with a
+    wide prior, THEN c and psi_s come back to first order (|c| ~ 3e-4: to ~2e-6)."""
+    fl, i0, C, G, sel, C_isf_af = _propagated_with_gyro_errors(DB, TG)
+    h = np.einsum("njk,k->nj", fl.C_nf_sf[i0 + sel].transpose(0, 2, 1), E)
+    var = np.full(len(sel), 1e-6)
+    data = af.FitData(C, h, var, 1.0 / var, G)
+    fit_c = af.fit_psi(data, C_isf_af, E, "none", P_prior=P_WIDE, estimate_errors=False)
+    fit = af.fit_psi(data, C_isf_af, E, "none", P_prior=P_WIDE, estimate_errors=True)
+    assert abs(wrap_pi(fit_c.psi_rad - fl.psi_s_rad)) > 1e-4             # the errors matter ...
+    np.testing.assert_allclose(fit.c_hat[:12], np.concatenate([-DB, TG.reshape(-1)]), atol=2e-6)
+    assert abs(wrap_pi(fit.psi_rad - fl.psi_s_rad)) < 2e-6               # ... and are removed
+    assert fit.P_psi_c[0, 0] < fit_c.P_psi_c[0, 0]
+
+
+def test_joint_estimation_with_soft_iron_improves_psi():
+    """With the full soft-iron model part of the gyro errors trades against A (weakly
+    observable): with the consumer-grade prior the estimate does not recover c, but psi_s is
+    better than with the errors only considered, and its sigma is smaller."""
+    fl, i0, C, G, sel, C_isf_af = _propagated_with_gyro_errors(10 * DB, 10 * TG)
+    A, b = np.array([[1.05, 0.02, 0.0], [0.01, 0.95, 0.03], [0.0, -0.02, 1.1]]), np.array([0.05, -0.03, 0.02])
+    h = np.einsum("ij,njk,k->ni", A, fl.C_nf_sf[i0 + sel].transpose(0, 2, 1), E) + b
+    var = np.full(len(sel), 1e-6)
+    data = af.FitData(C, h, var, 1.0 / var, G)
+    P = np.diag([math.radians(0.01) ** 2] * 3 + [3e-3 ** 2] * 9 + [1e-20] * 2)
+    fit_c = af.fit_psi(data, C_isf_af, E, "full12", P_prior=P)
+    fit = af.fit_psi(data, C_isf_af, E, "full12", P_prior=P, estimate_errors=True)
+    err_c = abs(wrap_pi(fit_c.psi_rad - fl.psi_s_rad))
+    err = abs(wrap_pi(fit.psi_rad - fl.psi_s_rad))
+    assert err < 0.9 * err_c, (math.degrees(err), math.degrees(err_c))
+    assert fit.P_psi_c[0, 0] < fit_c.P_psi_c[0, 0]
+    assert err < 3.0 * math.sqrt(fit.P_psi_c[0, 0])
+
+
+def test_equator_sign_ambiguity_is_resolved_by_physics():
+    """At the magnetic equator m(psi + pi) = -m(psi), so A -> -A fits equally well; only the
+    physical branch (det A > 0) is accepted, for both distortion models."""
+    e_eq = np.array([0.30, 0.02, 0.0])
+    C_nf_isf = dcm_from_euler(0.1, 0.5, 2.5)
+    C_isf_af = af.C_isf_from_af(0.1, 0.5)
+    atts = diverse_attitudes(seed=11)
+    C_sf_isf = np.array([C.T for C in atts])
+    for model, A in (("seed7", np.diag([1.05, 0.95, 1.02])),
+                     ("full12", np.array([[1.02, 0.03, 0.0], [0.01, 0.97, 0.02], [0.0, -0.02, 1.03]]))):
+        h = np.einsum("ij,njk,kl,l->ni", A, C_sf_isf, C_nf_isf.T, e_eq) + np.array([0.02, -0.01, 0.03])
+        var = np.full(len(h), 1e-6)
+        fit = af.fit_psi(af.FitData(C_sf_isf, h, var, 1.0 / var), C_isf_af, e_eq, model)
+        assert abs(wrap_pi(fit.psi_rad - 2.5)) < 1e-9
+        assert np.linalg.det(fit.A) > 0
