@@ -30,9 +30,9 @@ Measurement: magnetic heading from the levelled magnetometer plus the site decli
     G = d psi_m / d(phi, theta)
 (G grows like Z/H: near the magnetic pole a tiny tilt error is a large heading error; the
 bracket is correlated over tau_m, so it is counted once per correlation time, not per sample,
-and the heading variance after a fusion is kept >= the running mean of the bracket: a
-consider floor, since e.g. a tilt error from an accelerometer bias lasts the whole flight and
-never averages out).
+and optionally (``consider_floor_fraction``) the REPORTED heading variance is kept >= a
+fraction of the running mean of the bracket: a consider floor for errors that never average
+out; the filter's own P, which sets the gain, is never floored).
 The source is declared UNAVAILABLE when the measured horizontal field H is below
 ``min_horizontal_field_gauss``: no update, the heading variance then grows with the process
 noise while roll/pitch (the attitude filter) are unaffected. An innovation gate rejects
@@ -94,9 +94,14 @@ class PolarHeadingParams:
     0.06 G the measurement variance above already down-weights the source."""
     mag_update_period_s: float = 0.1
     """Interval between heading measurements (s)."""
-    mag_error_tau_s: float = 10.0
+    mag_error_tau_s: float = 30.0
     """Correlation time of the non-white heading-measurement errors (tilt error, declination,
     residual deviation) (s); their variance is inflated by tau / mag_update_period_s."""
+    consider_floor_fraction: float = 0.0
+    """Fraction of the correlated measurement variance (running mean) below which the reported
+    heading variance never goes (1 = the full consider bound, very conservative when the vehicle
+    turns and tilt errors average out; 0 = off: only the inflated fusion above limits the
+    confidence; bench/polar_accuracy.py: heading NEES ~1.3 consumer, ~0.1 tactical with 0)."""
     gate_chi2: float = 11.0
     """Innovation gate (1 dof NIS, 99.9 %)."""
     reset_after_s: float = 10.0
@@ -108,7 +113,10 @@ class PolarHeadingParams:
 
     def __post_init__(self) -> None:
         for name, v in self.__dict__.items():
-            if not (math.isfinite(v) and v > 0.0):
+            if name == "consider_floor_fraction":
+                if not 0.0 <= v <= 1.0:
+                    raise ValueError(f"consider_floor_fraction must be in [0, 1], got {v!r}")
+            elif not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
         if self.max_abs_pitch_rad >= math.pi / 2:
             raise ValueError(f"max_abs_pitch_rad must be < pi/2, got {self.max_abs_pitch_rad}")
@@ -129,7 +137,7 @@ class PolarHeadingState:
     n_resets: int = 0
     r_corr_avg_rad2: float | None = None
     """Running mean (time constant mag_error_tau_s) of the correlated measurement variance:
-    the consider floor of the heading variance."""
+    the consider floor of the reported heading variance."""
 
     def to_dict(self) -> dict:
         return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()}
@@ -318,7 +326,8 @@ def _measure(st, u, Prp, p):
                                innovation_var_rad2=R_single, test_ratio=0.0, reason="initialised from source")
     nu = wrap_pi(z - st.x[0])
     S = st.P[0, 0] + R
-    ratio = nu * nu / S / p.gate_chi2
+    # the gate asks whether THIS measurement is plausible: its own error, not the inflated one
+    ratio = nu * nu / (st.P[0, 0] + R_single) / p.gate_chi2
     diag_kw = dict(measured=True, source_available=True, horizontal_field_gauss=H,
                    heading_meas_rad=z, innovation_rad=nu, innovation_var_rad2=S, test_ratio=ratio)
     if ratio > 1.0:
@@ -341,16 +350,14 @@ def _measure(st, u, Prp, p):
     I_KH[:, 0] -= K
     P = I_KH @ st.P @ I_KH.T + np.outer(K, K) * R
     # consider floor: the correlated part of the source error (tilt, declination, residual
-    # deviation) does not average out however long the source is fused, so the heading variance
-    # is kept >= its running mean over mag_error_tau_s (row/column 0 scaled: a congruence, P
-    # stays positive semi-definite)
+    # deviation) does not average out however long the source is fused, so the REPORTED heading
+    # variance is kept >= its running mean over mag_error_tau_s (polar_heading_estimate); the
+    # filter's own P, which sets the gain, is left alone (flooring it would make the filter
+    # follow the correlated errors)
     dt_m = p.mag_update_period_s
-    avg = r_corr if st.r_corr_avg_rad2 is None else (
-        st.r_corr_avg_rad2 + (r_corr - st.r_corr_avg_rad2) * min(1.0, dt_m / p.mag_error_tau_s))
-    if P[0, 0] < avg:
-        sc = math.sqrt(avg / P[0, 0])
-        P[0, :] *= sc
-        P[:, 0] *= sc
+    rc = p.consider_floor_fraction * r_corr
+    avg = rc if st.r_corr_avg_rad2 is None else (
+        st.r_corr_avg_rad2 + (rc - st.r_corr_avg_rad2) * min(1.0, dt_m / p.mag_error_tau_s))
     P = 0.5 * (P + P.T)
     st = replace(st, x=x, P=P, rejected_since_s=None, source_available=True, n_fused=st.n_fused + 1,
                  r_corr_avg_rad2=avg)
@@ -360,4 +367,7 @@ def _measure(st, u, Prp, p):
 def polar_heading_estimate(state: PolarHeadingState) -> HeadingEstimate:
     if not state.initialised:
         return HeadingEstimate(math.nan, math.inf, state.source_available, False)
-    return HeadingEstimate(float(state.x[0]), float(state.P[0, 0]), state.source_available, True)
+    var = float(state.P[0, 0])
+    if state.r_corr_avg_rad2 is not None:
+        var = max(var, state.r_corr_avg_rad2)      # consider floor (see _measure)
+    return HeadingEstimate(float(state.x[0]), var, state.source_available, True)

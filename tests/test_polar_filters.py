@@ -265,3 +265,24 @@ def test_disturbed_source_is_gated_then_reset_with_the_jump_reported():
     t_reset, jump = resets[0]
     assert 25.0 <= t_reset <= 25.5
     assert abs(math.degrees(jump) - 40.0) < 1.0
+
+
+def test_consider_floor_bounds_the_reported_variance():
+    field = np.array([0.2, 0.0, 0.4])
+    t, gyro, accel, mag, truth = synth(45.0, duration_s=20.0, field_ned=field)
+    out = {}
+    for frac in (0.0, 1.0):
+        ph = PolarHeadingParams(consider_floor_fraction=frac, mag_heading_floor_rad=math.radians(5.0))
+        st = polar_heading_init()
+        for k in range(len(t)):
+            st, _ = polar_heading_step(st, HeadingInputs(t[k], gyro[k], truth[k, 0], truth[k, 1],
+                                                         np.eye(2) * 1e-5, mag[k], 0.0, 0.0), ph)
+        out[frac] = (polar_heading_estimate(st).variance_rad2, st)
+    var0, st0 = out[0.0]
+    var1, st1 = out[1.0]
+    np.testing.assert_array_equal(st0.P, st1.P)             # the gain is not affected
+    assert var0 == st0.P[0, 0]
+    assert var1 == st1.r_corr_avg_rad2 > var0
+    assert abs(st1.r_corr_avg_rad2 - math.radians(5.0) ** 2) < 0.05 * math.radians(5.0) ** 2
+    with pytest.raises(ValueError, match="consider_floor_fraction"):
+        PolarHeadingParams(consider_floor_fraction=1.5)
