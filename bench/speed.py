@@ -17,7 +17,7 @@ separate processes at 400 Hz.
    forwards to the daemon and every ATTITUDE the daemon sends back. The daemon stamps ATTITUDE
    with ``time_boot_ms = int(time_fc_s * 1000)`` of the IMU sample the solution is for, and
    RAW_IMU carries that sample's ``time_usec``: an ATTITUDE is matched to the one RAW_IMU (400 Hz:
-   2.5 ms apart) whose time_usec falls in [time_boot_ms, time_boot_ms + 1] ms (closed: the daemon's int() truncation). Latency = tap
+   2.5 ms apart) whose time_usec is within 1 ms of time_boot_ms (truncated or rounded). Latency = tap
    receive time of the ATTITUDE - tap forward time of its RAW_IMU: the daemon's receive, decode,
    estimators and send, plus two loopback hops and the tap's own scheduling (an upper bound).
    The daemon sends ATTITUDE at ``outputs.attitude_hz`` (50 Hz, the default): each measured
@@ -442,9 +442,9 @@ def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | No
     lat = []
     unmatched = 0
     for ms, t_rx in tap.att_rx:
-        # the daemon truncates: int(t_s * 1000) of a whole millisecond can give 1 ms less
-        # (3.24 * 1000 = 3239.99...): the window includes its upper end
-        lo = np.searchsorted(imu_us, ms * 1000, side="left")
+        # time_boot_ms is the sample's FC time truncated or rounded to ms (int(3.24 * 1000) is
+        # 3239): the sample is within 1 ms of it, and at 400 Hz (2.5 ms) only one sample can be
+        lo = np.searchsorted(imu_us, ms * 1000 - 1000, side="left")
         hi = np.searchsorted(imu_us, ms * 1000 + 1000, side="right")
         if hi - lo != 1:
             unmatched += 1

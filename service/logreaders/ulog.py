@@ -247,6 +247,7 @@ class UlogReader:
         # python floats/arrays once, not per sample
         t_imu_l = t_imu.tolist()
         last_gyro = None
+        bad = 0
         counts = {"imu": 0, "imu_with_mag": 0, "pressure": 0, "pressure_with_diff": 0, "attitude": 0}
         for n, e in enumerate(order.tolist()):
             self._done = n
@@ -254,7 +255,7 @@ class UlogReader:
             if kind == _IMU:
                 g = gyro[i]
                 if not (np.all(np.isfinite(g)) and np.all(np.isfinite(accel[i]))):
-                    s.notes.append(f"non-finite IMU sample at {t_imu_l[i]:.6f} s skipped")
+                    bad += 1
                     continue
                 m = mag_idx[i]
                 mg = mag[m] if m >= 0 else None
@@ -289,3 +290,5 @@ class UlogReader:
                 yield FcAttitude(t, t, roll, pitch, yaw, w)
         self._done = self._total
         s.counts = counts
+        if bad:
+            s.notes.append(f"{bad} IMU samples with non-finite values skipped")
