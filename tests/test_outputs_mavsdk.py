@@ -20,6 +20,7 @@ import socket
 import sys
 import threading
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -169,6 +170,24 @@ def test_mavsdk_reads_our_encoders():
 
 # --- the running daemon ----------------------------------------------------------------------
 
+SHIPPED_SCENARIO = "inclined_rail"
+CLIMB_AND_LEVEL = 'type = "climb"\nalt_m = 120.0\nrate_m_s = 5.0\n\n[[legs]]\ntype = "level"\nduration_s = 40.0'
+QUICK_CLIMB = 'type = "climb"\nalt_m = 30.0\nrate_m_s = 5.0\n\n[[legs]]\ntype = "level"\nduration_s = 3.0'
+
+
+def quick_turn_scenario(path) -> str:
+    """The shipped inclined_rail scenario with 10 s on the rail (not 60) and the first turn a few
+    seconds after the climb-out, so method A's orientation-diversity gate opens ~10 s after
+    launch and the test sees a valid heading within ~25 s of real time."""
+    from pathlib import Path
+    src = (Path(__file__).resolve().parents[1] / "sim" / "scenarios"
+           / f"{SHIPPED_SCENARIO}.toml").read_text()
+    assert CLIMB_AND_LEVEL in src and "rest_s = 60.0" in src, "inclined_rail.toml changed"
+    src = src.replace(CLIMB_AND_LEVEL, QUICK_CLIMB).replace("rest_s = 60.0", "rest_s = 10.0")
+    path.write_text(src)
+    return str(path)
+
+
 def _sitl_module():
     import importlib.util
     from pathlib import Path
@@ -180,56 +199,134 @@ def _sitl_module():
     return mod
 
 
-def start_sitl(mavsdk_port: int, zenoh_listen: str | None = None, rest_s: float = 3.0):
-    """Simulator + daemon (bench/sitl.py) with the daemon's outputs mirrored to the harness's
-    pymavlink listener AND to MAVSDK's port; optionally Zenoh on a loopback endpoint."""
+@dataclass
+class DaemonRun:
+    euler: list            # MAVSDK attitude_euler: (timestamp_us, roll_deg, pitch_deg, yaw_deg, rx)
+    named: list            # MAVSDK MavlinkDirect NAMED_VALUE_FLOAT fields
+    ids: tuple             # (system id, component ids) MAVSDK discovered
+    listener_att: dict     # time_boot_ms -> (roll, pitch, yaw) rad, from the harness's pymavlink
+    zatt: list             # Zenoh attitude payloads
+    zhdg: list             # Zenoh heading payloads
+    log: str
+
+
+@pytest.fixture(scope="module")
+def daemon_run(tmp_path_factory) -> DaemonRun:
+    """Simulator + daemon as processes (bench/sitl.py); the daemon mirrors its MAVLink outputs to
+    the harness's pymavlink listener AND to MAVSDK (config [outputs] extra_mavlink_urls) and
+    publishes on Zenoh at a loopback endpoint this process subscribes to. Runs until the daemon
+    has had a valid heading for a while (quick_turn_scenario: ~20 s)."""
     import tomllib
+
+    import zenoh
+
     sitl = _sitl_module()
-    s = sitl.Sitl(scenario="inclined_rail", speed=1.0,
-                  sim_args=["--set", f"launcher.rest_s={rest_s}"])
+    port, zport = free_udp_port(), free_udp_port()
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    scenario = quick_turn_scenario(tmp_path_factory.mktemp("mavsdk") / "quick_turn.toml")
+    s = sitl.Sitl(scenario=scenario, speed=1.0)
     with open(s.config_path, "rb") as f:
         cfg = tomllib.load(f)
     cfg["outputs"]["extra_mavlink_urls"] = [f"udpout:127.0.0.1:{s.out_port}",
-                                            f"udpout:127.0.0.1:{mavsdk_port}"]
-    if zenoh_listen is not None:
-        cfg["zenoh"].update({"enabled": True, "mode": "peer", "listen": [zenoh_listen],
-                             "connect": []})
+                                            f"udpout:127.0.0.1:{port}"]
+    cfg["zenoh"].update({"enabled": True, "mode": "peer", "listen": [endpoint], "connect": []})
     sitl.write_config(s.config_path, cfg)
-    return s
 
-
-def test_mavsdk_reads_the_running_daemon():
-    """MAVSDK's attitude_euler equals, sample for sample (same time_boot_ms), the ATTITUDE the
-    daemon sent to a second endpoint; yaw is NaN in both while the daemon has no heading."""
-    port = free_udp_port()
     client = MavsdkClient(port)
-    s = start_sitl(port)
+    zatt: list[dict] = []
+    zhdg: list[dict] = []
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    session = zenoh.open(conf)
+    session.declare_subscriber("azimuthd/*/attitude",
+                               lambda x: zatt.append(json.loads(x.payload.to_string())))
+    session.declare_subscriber("azimuthd/*/heading",
+                               lambda x: zhdg.append(json.loads(x.payload.to_string())))
     try:
         with s:
             client.attach(20.0)
-            # levelled (roll/pitch sent), launched, and some in-flight samples
-            assert s.wait_for(lambda: "in-flight" in s.log("daemon") and len(client.euler) > 100,
-                              30.0), s.log("daemon")[-2000:]
-            s.wait_for(lambda: False, 2.0)
-            listener_att = {round(t * 1000): (r, p, y) for t, r, p, y, _ in s.listener.attitude}
-            euler = list(client.euler)
-            ids = (client.system.get_system_id(), client.system.component_ids())
+            ok = s.wait_for(lambda: sum(1 for h in zhdg if h["heading_valid"]) > 10
+                            and sum(1 for e in client.euler if not math.isnan(e[3])) > 100, 45.0)
+            log = s.log("daemon")
+            assert ok, (f"no valid heading on Zenoh and MAVSDK within 45 s: {len(zatt)} attitude,"
+                        f" {len(zhdg)} heading payloads, last flags "
+                        f"{zhdg[-1]['flags'] if zhdg else None}; " + log[-1500:])
+            run = DaemonRun(list(client.euler), list(client.named),
+                            (client.system.get_system_id(), client.system.component_ids()),
+                            {round(t * 1000): (r, p, y) for t, r, p, y, _ in s.listener.attitude},
+                            list(zatt), list(zhdg), log)
     finally:
         client.close()
-    assert ids == (1, [191])  # the simulated FC's system id, our component
-    matched = 0
-    for ts_us, roll_deg, pitch_deg, yaw_deg, _ in euler:
+        session.close()
+    return run
+
+
+def test_mavsdk_reads_the_running_daemon(daemon_run):
+    """MAVSDK's attitude_euler equals, sample for sample (same time_boot_ms), the ATTITUDE the
+    daemon sent to the second endpoint: NaN yaw in both before the heading is valid, the same
+    yaw after."""
+    run = daemon_run
+    assert run.ids == (1, [191])  # the simulated FC's system id, our component
+    matched = with_yaw = 0
+    for ts_us, roll_deg, pitch_deg, yaw_deg, _ in run.euler:
         key = ts_us // 1000
-        if key not in listener_att:  # the listener may have started a moment later
+        if key not in run.listener_att:  # the listener may have started a moment later
             continue
-        r, p, y = listener_att[key]
+        r, p, y = run.listener_att[key]
         assert roll_deg == pytest.approx(math.degrees(r), abs=2e-4)
         assert pitch_deg == pytest.approx(math.degrees(p), abs=2e-4)
         if math.isnan(y):
             assert math.isnan(yaw_deg)
         else:
             assert wrap180(yaw_deg - math.degrees(y)) == pytest.approx(0.0, abs=2e-4)
+            with_yaw += 1
         matched += 1
-    assert matched >= 0.9 * len(euler) and matched > 100
+    assert matched >= 0.9 * len(run.euler) and matched > 200 and with_yaw > 50
     # the rail points the nose 15 deg up; MAVSDK sees that pitch before the launch
-    assert any(abs(e[2] - 15.0) < 1.0 for e in euler)
+    assert any(abs(e[2] - 15.0) < 1.0 for e in run.euler)
+
+
+def _nearest(times: np.ndarray, t: float) -> int:
+    i = int(np.searchsorted(times, t))
+    if i == 0:
+        return 0
+    if i == len(times):
+        return len(times) - 1
+    return i if times[i] - t < t - times[i - 1] else i - 1
+
+
+def test_mavsdk_heading_matches_daemon_zenoh(daemon_run):
+    """MAVSDK's attitude_euler (roll, pitch, yaw) and our NAMED_VALUE_FLOAT hdg_deg read through
+    MAVSDK agree with the attitude / heading the daemon publishes on Zenoh for the nearest FC
+    time (within 11 ms: |difference| <= 1e-3 deg + 1.5 x body rate x time offset), and with the
+    heading of the very same solution (same FC time) to 1e-3 deg."""
+    run = daemon_run
+    att = sorted((a for a in run.zatt if a["roll_deg"] is not None), key=lambda a: a["time_fc_s"])
+    t_att = np.array([a["time_fc_s"] for a in att])
+    compared = 0
+    for ts_us, roll_deg, pitch_deg, yaw_deg, _ in run.euler:
+        a = att[_nearest(t_att, ts_us / 1e6)]
+        dt = abs(a["time_fc_s"] - ts_us / 1e6)
+        if dt > 0.011:
+            continue
+        rate_deg_s = max(abs(v) for v in a["rates_body_deg_s"]) if a["rates_body_deg_s"] else 0.0
+        tol = 1e-3 + 1.5 * rate_deg_s * dt
+        assert abs(roll_deg - a["roll_deg"]) <= tol, (ts_us, roll_deg, a)
+        assert abs(pitch_deg - a["pitch_deg"]) <= tol, (ts_us, pitch_deg, a)
+        if a["yaw_deg"] is not None and not math.isnan(yaw_deg):
+            assert abs(wrap180(yaw_deg - a["yaw_deg"])) <= tol, (ts_us, yaw_deg, a)
+            compared += 1
+    assert compared > 20
+    hdg = sorted((h for h in run.zhdg if h["heading_valid"]), key=lambda h: h["time_fc_s"])
+    t_hdg = np.array([h["time_fc_s"] for h in hdg])
+    same_solution = 0
+    for m in run.named:
+        if m["name"] != "hdg_deg":
+            continue
+        h = hdg[_nearest(t_hdg, m["time_boot_ms"] / 1e3)]
+        if abs(h["time_fc_s"] - m["time_boot_ms"] / 1e3) <= 0.0006:  # the same IMU sample
+            assert abs(wrap180(m["value"] - h["heading_true_deg"])) < 1e-3
+            same_solution += 1
+    assert same_solution >= 1
