@@ -229,7 +229,9 @@ def daemon_run(tmp_path_factory) -> DaemonRun:
         cfg = tomllib.load(f)
     cfg["outputs"]["extra_mavlink_urls"] = [f"udpout:127.0.0.1:{s.out_port}",
                                             f"udpout:127.0.0.1:{port}"]
-    cfg["zenoh"].update({"enabled": True, "mode": "peer", "listen": [endpoint], "connect": []})
+    # this process listens, the daemon connects: the link is up as soon as the daemon starts
+    # (a connecting subscriber would retry with back-off and could miss the first seconds)
+    cfg["zenoh"].update({"enabled": True, "mode": "peer", "listen": [], "connect": [endpoint]})
     sitl.write_config(s.config_path, cfg)
 
     client = MavsdkClient(port)
@@ -238,7 +240,7 @@ def daemon_run(tmp_path_factory) -> DaemonRun:
     conf = zenoh.Config()
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
     session = zenoh.open(conf)
     session.declare_subscriber("azimuthd/*/attitude",
                                lambda x: zatt.append(json.loads(x.payload.to_string())))
@@ -247,7 +249,7 @@ def daemon_run(tmp_path_factory) -> DaemonRun:
     try:
         with s:
             client.attach(20.0)
-            ok = s.wait_for(lambda: sum(1 for h in zhdg if h["heading_valid"]) > 10
+            ok = s.wait_for(lambda: sum(1 for h in zhdg if h["heading_valid"]) > 25
                             and sum(1 for e in client.euler if not math.isnan(e[3])) > 100, 45.0)
             log = s.log("daemon")
             assert ok, (f"no valid heading on Zenoh and MAVSDK within 45 s: {len(zatt)} attitude,"
@@ -299,26 +301,30 @@ def _nearest(times: np.ndarray, t: float) -> int:
 
 def test_mavsdk_heading_matches_daemon_zenoh(daemon_run):
     """MAVSDK's attitude_euler (roll, pitch, yaw) and our NAMED_VALUE_FLOAT hdg_deg read through
-    MAVSDK agree with the attitude / heading the daemon publishes on Zenoh for the nearest FC
-    time (within 11 ms: |difference| <= 1e-3 deg + 1.5 x body rate x time offset), and with the
-    heading of the very same solution (same FC time) to 1e-3 deg."""
+    MAVSDK equal, to 1e-3 deg, the attitude / heading the daemon published on Zenoh for the very
+    same solution (same FC time: both schedulers pick the same IMU sample on common slots, the
+    MAVLink one every 20 ms and the Zenoh one every 50 ms of receive time).
+    Nearest-in-time comparisons would be wrong: the heading steps when method A re-solves."""
     run = daemon_run
     att = sorted((a for a in run.zatt if a["roll_deg"] is not None), key=lambda a: a["time_fc_s"])
     t_att = np.array([a["time_fc_s"] for a in att])
-    compared = 0
+    same = with_yaw = 0
     for ts_us, roll_deg, pitch_deg, yaw_deg, _ in run.euler:
         a = att[_nearest(t_att, ts_us / 1e6)]
-        dt = abs(a["time_fc_s"] - ts_us / 1e6)
-        if dt > 0.011:
+        if abs(a["time_fc_s"] - ts_us / 1e6) > 0.0006:  # not the same IMU sample
             continue
-        rate_deg_s = max(abs(v) for v in a["rates_body_deg_s"]) if a["rates_body_deg_s"] else 0.0
-        tol = 1e-3 + 1.5 * rate_deg_s * dt
-        assert abs(roll_deg - a["roll_deg"]) <= tol, (ts_us, roll_deg, a)
-        assert abs(pitch_deg - a["pitch_deg"]) <= tol, (ts_us, pitch_deg, a)
-        if a["yaw_deg"] is not None and not math.isnan(yaw_deg):
-            assert abs(wrap180(yaw_deg - a["yaw_deg"])) <= tol, (ts_us, yaw_deg, a)
-            compared += 1
-    assert compared > 20
+        assert abs(roll_deg - a["roll_deg"]) <= 1e-3, (ts_us, roll_deg, a)
+        assert abs(pitch_deg - a["pitch_deg"]) <= 1e-3, (ts_us, pitch_deg, a)
+        if a["yaw_deg"] is None:
+            assert math.isnan(yaw_deg)
+        else:
+            assert abs(wrap180(yaw_deg - a["yaw_deg"])) <= 1e-3, (ts_us, yaw_deg, a)
+            with_yaw += 1
+        same += 1
+    print(f"same-solution comparisons: {same}, with yaw: {with_yaw}")
+    # how many slots coincide depends on how each scheduler re-synchronises after late packets
+    # (observed 49..190 with 20..52 with yaw on a loaded machine)
+    assert same >= 30 and with_yaw >= 15, (same, with_yaw)
     hdg = sorted((h for h in run.zhdg if h["heading_valid"]), key=lambda h: h["time_fc_s"])
     t_hdg = np.array([h["time_fc_s"] for h in hdg])
     same_solution = 0
