@@ -203,6 +203,7 @@ def _sitl_module():
 class DaemonRun:
     euler: list            # MAVSDK attitude_euler: (timestamp_us, roll_deg, pitch_deg, yaw_deg, rx)
     named: list            # MAVSDK MavlinkDirect NAMED_VALUE_FLOAT fields
+    odometry: list         # MAVSDK Telemetry odometry
     ids: tuple             # (system id, component ids) MAVSDK discovered
     listener_att: dict     # time_boot_ms -> (roll, pitch, yaw) rad, from the harness's pymavlink
     zatt: list             # Zenoh attitude payloads
@@ -255,7 +256,7 @@ def daemon_run(tmp_path_factory) -> DaemonRun:
             assert ok, (f"no valid heading on Zenoh and MAVSDK within 45 s: {len(zatt)} attitude,"
                         f" {len(zhdg)} heading payloads, last flags "
                         f"{zhdg[-1]['flags'] if zhdg else None}; " + log[-1500:])
-            run = DaemonRun(list(client.euler), list(client.named),
+            run = DaemonRun(list(client.euler), list(client.named), list(client.odometry),
                             (client.system.get_system_id(), client.system.component_ids()),
                             {round(t * 1000): (r, p, y) for t, r, p, y, _ in s.listener.attitude},
                             list(zatt), list(zhdg), log)
@@ -288,6 +289,14 @@ def test_mavsdk_reads_the_running_daemon(daemon_run):
     assert matched >= 0.9 * len(run.euler) and matched > 200 and with_yaw > 50
     # the rail points the nose 15 deg up; MAVSDK sees that pitch before the launch
     assert any(abs(e[2] - 15.0) < 1.0 for e in run.euler)
+    # ODOMETRY in the ardupilot profile (the simulator's HEARTBEAT says ArduPilot): finite
+    # placeholder position, our q, unconstrained position variance, yaw variance > 0
+    assert len(run.odometry) > 10
+    for o in run.odometry:
+        assert (o.position_body.x_m, o.position_body.y_m, o.position_body.z_m) == (0.0, 0.0, 0.0)
+        cov = o.pose_covariance.covariance_matrix
+        assert cov[0] == cov[6] == cov[11] == 1e6 and cov[20] > 0.0
+        assert abs(math.hypot(o.q.w, o.q.x, o.q.y, o.q.z) - 1.0) < 1e-6
 
 
 def _nearest(times: np.ndarray, t: float) -> int:
