@@ -392,11 +392,11 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--json", default=str(ROOT / "bench" / "results" / "geofence.json"))
     ap.add_argument("--mode", default="all", choices=("offline", "closed", "daemon", "all"))
-    ap.add_argument("--seeds", type=int, default=None, help="seeds per scenario kind (default 20, quick 3)")
+    ap.add_argument("--seeds", type=int, default=None, help="seeds per scenario kind (default 20, quick 2)")
     ap.add_argument("--speed", type=float, default=20.0, help="simulator speed for the closed loop")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT / "bench"))
-    n = args.seeds or (3 if args.quick else 20)
+    n = args.seeds or (2 if args.quick else 20)
     raw = fence_raw()
     margin = raw["margin_m"]
     summary: dict = {"seeds_per_kind": n, "heading_bias_sigma_deg": HEADING_BIAS_SIGMA_DEG,

@@ -34,7 +34,7 @@ def test_defaults_and_closed_ring():
     ({"inclusion": [[[47.0, 8.0], [47.0, 8.1], [47.1, "x"]]]}, "geofence.inclusion: polygon 0 vertex 2 must be"),
     ({"inclusion": [[[97.0, 8.0], [47.0, 8.1], [47.1, 8.1]]]}, "geofence.inclusion: polygon 0 vertex 0: latitude"),
     ({"exclusion": [[[47.0, 8.0], [47.1, 8.1], [47.0, 8.1], [47.1, 8.0]]]}, "geofence.exclusion: polygon 0 crosses itself"),
-    ({"inclusion": [[[47.0, 8.0], [47.05, 8.0], [47.1, 8.0]]]}, "geofence.inclusion: polygon 0 has \(almost\) no area"),
+    ({"inclusion": [[[47.0, 8.0], [47.05, 8.0], [47.1, 8.0]]]}, r"geofence.inclusion: polygon 0 has \(almost\) no area"),
     ({"inclusion": [[[47.0, 8.0], [-47.0, 8.1], [47.1, 80.0]]]}, "spans more than 2000 km"),
     ({"margin_m": -1}, r"geofence.margin_m: must be in \[0, 100000\], got -1"),
     ({"lookahead_s": True}, "geofence.lookahead_s: must be a number, got True"),

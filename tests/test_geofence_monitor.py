@@ -96,16 +96,17 @@ def test_divert_when_the_fence_is_inside_the_uncertainty_not_only_the_mean():
     params = DrParams(sideslip_sigma_rad=0.0, tau_heading_s=1e6)
 
     def fly(k):
-        m = monitor(dr_params=params, sigma_k=k, inclusion=[rectangle(300.0, 2000.0, 10000.0)])
+        m = monitor(dr_params=params, sigma_k=k, inclusion=[rectangle(300.0, 2000.0, 10000.0)], update_hz=5.0)
         prelaunch(m)
-        return m, run(m, 0.0, 200.0, 90.0, sigma_deg=3.0)
+        return m, run(m, 0.0, 200.0, 90.0, sigma_deg=3.0, dt=0.2)
     m2, cmds2 = fly(2.0)
     m0, cmds0 = fly(0.0)
     # WHEN the mean never gets closer than ~300 m to the north edge (it flies parallel to it)
     # THEN with k = 2 the cross-track sigma V sigma_psi (t - 0.1 + 20) reaches (300 - 50) / 2 m at
-    # t = 125 / (20 * 0.05236) - 19.9 = 99.5 s (the geodesic edge bows ~8 m: +-0.5 s), latched 0.5 s later
+    # t = 125 / (20 * 0.05236) - 19.8 = 99.6 s (the geodesic edge bows ~8 m: +-0.5 s; 5 Hz updates),
+    # latched 0.5 s later
     assert [c.name for _, c in cmds2] == ["rtl"]
-    assert cmds2[0][0] == pytest.approx(100.0, abs=0.6)
+    assert cmds2[0][0] == pytest.approx(100.1, abs=0.7)
     ev = [e for e in m2.drain_events() if e.kind == "geofence_breach"][0]
     assert 280.0 < ev.fields["distance_to_fence_m"] < 310.0  # the mean was still ~300 m inside
     # AND with k = 0 (mean only) the same flight never diverts
@@ -264,10 +265,10 @@ def test_corridor_polygon_contains_home_and_the_corridor_only():
 
 def test_corridor_config_diverts_when_leaving_the_sector():
     m = monitor(inclusion=[], corridor_azimuth_deg=0.0, corridor_half_width_deg=20.0, corridor_range_m=20000.0,
-                corridor_home_radius_m=300.0)
+                corridor_home_radius_m=300.0, update_hz=5.0)
     prelaunch(m)
-    assert run(m, 0.0, 60.0, 0.0) == []       # along the corridor's centre: nothing
-    cmds = run(m, 60.0, 200.0, 60.0)          # turn 60 deg off the corridor
+    assert run(m, 0.0, 60.0, 0.0, dt=0.2) == []       # along the corridor's centre: nothing
+    cmds = run(m, 60.0, 200.0, 60.0, dt=0.2)          # turn 60 deg off the corridor
     assert [c.name for _, c in cmds] == ["rtl"]
 
 

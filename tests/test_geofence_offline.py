@@ -19,7 +19,7 @@ import geofence as bench  # noqa: E402
 
 @pytest.mark.parametrize("seed", [1, 4])
 def test_outbound_latches_before_the_true_crossing(seed):
-    r = bench.run_offline("outbound", seed, flight_s=150.0)
+    r = bench.run_offline("outbound", seed, flight_s=140.0)
     assert r["true_cross_time_s"] is not None, "the scenario must cross the fence without a divert"
     assert r["latch_time_s"] is not None and r["latch_time_s"] > r["gnss_lost_time_s"]  # on dead reckoning
     assert r["first_command"] == "rtl"
@@ -28,5 +28,5 @@ def test_outbound_latches_before_the_true_crossing(seed):
 
 
 def test_inside_flight_never_latches():
-    r = bench.run_offline("inside", 0, flight_s=200.0)
+    r = bench.run_offline("inside", 0, flight_s=160.0)
     assert r["latch_time_s"] is None and r["first_command"] is None

@@ -21,7 +21,7 @@ import geofence as bench  # noqa: E402
 
 @pytest.mark.timeout(120)
 def test_closed_loop_divert_before_the_breach_true_track_stays_inside():
-    r = bench.run_closed("outbound", 1, speed=20.0, flight_s=150.0)
+    r = bench.run_closed("outbound", 1, speed=25.0, flight_s=130.0)
     assert r["truth_rows"] > 1000, f"truth log too short; see {r['workdir']}"
     assert r["actions"][:1] == ["rtl"] and r["outcomes"][:1] == ["rtl:accepted"], r
     assert r["first_divert_time_fc_s"] > bench.REST_S + bench.GNSS_LOST_AFTER_LAUNCH_S  # on dead reckoning
