@@ -31,6 +31,8 @@ CSV_COLUMNS = ["time_s", "phase", "roll_deg", "pitch_deg", "heading_deg", "headi
                "heading_source", "azimuth_deg", "azimuth_sigma_deg", "ref_roll_deg", "ref_pitch_deg",
                "ref_heading_deg"]
 REF_MAX_AGE_S = 1.0
+LOW_IMU_RATE_HZ = 50.0
+"""Below this IMU rate the summary warns that the estimators cannot work as designed."""
 """Default: an FC attitude further than this from a sample (FC time) is no reference for it."""
 
 # pygeomag coefficient sets by validity start year (the daemon's config accepts 2025..2030 only)
@@ -368,6 +370,14 @@ def summary(res: ReplayResult) -> dict:
         "pipeline_us_per_imu_sample": 1e6 * res.pipeline_s / res.imu_samples if res.imu_samples else math.nan,
         "total_us_per_imu_sample": 1e6 * res.wall_s / res.imu_samples if res.imu_samples else math.nan,
     }
+    warnings = []
+    rate = out["imu_rate_hz"]
+    if rate == rate and rate < LOW_IMU_RATE_HZ:
+        warnings.append(f"the IMU is logged at {rate:.1f} Hz (< {LOW_IMU_RATE_HZ:.0f} Hz): too slow for these "
+                        "estimators (levelling wants hundreds of still samples per block, strapdown and the "
+                        "filters integrate rate samples taken >= 50 Hz apart); the figures below check the "
+                        "decoding and the plumbing, they are not an accuracy figure")
+    out["warnings"] = warnings
     if t.size:
         inflight = np.isin(np.asarray(res.phase), ["launch", "in-flight"])
         out["roll_rms_diff_in_flight_deg"] = _rms(d_roll[inflight])
@@ -399,9 +409,8 @@ def print_summary(s: dict, res: ReplayResult, notes: list[str], log: Path, out=N
             p(f"    {kind} at {'' if t is None else f'{t:.2f} s'}: {detail}")
     if s["imu_rejected"]:
         p(f"  IMU samples rejected by the pipeline: {s['imu_rejected']} {s['imu_rejected_reasons']}")
-    if s["imu_rate_hz"] == s["imu_rate_hz"] and s["imu_rate_hz"] < 50:
-        p(f"  warning: the IMU is logged at {s['imu_rate_hz']:.1f} Hz: levelling needs a still block of "
-          "many samples and strapdown integration needs >= 50 Hz; expect no levelling and no attitude")
+    for w in s["warnings"]:
+        p(f"  warning: {w}")
     p(f"  rows: {s['rows']}; compared with the FC: roll/pitch {s['roll_compared_rows']} rows, heading "
       f"{s['heading_compared_rows']} rows")
     fmt = lambda v: "-" if not v == v else f"{v:.3f} deg"  # noqa: E731
