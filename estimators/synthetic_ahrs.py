@@ -20,7 +20,9 @@ Variants (``params.variant``):
   correction = KF2's bias states, plus alignment), KF1 (``kf1_learn``) learns the magnetometer
   errors and the angle-of-attack coefficient is learnt. When the FC is not trusted: KF1 and the
   alpha learning stop, and the gyro-bias and residual magnetometer-bias estimates are set back
-  to their values from ``bias_revert_age_s`` before the loss was detected (a silently failing reference may have
+  to their values from ``bias_revert_age_s`` before the loss was detected; after a *silent*
+  divergence the attitude is taken back too (that snapshot's attitude carried forward by the
+  gyro-only increments since) (a silently failing reference may have
   pulled it during the detection delay).
 
 Reference health: reference_health (signalled status + agreement of the FC attitude with our
@@ -48,8 +50,8 @@ from estimators.mag_error_kf import Kf1Params, Kf1State, kf1_correct_mag, kf1_in
 from estimators.reference_health import (ReferenceHealthParams, ReferenceHealthState,
                                          health_on_attitude, health_on_ekf_status,
                                          health_on_heartbeat, health_trusted)
-from estimators.rotations import (dcm_from_euler, dcm_from_quat, quat_from_euler, quat_from_rotvec,
-                                  quat_mul)
+from estimators.rotations import (dcm_from_euler, dcm_from_quat, quat_conj, quat_from_euler,
+                                  quat_from_rotvec, quat_mul)
 
 G_M_S2 = 9.80665
 VARIANTS = ("b1", "b2")
@@ -205,7 +207,8 @@ class SyntheticAhrsState:
     trusted: bool = False
     trust_reason: str = "no FC attitude yet"
     bias_snapshots: tuple = ()
-    """((time_s, gyro_bias_rad_s, mag_bias), ...) for the revert on a detected loss."""
+    """((time_s, gyro_bias_rad_s, mag_bias, q_nav_from_body, q_gyro_free, P), ...) for the
+    revert on a detected loss."""
     air_active: bool = False
     air_off_reason: str = "no air data yet"
     kf1_learning: bool = False
@@ -328,8 +331,17 @@ def _trust(state: SyntheticAhrsState, time_s: float, params: SyntheticAhrsParams
     if state.trusted and not trusted and state.kf2 is not None:
         # revert the gyro bias to a snapshot taken before the reference could have failed
         old = [snap for snap in state.bias_snapshots if time_s - snap[0] >= params.bias_revert_age_s]
-        if old:
-            _, b_g, b_m = old[-1]
+        if old and state.health.silent_divergence and state.q_gyro_free is not None:
+            # silent: also take back the attitude the failing reference pulled, re-propagating
+            # the snapshot's attitude with our gyro-only increments since then
+            t_s, b_g, b_m, q_s, qf_s, P_s = old[-1]
+            q = quat_mul(quat_mul(q_s, quat_conj(qf_s)), state.q_gyro_free)
+            P = state.kf2.P.copy()
+            P[0:3, 0:3] = P_s[0:3, 0:3] + np.eye(3) * (params.health.sigma_bias_rad_s * (time_s - t_s)) ** 2
+            state = _upd(state, kf2=_upd(state.kf2, gyro_bias_rad_s=b_g.copy(), mag_bias=b_m.copy(),
+                                         q_nav_from_body=q / math.sqrt(float(q @ q)), P=P))
+        elif old:
+            _, b_g, b_m = old[-1][:3]
             state = _upd(state, kf2=_upd(state.kf2, gyro_bias_rad_s=b_g.copy(), mag_bias=b_m.copy()))
     return _upd(state, trusted=trusted, trust_reason=why)
 
@@ -396,7 +408,9 @@ def _on_imu(state: SyntheticAhrsState, ev: ImuEvent, params: SyntheticAhrsParams
     state = _upd(state, kf2=kf2)
     if state.trusted and (not state.bias_snapshots or t - state.bias_snapshots[-1][0] >= params.bias_snapshot_period_s):
         keep = tuple(s for s in state.bias_snapshots if t - s[0] <= 3.0 * params.bias_revert_age_s)
-        state = _upd(state, bias_snapshots=keep + ((t, kf2.gyro_bias_rad_s.copy(), kf2.mag_bias.copy()),))
+        snap = (t, kf2.gyro_bias_rad_s.copy(), kf2.mag_bias.copy(), kf2.q_nav_from_body.copy(),
+                state.q_gyro_free.copy(), kf2.P.copy())
+        state = _upd(state, bias_snapshots=keep + (snap,))
     if ev.mag_sensor_gauss is None:
         return state
     m_s = np.asarray(ev.mag_sensor_gauss, dtype=float)
