@@ -23,6 +23,18 @@ File safety:
 
 File I/O lives here (service/), not in estimators/ (pure); the estimate itself is serialised by
 ``estimators.mag_error_kf.kf1_to_dict`` / ``kf1_from_dict``.
+
+Use in the daemon::
+
+    store = CalibrationStore(state_dir / "synthetic_ahrs_kf1.json")
+    hist = store.load()                          # hist.status says if a file was set aside
+    fid = next_flight_id(hist)                   # or hist.current.flight_id when restarting in flight
+    hist = begin_flight(hist, fid, time.time())
+    use = estimate_for_flight(hist, fid)         # at least one flight old, or None
+    state = synthetic_ahrs_init(params, kf1_learn=learning_start(hist, fid),
+                                kf1_applied=None if use is None else use.kf1)
+    ...  # every ~30 s and at shutdown:
+    hist = update_current(hist, fid, state.kf1_learn, time.time()); store.save(hist)
 """
 from __future__ import annotations
 
