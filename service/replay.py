@@ -358,6 +358,11 @@ def summary(res: ReplayResult) -> dict:
         "phases": [{"phase": p, "from_time_s": tt} for p, tt in res.phases],
         "roll_rms_diff_deg": _rms(d_roll), "pitch_rms_diff_deg": _rms(d_pitch),
         "heading_rms_diff_deg": _rms(d_hdg),
+        # the FC's own yaw as a heading source compared with the FC's yaw says nothing: apart
+        "heading_rms_diff_own_deg": _rms(d_hdg[np.array(["fc" not in src.split("+") for src in res.heading_source],
+                                                        dtype=bool)]) if t.size else math.nan,
+        "heading_sources": {k: int(v) for k, v in zip(*np.unique(np.asarray(res.heading_source, dtype=str),
+                                                                return_counts=True))} if t.size else {},
         "roll_compared_rows": int(np.sum(np.isfinite(d_roll))),
         "heading_compared_rows": int(np.sum(np.isfinite(d_hdg))),
         "missing_streams": res.missing,
@@ -416,6 +421,11 @@ def print_summary(s: dict, res: ReplayResult, notes: list[str], log: Path, out=N
     fmt = lambda v: "-" if not v == v else f"{v:.3f} deg"  # noqa: E731
     p(f"  RMS difference vs the log's FC attitude: roll {fmt(s['roll_rms_diff_deg'])}, pitch "
       f"{fmt(s['pitch_rms_diff_deg'])}, heading {fmt(s['heading_rms_diff_deg'])}")
+    if s["heading_sources"]:
+        p("  heading source by rows: " + ", ".join(f"{k} {v}" for k, v in sorted(s["heading_sources"].items())))
+    if any("fc" in k.split("+") for k in s["heading_sources"]):
+        p(f"    heading vs the FC without the rows whose heading uses the FC's own yaw: "
+          f"{fmt(s['heading_rms_diff_own_deg'])}")
     if s.get("roll_rms_diff_in_flight_deg") == s.get("roll_rms_diff_in_flight_deg"):
         p(f"    after launch only: roll {fmt(s['roll_rms_diff_in_flight_deg'])}, pitch "
           f"{fmt(s['pitch_rms_diff_in_flight_deg'])}")

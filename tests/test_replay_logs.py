@@ -165,6 +165,11 @@ def test_bench_plot_is_a_png(bench_run, tmp_path_factory):
 def test_vtol_log_streams_and_site(vtol_run):
     rows, s, _ = vtol_run
     assert s["missing_streams"] == [] and s["warnings"] == []
+    assert sum(s["heading_sources"].values()) == s["rows"]
+    assert sorted(s["heading_sources"]) == sorted({r[6] for r in rows[1:]})
+    # rows whose heading uses the FC's own yaw are left out of the "own" heading figure
+    if all("fc" in k.split("+") for k in s["heading_sources"] if k != "none"):
+        assert s["heading_rms_diff_own_deg"] is None
     assert s["pressure_samples"] == 120 and s["fc_attitude_samples"] == 1298
     notes = " ".join(s["config_notes"] + s["notes"])
     assert "vehicle_gps_position" in notes and "63.41" in notes and "WMM-2020" in notes
