@@ -139,6 +139,7 @@ class ReplayResult:
     cols: dict = field(default_factory=lambda: {c: [] for c in CSV_COLUMNS[2:] if c != "heading_source"})
     heading_source: list = field(default_factory=list)
     roll_sigma_deg: list = field(default_factory=list)
+    pitch_sigma_deg: list = field(default_factory=list)
     counts: dict = field(default_factory=dict)
     missing: list = field(default_factory=list)
     notes: list = field(default_factory=list)
@@ -264,6 +265,7 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
                 src = sol.heading_source if hdg is not None else "none"
                 res.heading_source.append(src)
                 res.roll_sigma_deg.append(_deg(sol.roll_sigma_rad))
+                res.pitch_sigma_deg.append(_deg(sol.pitch_sigma_rad))
                 for k, v in vals.items():
                     cols[k].append(v)
                 if writer is not None:
@@ -447,12 +449,13 @@ def plot(res: ReplayResult, path: Path, title: str) -> None:
 
     t = np.asarray(res.time_s, float)
     c = {k: np.asarray(v, float) for k, v in res.cols.items()}
-    sig_rp = np.asarray(res.roll_sigma_deg, float)
+    sig_roll = np.asarray(res.roll_sigma_deg, float)
+    sig_pitch = np.asarray(res.pitch_sigma_deg, float)
     step = max(1, t.size // 20000)  # a plot needs no more points than pixels
     sl = slice(None, None, step)
     fig, axes = plt.subplots(3, 2, figsize=(14, 9), sharex=True, squeeze=False)
-    specs = (("roll", "roll_deg", "ref_roll_deg", sig_rp),
-             ("pitch", "pitch_deg", "ref_pitch_deg", sig_rp),
+    specs = (("roll", "roll_deg", "ref_roll_deg", sig_roll),
+             ("pitch", "pitch_deg", "ref_pitch_deg", sig_pitch),
              ("heading", "heading_deg", "ref_heading_deg", c["heading_sigma_deg"]))
     for row, (name, ours, ref, sig) in enumerate(specs):
         ax, ax_e = axes[row]
