@@ -500,3 +500,29 @@ class AzimuthEstimator:
     def step(self, gyro_rad_s, accel_m_s2, mag_gauss, time_s) -> AzimuthOutput:
         self.state, out = azimuth_step(self.state, gyro_rad_s, accel_m_s2, mag_gauss, time_s)
         return out
+
+
+# --- solving outside the per-sample step (the daemon runs the fit in a worker process) -------
+
+def azimuth_solve(state: AzimuthState, time_s: float) -> AzimuthState:
+    """Re-solve psi_s (and the distortions) with the samples kept so far and gate the result.
+
+    ``azimuth_step`` does this itself every ``resolve_period_s``; a caller that sets that period
+    to infinity may instead run this pure function on a snapshot of the state elsewhere (a worker
+    process) and merge the result with ``azimuth_apply_solve``."""
+    return _solve(state, time_s)
+
+
+SOLVE_FIELDS = ("last_solve_s", "last_fit", "last_diversity_rad", "last_gate_reason", "solution")
+"""The fields ``azimuth_solve`` writes; nothing else of the state changes in a solve."""
+
+
+def azimuth_solve_result(solved: AzimuthState) -> dict:
+    """What a solve produced (small and picklable: no sample records)."""
+    return {k: getattr(solved, k) for k in SOLVE_FIELDS}
+
+
+def azimuth_apply_solve(state: AzimuthState, result: dict) -> AzimuthState:
+    """Merge a solve computed on an older snapshot into the current state; the samples that
+    arrived meanwhile are kept for the next solve."""
+    return replace(state, **{k: result[k] for k in SOLVE_FIELDS})
