@@ -447,7 +447,14 @@ def _inv_spd(H: np.ndarray) -> np.ndarray:
     d = np.sqrt(np.abs(np.diag(H)))
     d = np.where(d > 0, d, 1.0)
     Hs = H / np.outer(d, d)
-    return np.linalg.pinv(0.5 * (Hs + Hs.T), rcond=1e-13, hermitian=True) / np.outer(d, d)
+    Hs = 0.5 * (Hs + Hs.T)
+    try:
+        inv = np.linalg.inv(Hs)
+        if np.all(np.isfinite(inv)) and np.linalg.cond(Hs) < 1e13:
+            return inv / np.outer(d, d)
+    except np.linalg.LinAlgError:
+        pass
+    return np.linalg.pinv(Hs, rcond=1e-13, hermitian=True) / np.outer(d, d)   # singular: unobservable
 
 
 def _pack(model, psi, A, b):
@@ -494,7 +501,7 @@ class GateParams:
     """Smallest angle the field direction must have swept in the sensor frame."""
     max_condition_number: float = 1.0e4
     """Largest condition number of the weighted, column-normalised Jacobian."""
-    max_psi_sigma_rad: float = math.radians(1.5)
+    max_psi_sigma_rad: float = math.radians(1.0)
     """Largest accepted 1-sigma of psi_s as the data determine it (without the levelling-tilt
     share, which no amount of data reduces); early solutions above it were found to be biased."""
     max_normalised_residual: float = 25.0
