@@ -128,6 +128,15 @@ SPEC: dict[str, dict[str, Key]] = {
     },
     "azimuth": {
         "distortion_model": Key(str, "seed7", "magnetometer distortion model: seed7 (3 scales, 3 biases) | full12 (soft + hard iron)", _choice("seed7", "full12")),
+        "solve_in_background": Key(bool, True, "run the least-squares re-solves in a worker process (the daemon); false = inline", None),
+    },
+    "ahrs": {
+        "variant": Key(str, "b2", "synthetic AHRS (method B): b2 computes the heading (KF1 + KF2), b1 takes it from the other sources", _choice("b1", "b2")),
+    },
+    "heading": {
+        "min_horizontal_field_gauss": Key(_F, 0.03, "below this horizontal field the magnetometer heading is declared unavailable (method C)", _range(0.0, 0.5)),
+        "cruise_speed_m_s": Key(_F, 25.0, "typical ground speed, for the transport-rate allowance of the heading filter near the poles", _range(0, 400)),
+        "use_fc_when_trusted": Key(bool, True, "fuse the FC's own yaw while its estimator is trusted (GNSS healthy, agrees with our gyros)", None),
     },
     "outputs": {
         "attitude_hz": Key(_F, 50.0, "ATTITUDE / ATTITUDE_QUATERNION rate we send", _range(1, 400)),
@@ -152,6 +161,10 @@ SPEC: dict[str, dict[str, Key]] = {
 }
 
 
+NESTED_SECTIONS = ("geofence",)
+"""Sections with nested values (polygons, action lists), validated by their own module."""
+
+
 def _type_ok(value: Any, typ: type | tuple) -> bool:
     if isinstance(value, bool) and typ is not bool:
         return False  # TOML true is not a number
@@ -168,8 +181,8 @@ def validate(raw: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Check a parsed TOML document against SPEC; returns every key with defaults filled in."""
     out: dict[str, dict[str, Any]] = {}
     for section in raw:
-        if section not in SPEC:
-            raise ConfigError(f"{section}: unknown section (known: {', '.join(SPEC)})")
+        if section not in SPEC and section not in NESTED_SECTIONS:
+            raise ConfigError(f"{section}: unknown section (known: {', '.join([*SPEC, *NESTED_SECTIONS])})")
         if not isinstance(raw[section], dict):
             raise ConfigError(f"{section}: must be a table [{section}]")
     for section, keys in SPEC.items():
@@ -194,6 +207,10 @@ def validate(raw: dict[str, Any]) -> dict[str, dict[str, Any]]:
                     raise ConfigError(f"{name}: {problem}")
             values[key] = v
         out[section] = values
+    from service.geofence_config import validate_geofence  # polygons and actions: its own validator
+    out["geofence"] = validate_geofence(raw.get("geofence"))
+    if out["geofence"] is not None and out["site"]["lat_deg"] is None:
+        raise ConfigError("site.lat_deg: the geofence needs the launch site (lat_deg, lon_deg)")
     site = out["site"]
     if (site["lat_deg"] is None) != (site["lon_deg"] is None):
         raise ConfigError("site.lon_deg: lat_deg and lon_deg go together")

@@ -18,10 +18,13 @@ import time
 
 from pymavlink.dialects.v20 import common as mavlink2
 
+from mavlink_io.commands import CommandProtocol, CommandProtocolParams, statustext_message
 from mavlink_io.link import LinkConfig, LinkEvent, MavlinkLink
 from mavlink_io.outputs import OutputScheduler, odometry_profile_for_autopilot
 from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcHeartbeat, FcSysStatus,
                                 ImuSample, PressureSample)
+from service.calibration_keeper import CalibrationKeeper
+from service.config import state_dir
 from service.logs import RateLimitedLog
 from service.pipeline import Pipeline
 from service.sdnotify import Notifier
@@ -31,6 +34,7 @@ log = logging.getLogger("azimuthd.daemon")
 
 ZENOH_RETRY_S = 30.0
 HEALTH_PERIOD_S = 1.0
+CALIBRATION_SAVE_S = 30.0
 SD_STATUS_PERIOD_S = 5.0
 _SHOWN_RATES = ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU", "SCALED_PRESSURE", "ATTITUDE")
 _EVENT_SEVERITY = {"link_lost": "warning", "fc_reboot": "warning", "time_gap": "warning",
@@ -72,11 +76,20 @@ class Daemon:
         rates = {"RAW_IMU": m["imu_rate_hz"], "HIGHRES_IMU": m["imu_rate_hz"],
                  "SCALED_PRESSURE": m["pressure_rate_hz"], "ATTITUDE": m["attitude_rate_hz"],
                  "EKF_STATUS_REPORT": 2.0, "SYS_STATUS": 2.0}
+        self.geofence_cfg = cfg.get("geofence")
+        if self.geofence_cfg is not None:
+            rates["GLOBAL_POSITION_INT"] = 5.0  # the FC's position while GNSS is healthy (DR start)
         self.link_cfg = LinkConfig(url=m["url"], component_id=m["component_id"],
                                    system_id=m["system_id"] or None, heartbeat_hz=m["heartbeat_hz"],
                                    link_timeout_s=m["link_timeout_s"], imu_gap_s=m["imu_gap_s"],
                                    stream_rates_hz=rates)
-        self.pipeline = Pipeline(cfg)
+        self.calibration = CalibrationKeeper(state_dir(cfg), clock=time.time)
+        kf1_learn, kf1_applied = self.calibration.start()
+        solver = None
+        if cfg["azimuth"]["solve_in_background"]:
+            from service.solver import BackgroundSolver
+            solver = BackgroundSolver()
+        self.pipeline = Pipeline(cfg, kf1_learn=kf1_learn, kf1_applied=kf1_applied, solver=solver)
         out = cfg["outputs"]
         self.scheduler = OutputScheduler({"ATTITUDE": out["attitude_hz"], "ATTITUDE_QUATERNION": out["attitude_hz"],
                                           "ODOMETRY": out["odometry_hz"],
@@ -93,7 +106,15 @@ class Daemon:
         self.fc_heartbeat: FcHeartbeat | None = None
         self.ready_sent = False
         self.started_s = clock()
-        self._next = {"status": 0.0, "extra_hb": 0.0, "health": 0.0, "sd_status": 0.0, "zenoh_retry": 0.0}
+        self.geofence = None
+        self.commands: CommandProtocol | None = None
+        self.gnss = {"sys": None, "ekf": None}
+        if self.geofence_cfg is not None:
+            from service.geofence import GeofenceMonitor
+            site = cfg["site"]
+            self.geofence = GeofenceMonitor(self.geofence_cfg, site["lat_deg"], site["lon_deg"], site["alt_m"])
+        self._next = {"status": 0.0, "extra_hb": 0.0, "health": 0.0, "sd_status": 0.0, "zenoh_retry": 0.0,
+                      "geofence_state": 0.0, "calibration": clock() + CALIBRATION_SAVE_S}
 
     # --- lifecycle ----------------------------------------------------------------------------
 
@@ -109,6 +130,12 @@ class Daemon:
             conn = mavutil.mavlink_connection(parse_url(url).pymavlink_url, source_system=1,
                                               source_component=self.link_cfg.component_id, dialect="ardupilotmega")
             self.extra_ports.append(conn)
+        if self.geofence is not None:
+            gf = self.geofence_cfg
+            self.commands = CommandProtocol(
+                self.link.send, lambda: (self.link.target_system, self.link.target_component),
+                CommandProtocolParams(ack_timeout_s=gf.command_timeout_s, max_tries=gf.command_tries))
+            self.link.subscribe(self._on_raw)
         self._open_zenoh()
         log.info("started", extra={"fields": {"mavlink": self.link_cfg.url, "extra_outputs": len(self.extra_ports),
                                               "zenoh": self.bus is not None}})
@@ -130,6 +157,8 @@ class Daemon:
 
     def close(self) -> None:
         self.notifier.notify("STOPPING=1")
+        self.calibration.save(self.pipeline.kf1_estimate(), final=True)
+        self.pipeline.solver.close()
         if self.bus is not None:
             self.bus.close()
         if self.link is not None:
@@ -162,7 +191,11 @@ class Daemon:
     def step(self, timeout_s: float) -> None:
         for item in self.link.poll(timeout_s=timeout_s):
             self.dispatch(item)
-        self._periodic(self.clock())
+        now = self.clock()
+        if self.commands is not None:
+            for o in self.commands.poll(now):
+                self._command_outcome(o, now)
+        self._periodic(now)
 
     def _due(self, name: str, now: float, period_s: float) -> bool:
         if now < self._next[name]:
@@ -189,6 +222,10 @@ class Daemon:
             self._open_zenoh()
         if self.bus is not None and self._due("health", now, HEALTH_PERIOD_S):
             self._publish_health(now)
+        if self._due("calibration", now, CALIBRATION_SAVE_S):
+            self.calibration.save(self.pipeline.kf1_estimate())
+        if self.bus is not None and self.geofence is not None and self._due("geofence_state", now, 0.5):
+            self.bus.publish("geofence", self.geofence.state())
 
     def dispatch(self, item) -> None:
         if isinstance(item, ImuSample):
@@ -196,6 +233,8 @@ class Daemon:
             if sol is not None:
                 self.last_solution = sol
                 self.publish(sol)
+                if self.geofence is not None:
+                    self._geofence_step(sol)
             for kind, detail in self.pipeline.drain_events():
                 self._event(kind, detail)
         elif isinstance(item, PressureSample):
@@ -210,13 +249,64 @@ class Daemon:
                 self.scheduler.set_profile(odometry_profile_for_autopilot(self.link.fc_autopilot))
         elif isinstance(item, FcHeartbeat):
             self.fc_heartbeat = item
+            self.pipeline.on_fc_heartbeat(item)
+            if self.geofence is not None:
+                self.geofence.on_heartbeat(item)
             if not self.ready_sent:
                 self.ready_sent = True
                 self.notifier.notify("READY=1\nSTATUS=flight controller link up")
                 log.info("flight controller link up", extra={"fields": {"autopilot": item.autopilot,
                                                                         "system_id": item.system_id}})
-        elif isinstance(item, (FcEkfStatus, FcSysStatus, CommandAck)):
-            pass
+        elif isinstance(item, FcEkfStatus):
+            self.pipeline.on_fc_ekf_status(item)
+            self.gnss["ekf"] = item.horiz_pos_ok
+            self._gnss_health()
+        elif isinstance(item, FcSysStatus):
+            self.gnss["sys"] = item.gps_healthy
+            self._gnss_health()
+        elif isinstance(item, CommandAck):
+            if self.commands is not None:
+                now = self.clock()
+                for o in self.commands.on_command_ack(item, now):
+                    self._command_outcome(o, now)
+
+    # --- geofence (docs/GEOFENCE.md) ----------------------------------------------------------
+
+    def _on_raw(self, msg) -> None:
+        """Raw autopilot messages: GLOBAL_POSITION_INT (not decoded by the link) for the DR start."""
+        if self.geofence is not None and msg.get_type() == "GLOBAL_POSITION_INT":
+            self.geofence.on_fc_position(msg.time_boot_ms / 1e3, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt / 1e3,
+                                         msg.vx / 100.0, msg.vy / 100.0)
+
+    def _gnss_health(self) -> None:
+        if self.geofence is not None:
+            self.geofence.on_gnss_health(self.gnss["sys"] is True and self.gnss["ekf"] is not False)
+
+    def _geofence_step(self, sol: NavSolution) -> None:
+        now = self.clock()
+        for spec in self.geofence.step(sol, self.pipeline.air_data(), now):
+            for o in self.commands.submit(spec, now):
+                self._command_outcome(o, now)
+        self._geofence_events()
+
+    def _command_outcome(self, outcome, now: float) -> None:
+        log.info("command outcome", extra={"fields": {"command": outcome.name, "status": outcome.status,
+                                                      "result": outcome.result_name, "tries": outcome.tries}})
+        if self.geofence is not None:
+            t = self.last_solution.time_fc_s if self.last_solution is not None else None
+            for spec in self.geofence.on_command_outcome(outcome, t):
+                for o in self.commands.submit(spec, now):
+                    self._command_outcome(o, now)
+            self._geofence_events()
+
+    def _geofence_events(self) -> None:
+        for ev in self.geofence.drain_events():
+            level = logging.WARNING if ev.severity in ("warning", "critical", "error", "alert", "emergency") \
+                else logging.INFO
+            log.log(level, ev.text, extra={"fields": {"event": ev.kind}})
+            self._send(statustext_message(ev.severity, ev.text))
+            if self.bus is not None:
+                self.bus.publish("events", ev.to_dict())
 
     def _event(self, kind: str, detail: str) -> None:
         severity = _EVENT_SEVERITY.get(kind, "info")

@@ -1,14 +1,25 @@
-"""The estimator wiring: typed samples in, NavSolution out. No sockets, no clocks.
+"""The estimator wiring: typed samples in, NavSolution out. No sockets, no clocks, no files.
 
 The daemon (service/daemon.py) and the offline replay feed the same Pipeline, so what a user
 replays is what flies. Each ``on_*`` method takes one decoded sample; ``on_imu`` returns the
 NavSolution for that sample (None while there is nothing to say).
 
-What runs now:
+Per IMU sample (sensor axes are rotated to body axes with the configured mount):
 - phases (service/phases.py): levelling and gyro bias at rest, launch detection;
-- attitude: the levelled attitude before launch, then coning-correct quaternion strapdown of the
-  bias-corrected gyros (estimators/strapdown.py) from the levelled start. Its yaw is arbitrary
-  (0 at launch) until a heading source exists, so ``heading_valid`` stays False.
+- roll/pitch: the polar-capable attitude filter (METHODS.md C, estimators/polar_attitude) once
+  it has levelled; before that the levelled attitude, then the coning-correct strapdown of the
+  bias-corrected gyros from the levelled start (estimators/strapdown);
+- heading sources, each with its sigma:
+    ``azimuth``        method A, the in-flight azimuth (estimators/azimuth), after launch;
+    ``synthetic_ahrs`` method B (estimators/synthetic_ahrs), variant b1 or b2 from the config;
+    ``heading_filter`` method C's heading filter (estimators/polar_heading), magnetometer;
+    ``fc``             the flight controller's own yaw while method B's reference health
+                       says the FC is trusted;
+- one heading from them by gated inverse-variance fusion with blended source changes
+  (service/heading_arbitration: the rule is in its docstring); it never jumps silently: every
+  source change is an event with the jump it absorbed.
+Magnetometer-based sources (B and C) form one correlation group: only the better one is fused,
+and neither while method A has a solution (A solves the magnetometer distortions, they do not).
 """
 from __future__ import annotations
 
@@ -18,15 +29,51 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimators.rotations import (dcm_from_quat, euler_from_quat, quat_conj, quat_from_euler,
-                                  quat_mul)
+from dataclasses import replace as dc_replace
+
+from estimators.azimuth import (AzimuthOutput, AzimuthParams, azimuth_apply_solve, azimuth_init,
+                                azimuth_launch, azimuth_prelaunch_step, azimuth_step)
+from estimators.geomag import EarthField, earth_field, field_from_vector
 from estimators.levelling import LevellingParams
+from estimators.mag_error_kf import Kf1State
+from estimators.polar_attitude import (PolarAttitudeParams, polar_attitude_estimate,
+                                       polar_attitude_init, polar_attitude_step)
+from estimators.polar_heading import (HeadingInputs, PolarHeadingParams, polar_heading_estimate,
+                                      polar_heading_init, polar_heading_step,
+                                      vertical_rate_sigma_for_site)
+from estimators.rotations import (dcm_from_quat, euler_from_quat, quat_conj, quat_from_euler,
+                                  quat_mul, wrap_2pi)
 from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init, strapdown_step
-from mavlink_io.samples import FcAttitude, ImuSample, PressureSample
+from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent, HeadingEvent, ImuEvent,
+                                       SyntheticAhrsOutput, SyntheticAhrsParams, synthetic_ahrs_init,
+                                       synthetic_ahrs_output, synthetic_ahrs_step)
+from mavlink_io.samples import FcAttitude, FcEkfStatus, FcHeartbeat, ImuSample, PressureSample
+from service.heading_arbitration import (ArbitrationParams, ArbitrationState, SourceReading,
+                                         arbitrate)
 from service.phases import IN_FLIGHT, LAUNCH, PRE_LAUNCH, PhaseParams, PhaseState, phase_step
 from service.solution import NavSolution
 
 log = logging.getLogger("azimuthd.pipeline")
+
+MAG_GROUP = "magnetometer"
+"""Sources that share the magnetometer's errors (B and C): fused as one."""
+
+
+def decimal_year_now() -> float:
+    import datetime as dt
+    now = dt.datetime.now(dt.timezone.utc)
+    start = dt.datetime(now.year, 1, 1, tzinfo=dt.timezone.utc)
+    end = dt.datetime(now.year + 1, 1, 1, tzinfo=dt.timezone.utc)
+    return now.year + (now - start) / (end - start)
+
+
+def site_field(cfg: dict) -> EarthField:
+    """The Earth field for the flight area: configured vector, else the WMM at the site and date."""
+    site = cfg["site"]
+    if site["earth_field_ned_gauss"] is not None:
+        return field_from_vector(np.array(site["earth_field_ned_gauss"], float))
+    year = site["decimal_year"] if site["decimal_year"] is not None else decimal_year_now()
+    return earth_field(site["lat_deg"], site["lon_deg"], site["alt_m"], year)
 
 
 @dataclass
@@ -46,10 +93,12 @@ class PipelineCounters:
 class Pipeline:
     """Holds the estimator states; every update is a pure step on them."""
 
-    def __init__(self, cfg: dict):
+    def __init__(self, cfg: dict, kf1_learn: Kf1State | None = None, kf1_applied: Kf1State | None = None,
+                 solver=None):
+        """``solver``: where method A's re-solves run (service/solver.py); None = inline, inside
+        ``on_imu`` (deterministic: replay and tests)."""
         self.cfg = cfg
-        imu = cfg["imu"]
-        launch = cfg["launch"]
+        imu, launch, heading = cfg["imu"], cfg["launch"], cfg["heading"]
         self.gyro_bias_sigma_rad_s = math.radians(imu["gyro_bias_sigma_deg_s"])
         self.phase_params = PhaseParams(still_seconds=imu["still_seconds"],
                                         levelling=LevellingParams(accel_bias_sigma_m_s2=imu["accel_bias_sigma_m_s2"]),
@@ -62,6 +111,54 @@ class Pipeline:
                                                   math.radians(imu["mount_pitch_deg"]),
                                                   math.radians(imu["mount_yaw_deg"]))
         self.q_sensor_from_body = quat_conj(self.q_body_from_sensor)
+        self.C_body_from_sensor = dcm_from_quat(self.q_body_from_sensor)
+
+        # the Earth field and its declination for every magnetic method
+        self.field = site_field(cfg)
+        dec_sigma = self.field.declination_sigma_rad
+        self.declination_sigma_rad = dec_sigma if math.isfinite(dec_sigma) else 0.0
+
+        # method A
+        self.azimuth_params = AzimuthParams(
+            e_ned_gauss=self.field.e_ned_gauss, launch_case=launch["case"],
+            distortion_model=cfg["azimuth"]["distortion_model"], C_body_from_sensor=self.C_body_from_sensor,
+            levelling=self.phase_params.levelling, strapdown=self.strapdown_params,
+            gyro_bias_sigma_rad_s=self.gyro_bias_sigma_rad_s, field_model_sigma_rad=self.declination_sigma_rad)
+        # the step never solves by itself: on_imu hands snapshots to the solver on this schedule
+        self.solve_period_s = (self.azimuth_params.resolve_period_s, self.azimuth_params.resolve_period_unsolved_s)
+        self.azimuth_params = dc_replace(self.azimuth_params, resolve_period_s=math.inf,
+                                         resolve_period_unsolved_s=math.inf)
+        from service.solver import InlineSolver
+        self.solver = solver if solver is not None else InlineSolver()
+        self._next_solve_s = -math.inf
+        self.azimuth = azimuth_init(self.azimuth_params)
+        self.azimuth_out: AzimuthOutput | None = None
+        self._azimuth_status = ""
+
+        # method B
+        self.ahrs_params = SyntheticAhrsParams(variant=cfg["ahrs"]["variant"],
+                                               C_body_from_sensor=self.C_body_from_sensor,
+                                               field_nav_gauss=self.field.e_ned_gauss)
+        self.ahrs = synthetic_ahrs_init(self.ahrs_params, kf1_learn=kf1_learn, kf1_applied=kf1_applied)
+        self.ahrs_out: SyntheticAhrsOutput | None = None
+        self._ahrs_trusted: bool | None = None
+
+        # method C
+        self.polar_att_params = PolarAttitudeParams()
+        self.polar_att = polar_attitude_init(self.polar_att_params)
+        lat = cfg["site"]["lat_deg"]
+        vr_sigma = (vertical_rate_sigma_for_site(math.radians(lat), heading["cruise_speed_m_s"])
+                    if lat is not None else PolarHeadingParams().vertical_rate_sigma_rad_s)
+        self.polar_hdg_params = PolarHeadingParams(min_horizontal_field_gauss=heading["min_horizontal_field_gauss"],
+                                                   vertical_rate_sigma_rad_s=vr_sigma)
+        self.polar_hdg = polar_heading_init(params=self.polar_hdg_params)
+        self._hdg_available: bool | None = None
+
+        # arbitration
+        self.arb_params = ArbitrationParams()
+        self.arb = ArbitrationState()
+        self.use_fc_heading = heading["use_fc_when_trusted"]
+
         self.phase = PhaseState()
         self.strapdown: StrapdownState | None = None
         self.gyro_bias_rad_s = np.zeros(3)
@@ -74,38 +171,67 @@ class Pipeline:
     # --- inputs -------------------------------------------------------------------------------
 
     def on_imu(self, s: ImuSample) -> NavSolution | None:
-        if not (np.all(np.isfinite(s.gyro_rad_s)) and np.all(np.isfinite(s.accel_m_s2))
-                and math.isfinite(s.time_fc_s)):
+        gyro_s, accel_s, t = s.gyro_rad_s, s.accel_m_s2, s.time_fc_s
+        if not (np.all(np.isfinite(gyro_s)) and np.all(np.isfinite(accel_s)) and math.isfinite(t)):
             self.counters.reject("non-finite IMU sample")
             return None
-        if self.last_time_fc_s is not None and s.time_fc_s <= self.last_time_fc_s:
+        if self.last_time_fc_s is not None and t <= self.last_time_fc_s:
             self.counters.reject("IMU time not increasing")
             return None
-        self.last_time_fc_s = s.time_fc_s
+        mag_s = s.mag_gauss if s.mag_gauss is not None and np.all(np.isfinite(s.mag_gauss)) else None
+        self.last_time_fc_s = t
         self.counters.imu_samples += 1
 
         prev_phase = self.phase.phase
-        self.phase, events = phase_step(self.phase, s.gyro_rad_s, s.accel_m_s2, s.time_fc_s,
-                                        self.phase_params)
+        self.phase, events = phase_step(self.phase, gyro_s, accel_s, t, self.phase_params)
         for ev in events:
             self._event(*ev)
+        self._step_azimuth(prev_phase, gyro_s, accel_s, mag_s, t)
         if prev_phase == PRE_LAUNCH and self.phase.phase == LAUNCH:
             self._start_flight(s)
         elif self.phase.phase in (LAUNCH, IN_FLIGHT) and self.strapdown is not None:
-            self.strapdown, diag = strapdown_step(self.strapdown, s.gyro_rad_s - self.gyro_bias_rad_s,
-                                                  s.time_fc_s, self.strapdown_params)
-            if not diag.integrated and diag.reason not in ("first sample",):
+            self.strapdown, diag = strapdown_step(self.strapdown, gyro_s - self.gyro_bias_rad_s, t,
+                                                  self.strapdown_params)
+            if not diag.integrated and diag.reason != "first sample":
                 self.counters.strapdown_gaps += 1
                 self._event("strapdown", diag.reason)
-        return self._solution(s)
+
+        C = self.C_body_from_sensor
+        gyro_b, accel_b = C @ gyro_s, C @ accel_s
+        mag_b = C @ mag_s if mag_s is not None else None
+        self.polar_att, _ = polar_attitude_step(self.polar_att, t, gyro_b, accel_b, self.polar_att_params)
+        att = polar_attitude_estimate(self.polar_att)
+        if att is not None:
+            self.polar_hdg, hdiag = polar_heading_step(
+                self.polar_hdg, HeadingInputs(t, gyro_b, att.roll_rad, att.pitch_rad, att.cov_roll_pitch_rad2,
+                                              mag_b, self.field.declination_rad, self.declination_sigma_rad),
+                self.polar_hdg_params)
+            if hdiag.measured and hdiag.source_available != self._hdg_available:
+                self._hdg_available = hdiag.source_available
+                self._event("heading_filter", "magnetometer heading available" if hdiag.source_available
+                            else f"magnetometer heading unavailable: {hdiag.reason}")
+        self._step_ahrs(ImuEvent(t, gyro_s, mag_s))
+        return self._solution(s, att)
 
     def on_pressure(self, s: PressureSample) -> None:
         self.pressure = s
         self.counters.pressure_samples += 1
+        if math.isfinite(s.press_abs_pa):
+            self._step_ahrs(AirEvent(s.time_fc_s, s.press_abs_pa, s.press_diff_pa, s.temperature_k))
 
     def on_fc_attitude(self, a: FcAttitude) -> None:
         self.fc_attitude = a
         self.counters.fc_attitude_samples += 1
+        self._step_ahrs(FcAttitudeEvent(a.time_fc_s, np.array([a.roll_rad, a.pitch_rad, a.yaw_rad])))
+
+    def on_fc_heartbeat(self, hb: FcHeartbeat) -> None:
+        if self.last_time_fc_s is not None:
+            self._step_ahrs(FcStatusEvent(self.last_time_fc_s, system_status=hb.system_status))
+
+    def on_fc_ekf_status(self, st: FcEkfStatus) -> None:
+        if self.last_time_fc_s is not None:
+            self._step_ahrs(FcStatusEvent(self.last_time_fc_s, attitude_ok=st.attitude_ok,
+                                          horiz_pos_ok=st.horiz_pos_ok))
 
     def on_fc_reboot(self) -> None:
         """The FC clock restarted: keep the attitude, restart the time bookkeeping."""
@@ -113,6 +239,14 @@ class Pipeline:
         if self.strapdown is not None:
             self.strapdown = StrapdownState(self.strapdown.q_ref_from_sensor)
         self._event("fc_reboot", "FC time restarted; integration resumes at the next sample")
+
+    def air_data(self):
+        """The latest air data (estimators.air_data.AirData) from method B's air-data step, or None."""
+        return self.ahrs.air_last
+
+    def kf1_estimate(self) -> Kf1State | None:
+        """This flight's magnetometer-error estimate (method B, KF1), for the calibration store."""
+        return self.ahrs.kf1_learn
 
     def drain_events(self) -> list[tuple[str, str]]:
         ev, self.events = self.events, []
@@ -123,44 +257,120 @@ class Pipeline:
     def _event(self, kind: str, detail: str) -> None:
         self.events.append((kind, detail))
 
+    def _step_ahrs(self, event) -> None:
+        try:
+            self.ahrs, out = synthetic_ahrs_step(self.ahrs, event, self.ahrs_params, isinstance(event, ImuEvent))
+        except ValueError as exc:  # a sample the estimator refuses is dropped with its reason
+            self.counters.reject(f"synthetic AHRS: {exc}")
+            return
+        if out is not None:
+            self.ahrs_out = out
+            if out.reference_trusted != self._ahrs_trusted:
+                self._ahrs_trusted = out.reference_trusted
+                self._event("reference", ("FC attitude trusted: " if out.reference_trusted
+                                          else "FC attitude NOT trusted: ") + out.reference_reason)
+
+    def _step_azimuth(self, prev_phase: str, gyro_s, accel_s, mag_s, t: float) -> None:
+        if self.phase.phase == PRE_LAUNCH:
+            self.azimuth = azimuth_prelaunch_step(self.azimuth, gyro_s, accel_s, t)
+        elif prev_phase == PRE_LAUNCH:  # launch detected on this sample
+            self.azimuth = azimuth_prelaunch_step(self.azimuth, gyro_s, accel_s, t)
+            self.azimuth, why = azimuth_launch(self.azimuth, self.phase.launch_time_s)
+            if why:
+                self._event("azimuth", why)
+        elif self.azimuth.phase != "prelaunch":
+            self.azimuth, out = azimuth_step(self.azimuth, gyro_s, accel_s, mag_s, t)
+            result = self.solver.poll()
+            if result is not None:
+                self.azimuth = azimuth_apply_solve(self.azimuth, result)
+            if t >= self._next_solve_s and self.azimuth.phase == "flight" and self.azimuth.samples \
+                    and self.solver.submit(self.azimuth, t):
+                # the result (at once from an inline solver) applies from the next sample on
+                self._next_solve_s = t + self.solve_period_s[0 if self.azimuth.solution is not None else 1]
+            if out.status != self._azimuth_status:  # one event per status change, the reason with it
+                self._event("azimuth", f"{out.status}: {out.reason}" if out.reason else out.status)
+            self._azimuth_status = out.status
+            self.azimuth_out = out
+
     def _start_flight(self, s: ImuSample) -> None:
         level = self.phase.level
         self.gyro_bias_rad_s = level.gyro_bias_rad_s.copy()
         # yaw unknown at launch: 0 until a heading source exists
-        q_nav_from_sensor = quat_from_euler(level.roll_rad, level.pitch_rad, 0.0)
-        self.strapdown = strapdown_init(q_nav_from_sensor)
+        self.strapdown = strapdown_init(quat_from_euler(level.roll_rad, level.pitch_rad, 0.0))
         self.strapdown, _ = strapdown_step(self.strapdown, s.gyro_rad_s - self.gyro_bias_rad_s,
                                            s.time_fc_s, self.strapdown_params)
 
-    def _q_nav_from_sensor(self) -> np.ndarray | None:
-        if self.strapdown is not None:
-            return self.strapdown.q_ref_from_sensor
-        level = self.phase.level
-        if level is not None:
-            return quat_from_euler(level.roll_rad, level.pitch_rad, 0.0)
-        return None
-
     def _tilt_sigma_rad(self, time_s: float) -> float | None:
-        """1-sigma roll/pitch: levelling error, then growing with the residual gyro bias.
-
-        The bias left after levelling is ``imu.gyro_bias_sigma_deg_s`` (the turn-on bias is gone,
-        in-run drift and Earth rate are not); its tilt error grows linearly with time since launch.
-        """
+        """1-sigma roll/pitch of the levelled + strapdown attitude: levelling error, then growing
+        linearly with the residual gyro bias ``imu.gyro_bias_sigma_deg_s`` after launch."""
         level = self.phase.level
         if level is None:
             return None
-        sigma0 = level.roll_sigma_rad
         if self.phase.launch_time_s is None:
-            return sigma0
-        return math.hypot(sigma0, self.gyro_bias_sigma_rad_s * (time_s - self.phase.launch_time_s))
+            return level.roll_sigma_rad
+        return math.hypot(level.roll_sigma_rad, self.gyro_bias_sigma_rad_s * (time_s - self.phase.launch_time_s))
 
-    def _solution(self, s: ImuSample) -> NavSolution:
-        q_ns = self._q_nav_from_sensor()
-        rates_body = dcm_from_quat(self.q_body_from_sensor) @ (s.gyro_rad_s - self.gyro_bias_rad_s)
-        if q_ns is None:
-            return NavSolution(s.time_fc_s, s.time_rx_s, self.phase.phase, None, None, None, rates_body)
-        q_nb = quat_mul(q_ns, self.q_sensor_from_body)
-        roll, pitch, _ = euler_from_quat(q_nb)
-        sigma = self._tilt_sigma_rad(s.time_fc_s)
-        return NavSolution(s.time_fc_s, s.time_rx_s, self.phase.phase, q_nb, roll, pitch, rates_body,
-                           roll_sigma_rad=sigma, pitch_sigma_rad=sigma)
+    def _readings(self, t: float) -> list[SourceReading]:
+        out = []
+        az = self.azimuth_out
+        if az is not None and az.valid:
+            out.append(SourceReading("azimuth", az.heading_rad, az.heading_sigma_rad, True, t))
+        b = self.ahrs_out
+        # While method A has a solution, the magnetometer sources that do not model the
+        # distortions (B's KF1 only from older flights, C not at all) are not fused: A solves the
+        # distortions with psi_s, and a biased magnetometer heading would drag the fusion.
+        mag_sources = not (az is not None and az.valid)
+        if mag_sources and b is not None and b.valid and math.isfinite(b.heading_rad):
+            out.append(SourceReading("synthetic_ahrs", b.heading_rad, b.heading_sigma_rad, True, t, MAG_GROUP))
+        h = polar_heading_estimate(self.polar_hdg)
+        if mag_sources and h.initialised and math.isfinite(h.heading_rad):
+            out.append(SourceReading("heading_filter", h.heading_rad, math.sqrt(h.variance_rad2), True, t, MAG_GROUP))
+        fc = self.fc_attitude
+        if (self.use_fc_heading and fc is not None and b is not None and b.reference_trusted
+                and abs(t - fc.time_fc_s) < self.arb_params.max_age_s):
+            out.append(SourceReading("fc", wrap_2pi(fc.yaw_rad), self.ahrs_params.fc_sigma_yaw_rad, True,
+                                     fc.time_fc_s))
+        return out
+
+    def _solution(self, s: ImuSample, att) -> NavSolution:
+        t = s.time_fc_s
+        rates_body = self.C_body_from_sensor @ (s.gyro_rad_s - self.gyro_bias_rad_s)
+        # roll/pitch: the attitude filter once levelled, else the levelled/strapdown attitude
+        if att is not None:
+            roll, pitch = att.roll_rad, att.pitch_rad
+            roll_sigma = math.sqrt(max(att.cov_roll_pitch_rad2[0, 0], 0.0))
+            pitch_sigma = math.sqrt(max(att.cov_roll_pitch_rad2[1, 1], 0.0))
+        else:
+            q_ns = self.strapdown.q_ref_from_sensor if self.strapdown is not None else (
+                quat_from_euler(self.phase.level.roll_rad, self.phase.level.pitch_rad, 0.0)
+                if self.phase.level is not None else None)
+            if q_ns is None:
+                return NavSolution(t, s.time_rx_s, self.phase.phase, None, None, None, rates_body)
+            roll, pitch, _ = euler_from_quat(quat_mul(q_ns, self.q_sensor_from_body))
+            roll_sigma = pitch_sigma = self._tilt_sigma_rad(t)
+
+        heading_rate = None
+        if abs(math.cos(pitch)) > 1e-3:  # psi_dot = (q sin(phi) + r cos(phi)) / cos(theta)
+            heading_rate = (rates_body[1] * math.sin(roll) + rates_body[2] * math.cos(roll)) / math.cos(pitch)
+        self.arb, arb_out = arbitrate(self.arb, self._readings(t), t, self.arb_params, heading_rate)
+        for ev in arb_out.events:
+            self._event("heading_" + ev.kind, ev.message)
+
+        flags = {}
+        az = self.azimuth_out
+        if az is not None:
+            flags["azimuth"] = f"{az.status}: {az.reason}" if az.reason else az.status
+        if self.ahrs_out is not None:
+            flags["fc_reference"] = "trusted" if self.ahrs_out.reference_trusted else self.ahrs_out.reference_reason
+        if self._hdg_available is False:
+            flags["magnetometer_heading"] = "unavailable (horizontal field too weak)"
+        valid = arb_out.valid and arb_out.heading_rad is not None
+        heading = arb_out.heading_rad if valid else None
+        q_nb = quat_from_euler(roll, pitch, heading if valid else 0.0)
+        return NavSolution(t, s.time_rx_s, self.phase.phase, q_nb, roll, pitch, rates_body,
+                           roll_sigma_rad=roll_sigma, pitch_sigma_rad=pitch_sigma,
+                           heading_rad=heading, heading_sigma_rad=arb_out.sigma_rad if valid else None,
+                           heading_source=arb_out.source if valid else "none", heading_valid=valid,
+                           azimuth_rad=az.azimuth_rad if az is not None and az.valid else None,
+                           azimuth_sigma_rad=az.azimuth_sigma_rad if az is not None and az.valid else None,
+                           flags=flags)

@@ -1,0 +1,92 @@
+"""Where the heavy least-squares re-solves of method A run.
+
+The per-sample path must stay cheap: a re-solve of psi_s with distortions over ~1000
+magnetometer samples costs tens to hundreds of milliseconds, which would stall the MAVLink loop
+(every IMU sample behind it waits). ``BackgroundSolver`` runs the pure ``azimuth_solve`` on a
+snapshot of the state in one worker process; the result is merged into the then-current state
+(``azimuth_apply_solve``) when it is ready. ``InlineSolver`` runs it at once, for replay and
+tests, where the result must not depend on timing.
+"""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import multiprocessing
+
+log = logging.getLogger("azimuthd.solver")
+
+
+def _solve_job(state, time_s):
+    from estimators.azimuth import azimuth_solve, azimuth_solve_result
+    return azimuth_solve_result(azimuth_solve(state, time_s))
+
+
+class InlineSolver:
+    """Solves at once; ``poll`` returns the result at the next call."""
+    background = False
+
+    def __init__(self):
+        self._result = None
+
+    def busy(self) -> bool:
+        return False
+
+    def submit(self, state, time_s: float) -> bool:
+        self._result = _solve_job(state, time_s)
+        return True
+
+    def poll(self):
+        r, self._result = self._result, None
+        return r
+
+    def close(self) -> None:
+        pass
+
+
+class BackgroundSolver:
+    """One worker process; at most one solve in flight (a newer snapshot waits for it)."""
+    background = True
+
+    def __init__(self):
+        # forkserver: the worker does not inherit the daemon's sockets and threads (zenoh)
+        ctx = multiprocessing.get_context("forkserver")
+        self._pool = cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx)
+        self._future: cf.Future | None = None
+        self.failures = 0
+
+    def busy(self) -> bool:
+        return self._future is not None and not self._future.done()
+
+    def submit(self, state, time_s: float) -> bool:
+        if self.busy():
+            return False
+        try:
+            self._future = self._pool.submit(_solve_job, state, time_s)
+        except (RuntimeError, cf.process.BrokenProcessPool) as exc:
+            self._restart(exc)
+            return False
+        return True
+
+    def poll(self):
+        f = self._future
+        if f is None or not f.done():
+            return None
+        self._future = None
+        try:
+            return f.result()
+        except cf.process.BrokenProcessPool as exc:
+            self._restart(exc)
+        except Exception as exc:  # the solve itself failed: report it, keep flying on the last solution
+            self.failures += 1
+            log.error("azimuth solve failed", extra={"fields": {"error": repr(exc)}})
+        return None
+
+    def _restart(self, exc: BaseException) -> None:
+        self.failures += 1
+        log.error("azimuth solver process died; restarting it", extra={"fields": {"error": repr(exc)}})
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        self._pool = cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver"))
+        self._future = None
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=False, cancel_futures=True)
