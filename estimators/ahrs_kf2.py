@@ -287,6 +287,48 @@ def kf2_update_mag(state: Kf2State, mag_body_gauss: np.ndarray, field_nav_gauss:
     return _upd(new, n_mag_rejected=new.n_mag_rejected + 1), diag
 
 
+def kf2_update_mag_heading(state: Kf2State, mag_body_gauss: np.ndarray, field_nav_gauss: np.ndarray,
+                           params: Kf2Params = Kf2Params()) -> tuple[Kf2State, Kf2Diag]:
+    """Magnetometer as a heading-only measurement (an alternative to eq. 21, as x-io Fusion does):
+    the field, less beta_hat, is levelled with our roll/pitch, m_h = (C_hat m)_{N,E}, and
+
+        z = atan2(B_E, B_N) - atan2(m_h,E, m_h,N)  (= the heading error for a correct tilt)
+
+    H = [T row 3 (d psi / d gamma), 0, d z / d dbeta]; d z / d dbeta = -(x C_1 - y C_0) / r^2 with
+    (x, y) = m_h and C_i the rows of C_hat (d atan2(y, x) = (x dy - y dx) / r^2, d m_h = C dbeta).
+    The magnetometer then cannot pull roll/pitch: with a residual calibration error its tilt
+    information is biased, and roll/pitch come from the air data and the gyros alone.
+    R: mag_sigma / (|B_h| / |B|) (rad)."""
+    m = np.asarray(mag_body_gauss, dtype=float)
+    Bn = np.asarray(field_nav_gauss, dtype=float)
+    if m.shape != (3,) or not np.all(np.isfinite(m)) or not np.all(np.isfinite(Bn)):
+        return state, Kf2Diag(False, "non-finite magnetometer sample")
+    norm = float(np.linalg.norm(Bn))
+    bh = math.hypot(Bn[0], Bn[1]) / norm
+    if not bh > 0.05:
+        return state, Kf2Diag(False, "horizontal field too weak for a heading")
+    m_n = m / norm
+    if abs(float(np.linalg.norm(m_n)) - 1.0) > params.mag_norm_tolerance:
+        return (replace(state, n_mag_rejected=state.n_mag_rejected + 1),
+                Kf2Diag(False, "magnetic disturbance (field magnitude)"))
+    if state.omega_prev_rad_s is not None and float(np.linalg.norm(state.omega_prev_rad_s)) > params.max_mag_rate_rad_s:
+        return (replace(state, n_mag_rejected=state.n_mag_rejected + 1), Kf2Diag(False, "rate gate"))
+    C = dcm_from_quat(state.q_nav_from_body)
+    roll, pitch, _ = euler_from_dcm(C)
+    mh = C @ (m_n - state.mag_bias)
+    x, y = float(mh[0]), float(mh[1])
+    r2 = x * x + y * y
+    z = np.array([wrap_pi(math.atan2(Bn[1], Bn[0]) - math.atan2(y, x))])
+    H = np.zeros((1, N))
+    H[0, 0:3] = euler_rate_matrix(roll, pitch)[2, :]
+    H[0, 6:9] = -(x * C[1, :] - y * C[0, :]) / r2
+    R = np.array([[(params.mag_sigma / bh) ** 2]])
+    new, diag = _update(state, z, H, R, params.mag_gate_sigma, params)
+    if diag.fused:
+        return replace(new, n_mag_fused=new.n_mag_fused + 1), diag
+    return replace(new, n_mag_rejected=new.n_mag_rejected + 1), diag
+
+
 def kf2_update_air(state: Kf2State, roll_ref_rad: float, pitch_ref_rad: float,
                    sigma_roll_ref_rad: float, sigma_pitch_ref_rad: float, turn_gain_s: float,
                    params: Kf2Params = Kf2Params()) -> tuple[Kf2State, Kf2Diag]:

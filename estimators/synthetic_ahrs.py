@@ -42,7 +42,8 @@ import numpy as np
 from estimators.ahrs_b1 import (B1Params, B1State, b1_air_step, b1_heading_step, b1_imu_step,
                                 b1_init, b1_output, b1_reference_step)
 from estimators.ahrs_kf2 import (Kf2Params, Kf2State, kf2_euler_and_cov, kf2_init, kf2_predict,
-                                 kf2_update_air, kf2_update_mag, kf2_update_reference)
+                                 kf2_update_air, kf2_update_mag, kf2_update_mag_heading,
+                                 kf2_update_reference)
 from estimators.air_data import AirData, AirDataParams, AirDataState, air_data_step
 from estimators.euler_kinematics import euler_rates
 from estimators.geomag import earth_field_ned_gauss
@@ -120,6 +121,9 @@ def _as_tuple33(m) -> tuple:
 class SyntheticAhrsParams:
     variant: str = "b2"
     """"b1" (heading from another source) or "b2" (heading computed)."""
+    mag_mode: str = "vector"
+    """b2 magnetometer update: "vector" (the seed's three components, eq. 21: also corrects
+    roll/pitch) or "heading" (levelled heading only; roll/pitch from air data and gyros)."""
     C_body_from_sensor: tuple = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
     """IMU mount (3x3, rows); applied here to gyro and magnetometer."""
     field_nav_gauss: tuple | None = None
@@ -162,6 +166,8 @@ class SyntheticAhrsParams:
     def __post_init__(self):
         if self.variant not in VARIANTS:
             raise ValueError(f"variant must be one of {VARIANTS}, got {self.variant!r}")
+        if self.mag_mode not in ("vector", "heading"):
+            raise ValueError(f"mag_mode must be 'vector' or 'heading', got {self.mag_mode!r}")
         object.__setattr__(self, "C_body_from_sensor", _as_tuple33(self.C_body_from_sensor))
         if self.field_nav_gauss is not None:
             f = np.asarray(self.field_nav_gauss, dtype=float)
@@ -431,7 +437,8 @@ def _on_imu(state: SyntheticAhrsState, ev: ImuEvent, params: SyntheticAhrsParams
         m = mag_b
         if state.kf1_applied is not None and state.kf1_applied.field_norm_gauss is not None:
             m = kf1_correct_mag(state.kf1_applied, mag_b)
-        kf2, _ = kf2_update_mag(state.kf2, m, Bn, params.kf2)
+        update = kf2_update_mag if params.mag_mode == "vector" else kf2_update_mag_heading
+        kf2, _ = update(state.kf2, m, Bn, params.kf2)
         state = _upd(state, kf2=kf2, last_mag_update_s=t)
     return state
 

@@ -314,3 +314,33 @@ def test_wrapper_equals_pure_step(sim_run):
     st_b, r_b = _run_b2(sim_run, signalled=True, start_s=280.0, wrapper=True)
     assert np.array_equal(r_a, r_b, equal_nan=True)
     assert np.array_equal(st_a.kf2.P, st_b.kf2.P)
+
+
+def test_kf2_heading_only_mag_measurement_model():
+    """z = heading error for a correct tilt; H_beta matches a finite difference; tilt untouched."""
+    from estimators.ahrs_kf2 import kf2_update_mag_heading
+    params = Kf2Params()
+    e_true = (D(10.0), D(-5.0), D(120.0))
+    m_body = dcm_from_euler(*e_true).T @ FIELD
+    st = kf2_init(quat_from_euler(D(10.0), D(-5.0), D(123.0)), params, sigma_tilt_rad=D(1),
+                  sigma_heading_rad=D(10))
+    st2, d = kf2_update_mag_heading(st, m_body, FIELD, params)
+    assert d.fused and d.innovation[0] == pytest.approx(D(-3.0), abs=1e-9)
+    e2, _ = kf2_euler_and_cov(st2)
+    assert abs(math.degrees(e2[2]) - 120.0) < abs(123.0 - 120.0) * 0.5
+    # roll/pitch move only through their prior correlation with heading (none here): < 0.01 deg
+    assert abs(math.degrees(e2[0]) - 10.0) < 0.01 and abs(math.degrees(e2[1]) + 5.0) < 0.01
+    # the beta column: z(beta + h e_i) - z(beta) over h against -(x C1 - y C0) / r^2
+    C = dcm_from_quat(st.q_nav_from_body)
+    norm = np.linalg.norm(FIELD)
+
+    def z_of(beta):
+        mh = C @ (m_body / norm - beta)
+        return math.atan2(FIELD[1], FIELD[0]) - math.atan2(mh[1], mh[0])
+    mh = C @ (m_body / norm)
+    x, y = mh[0], mh[1]
+    H_beta = -(x * C[1, :] - y * C[0, :]) / (x * x + y * y)
+    h = 1e-7
+    # measured m = C^T B + beta_hat + dbeta: a true dbeta adds +dbeta to m, i.e. -dbeta to beta_hat
+    num = np.array([(z_of(-h * np.eye(3)[i]) - z_of(np.zeros(3))) / h for i in range(3)])
+    assert np.allclose(num, H_beta, atol=1e-5)
