@@ -25,6 +25,11 @@ Variants (``params.variant``):
   gyro-only increments since) (a silently failing reference may have
   pulled it during the detection delay).
 
+``params.mag_mode`` = "heading" replaces the seed's three-component magnetometer update by a
+levelled heading-only one (the magnetometer then cannot pull roll/pitch; see
+ahrs_kf2.kf2_update_mag_heading). On the 10-flight check it gave the same RMS with a smaller
+worst case; "vector" (the seed) stays the default.
+
 Reference health: reference_health (signalled status + agreement of the FC attitude with our
 gyro-only attitude, which is integrated here with the current bias estimate and never reset).
 
