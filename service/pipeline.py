@@ -55,6 +55,9 @@ from service.solution import NavSolution
 
 log = logging.getLogger("azimuthd.pipeline")
 
+B1_HEADING_PERIOD_S = 0.1
+"""How often variant B1 is handed the heading of the other sources (s)."""
+
 MAG_GROUP = "magnetometer"
 """Sources that share the magnetometer's errors (B and C): fused as one."""
 
@@ -158,6 +161,11 @@ class Pipeline:
         self.arb_params = ArbitrationParams()
         self.arb = ArbitrationState()
         self.use_fc_heading = heading["use_fc_when_trusted"]
+        self._b1_heading_s = -math.inf
+
+        self.filter_period_s = 1.0 / cfg["heading"]["filter_rate_hz"]
+        self._filter_time_s = -math.inf
+        self._acc_gyro, self._acc_accel, self._acc_n, self._acc_mag = np.zeros(3), np.zeros(3), 0, None
 
         self.phase = PhaseState()
         self.strapdown: StrapdownState | None = None
@@ -196,6 +204,24 @@ class Pipeline:
                 self.counters.strapdown_gaps += 1
                 self._event("strapdown", diag.reason)
 
+        # The filters (B, C, arbitration) run at filter_rate_hz on the mean rate and specific
+        # force of the samples since their last step: the mean rate times the interval is the
+        # exact angle increment (only the coning within the interval is lost, well below the
+        # gyro noise at 50 Hz for an airframe's motion). Method A and the phases above keep the
+        # full IMU rate.
+        self._acc_gyro += gyro_s
+        self._acc_accel += accel_s
+        self._acc_n += 1
+        if mag_s is not None:
+            self._acc_mag = mag_s
+        if t - self._filter_time_s < self.filter_period_s - 1e-6:
+            return None
+        gyro_s = self._acc_gyro / self._acc_n
+        accel_s = self._acc_accel / self._acc_n
+        mag_s = self._acc_mag
+        self._acc_gyro, self._acc_accel, self._acc_n, self._acc_mag = np.zeros(3), np.zeros(3), 0, None
+        self._filter_time_s = t
+
         C = self.C_body_from_sensor
         gyro_b, accel_b = C @ gyro_s, C @ accel_s
         mag_b = C @ mag_s if mag_s is not None else None
@@ -211,7 +237,7 @@ class Pipeline:
                 self._event("heading_filter", "magnetometer heading available" if hdiag.source_available
                             else f"magnetometer heading unavailable: {hdiag.reason}")
         self._step_ahrs(ImuEvent(t, gyro_s, mag_s))
-        return self._solution(s, att)
+        return self._solution(s, gyro_s, att)
 
     def on_pressure(self, s: PressureSample) -> None:
         self.pressure = s
@@ -332,9 +358,20 @@ class Pipeline:
                                      fc.time_fc_s))
         return out
 
-    def _solution(self, s: ImuSample, att) -> NavSolution:
+    def _feed_b1_heading(self, readings: list[SourceReading], t: float) -> None:
+        """Variant B1 takes its heading from another source (METHODS.md B1): the most certain
+        reading that is not B itself, at most every ``B1_HEADING_PERIOD_S``."""
+        if t - self._b1_heading_s < B1_HEADING_PERIOD_S:
+            return
+        others = [r for r in readings if r.name != "synthetic_ahrs"]
+        if others:
+            best = min(others, key=lambda r: r.sigma_rad)
+            self._b1_heading_s = t
+            self._step_ahrs(HeadingEvent(t, best.heading_rad, best.sigma_rad))
+
+    def _solution(self, s: ImuSample, gyro_sensor_rad_s: np.ndarray, att) -> NavSolution:
         t = s.time_fc_s
-        rates_body = self.C_body_from_sensor @ (s.gyro_rad_s - self.gyro_bias_rad_s)
+        rates_body = self.C_body_from_sensor @ (gyro_sensor_rad_s - self.gyro_bias_rad_s)
         # roll/pitch: the attitude filter once levelled, else the levelled/strapdown attitude
         if att is not None:
             roll, pitch = att.roll_rad, att.pitch_rad
@@ -352,7 +389,10 @@ class Pipeline:
         heading_rate = None
         if abs(math.cos(pitch)) > 1e-3:  # psi_dot = (q sin(phi) + r cos(phi)) / cos(theta)
             heading_rate = (rates_body[1] * math.sin(roll) + rates_body[2] * math.cos(roll)) / math.cos(pitch)
-        self.arb, arb_out = arbitrate(self.arb, self._readings(t), t, self.arb_params, heading_rate)
+        readings = self._readings(t)
+        self.arb, arb_out = arbitrate(self.arb, readings, t, self.arb_params, heading_rate)
+        if self.ahrs_params.variant == "b1":
+            self._feed_b1_heading(readings, t)
         for ev in arb_out.events:
             self._event("heading_" + ev.kind, ev.message)
 
