@@ -164,7 +164,7 @@ class Pipeline:
         self._b1_heading_s = -math.inf
 
         self.filter_period_s = 1.0 / cfg["heading"]["filter_rate_hz"]
-        self._filter_time_s = -math.inf
+        self._filter_due_s = -math.inf
         self._acc_gyro, self._acc_accel, self._acc_n, self._acc_mag = np.zeros(3), np.zeros(3), 0, None
 
         self.phase = PhaseState()
@@ -214,13 +214,16 @@ class Pipeline:
         self._acc_n += 1
         if mag_s is not None:
             self._acc_mag = mag_s
-        if t - self._filter_time_s < self.filter_period_s - 1e-6:
+        if t < self._filter_due_s:
             return None
+        # slots advance by one period, so the mean rate is exact under timestamp jitter
+        self._filter_due_s += self.filter_period_s
+        if self._filter_due_s <= t:  # the first sample, or after a gap: restart the slots here
+            self._filter_due_s = t + self.filter_period_s
         gyro_s = self._acc_gyro / self._acc_n
         accel_s = self._acc_accel / self._acc_n
         mag_s = self._acc_mag
         self._acc_gyro, self._acc_accel, self._acc_n, self._acc_mag = np.zeros(3), np.zeros(3), 0, None
-        self._filter_time_s = t
 
         C = self.C_body_from_sensor
         gyro_b, accel_b = C @ gyro_s, C @ accel_s

@@ -64,11 +64,14 @@ def _ulog_reference(path: Path):
 
 
 @pytest.mark.parametrize("which", ["tlog_run", "bench_run", "vtol_run"])
-def test_csv_has_the_exact_header_and_a_row_per_imu_sample(which, request):
+def test_csv_has_the_exact_header_and_a_row_per_output_sample(which, request):
     rows, s, _ = request.getfixturevalue(which)
     assert rows[0] == CSV_COLUMNS
-    assert len(rows) - 1 == s["rows"] == s["imu_samples"] - s["imu_rejected"]
+    assert len(rows) - 1 == s["rows"]
+    # one row per NavSolution: at heading.filter_rate_hz (50 Hz), or per IMU sample when slower
     t = np.array([float(r[0]) for r in rows[1:]])
+    expected = min(s["imu_samples"] - s["imu_rejected"], (t[-1] - t[0]) * 50.0)
+    assert 0.9 * expected <= s["rows"] <= s["imu_samples"] - s["imu_rejected"]
     assert np.all(np.isfinite(t))
     for r in rows[1:]:
         assert r[1] in ("boot", "pre-launch", "launch", "in-flight")
@@ -146,7 +149,7 @@ def test_bench_log_missing_barometer_and_needs_site(bench_run, tmp_path, capsys)
     assert any(m.startswith("barometer: none") for m in s["missing_streams"])
     assert s["pressure_samples"] == 0 and s["imu_rate_hz"] == pytest.approx(248, rel=0.01)
     # the bench log levels before it is moved by hand: roll/pitch against the FC's EKF2
-    assert s["roll_compared_rows"] > 15000
+    assert s["roll_compared_rows"] > 3000  # of ~3300 rows at 50 Hz
     assert 0.0 < s["roll_rms_diff_deg"] < 10.0
     # without --site the log (no GNSS) cannot give the site: a clear error, exit code 2
     assert main([str(BENCH), "--no-progress"]) == 2
@@ -175,5 +178,5 @@ def test_vtol_log_streams_and_site(vtol_run):
     assert "vehicle_gps_position" in notes and "63.41" in notes and "WMM-2020" in notes
     assert "airspeed" in notes  # differential pressure at 1 Hz only: taken from airspeed
     # on the ground, still: levelling agrees with the FC's EKF2 to a fraction of a degree
-    assert s["roll_compared_rows"] > 800
+    assert s["roll_compared_rows"] > 200  # of ~260 rows at 50 Hz
     assert s["roll_rms_diff_deg"] < 0.3 and s["pitch_rms_diff_deg"] < 0.3
