@@ -15,23 +15,34 @@ a launch detected a few tens of ms late still starts the gyro propagation at the
 motion (``launch_direction.launch_detect_step`` returns that start time).
 
 In flight, per IMU sample:
- 1. C_ISF<-SF(t) by the coning-correct strapdown of bias-corrected rates (step 4), and
-    G(t) = int C_ISF<-SF dt (for the gyro-bias consider analysis, see azimuth_fit).
- 2. flight direction u_SF (step 3): vertical from gravity, inclined from the first
-    ``boost.window_s`` of boost, aligned from ``C_body_from_sensor``; cross-checked against the
-    mount-aligned direction (angle in the output) and against the configured launcher elevation.
+ 1. C_ISF<-SF(t) by the coning-correct strapdown of bias-corrected rates (step 4), and the
+    attitude-error sensitivity G(t) (3 x 12) to the gyro errors c_g = [bias change (3), scale and
+    misalignment matrix T (9)]: bias columns -int C_ISF<-SF dt, T columns int C[:, i] w_j dt.
+ 2. flight direction u_SF (step 3): vertical from gravity, inclined from the thrust phase of the
+    boost, aligned from ``C_body_from_sensor``; cross-checked against the mount-aligned direction
+    (angle in the output) and against the configured launcher elevation.
  3. magnetometer samples, decimated to ``mag_decimation_s`` and skipped for
-    ``mag_skip_after_launch_s`` (the launcher's own field), are kept with their attitude and weight
+    ``mag_skip_after_launch_s`` (the launcher's own field, the site distortion), are kept with
+    their attitude, G and the weight
        w_i = 1 / (sigma_h^2 + 2/3 |e|^2 (ARW^2 tau_i + sigma_bias^2 tau_i^2))   tau_i = t_i - t_L
     i.e. samples whose attitude carries more gyro drift count less (beyond the seed).
- 4. every ``resolve_period_s`` the fit of ``azimuth_fit.fit_psi`` re-solves psi_s with all samples
-    ("none" / "seed7" / "full12" distortion model) and the gate decides; an accepted solution is
-    kept until a newer one passes the gate (a later failed re-solve is reported as "holding").
- 5. output at every sample with the current psi_s (eq. 6-8):
+ 4. every ``resolve_period_s`` (``resolve_period_unsolved_s`` before the first solution)
+    ``azimuth_fit.fit_psi`` re-solves psi_s with all samples ("none" / "seed7" / "full12"
+    distortion model). With ``estimate_errors`` the gyro errors c_g and the levelling tilt beta
+    (2) are estimated jointly with their priors (MAP; else they are consider parameters that only
+    widen the sigma). The gate decides; an accepted solution is kept until a newer one passes the
+    gate (a later failed re-solve is reported as "holding" with the reason).
+ 5. output at every sample (eq. 6-8), the propagated attitude corrected by the estimated errors
+    (C = (I - [G c_g]x) C_ISF<-SF, (I - [beta]x) C_AF<-ISF):
        C_NF<-SF = R3(psi)^T C_AF<-ISF C_ISF<-SF(t),  azimuth = az(C_NF<-SF u_SF)
        heading  = yaw of C_NF<-body = C_NF<-SF C_SF<-body (the body x axis, may differ from u)
-    with sigmas from the fit covariance + gyro-bias/levelling consider terms + ARW
-    (``azimuth_fit.direction_azimuth_and_sigma``), plus the configured field-model sigma.
+    with sigmas from the joint covariance of [psi, c] and the instantaneous sensitivities
+    (``azimuth_fit.direction_azimuth_and_sigma``) + ARW + the configured field-model sigma.
+    roll/pitch (and q_nav_from_body with yaw from psi = 0) are output from launch on.
+
+What limits it (bench/azimuth_accuracy.py): the levelling tilt from the accelerometer bias
+(~bias/g) turns into a heading error of about tilt * tan(inclination) that no magnetometer data
+can remove (a rotation about the field vector is unobservable); the sigma carries it.
 """
 from __future__ import annotations
 
