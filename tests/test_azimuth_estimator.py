@@ -283,3 +283,22 @@ def test_vertical_case_sigma_predicts_the_accelerometer_bias_effect():
     assert abs(actual) > math.radians(0.1)   # (beta_z is a yaw: psi_s absorbs it exactly)
     assert abs(abs(actual) - pred) < 0.05 * abs(actual), (math.degrees(actual), math.degrees(pred))
     assert abs(abs(actual) - pred_without_u) > 0.1 * abs(actual)
+
+
+def test_solve_outside_the_step_equals_the_in_step_solve():
+    """The daemon's worker path: with the in-step re-solve disabled, a solve on a snapshot merged
+    into a later state gives that state the same solution, and keeps the samples that came after."""
+    C_nf_isf = launcher_attitude(math.radians(123.0), math.radians(55.0), C_BS)
+    fl = make_flight(C_nf_isf=C_nf_isf, u_sf=C_BS[0], segments=MANOEUVRE, A=np.diag([1.05, 0.95, 1.1]),
+                     b=np.array([0.05, -0.03, 0.02]))
+    p = params_for("aligned", resolve_period_s=math.inf, resolve_period_unsolved_s=math.inf)
+    st, outs = run(fl, p)
+    assert all(not o.valid for _, o in outs) and st.solution is None     # nothing solved in-step
+    snap = az.azimuth_solve(st, float(fl.time_s[-2]))
+    res = az.azimuth_solve_result(snap)
+    later, _ = az.azimuth_step(st, fl.gyro_rad_s[-1], fl.accel_m_s2[-1], fl.mag_gauss[-1] * 1.0,
+                               float(fl.time_s[-1]) + 0.2)
+    merged = az.azimuth_apply_solve(later, res)
+    assert merged.solution is not None and merged.solution.fit.psi_rad == snap.solution.fit.psi_rad
+    assert len(merged.samples) == len(later.samples) == len(st.samples) + 1
+    assert abs(wrap_pi(merged.solution.fit.psi_rad - fl.psi_s_rad)) < 1e-6
