@@ -127,7 +127,7 @@ SPEC: dict[str, dict[str, Key]] = {
         "boost_window_s": Key(_F, 1.0, "time after launch used for the flight direction (inclined case)", _range(0.05, 10)),
     },
     "azimuth": {
-        "distortion_model": Key(str, "seed7", "magnetometer distortion model: seed7 (3 scales, 3 biases) | full12 (soft + hard iron)", _choice("seed7", "full12")),
+        "distortion_model": Key(str, "full12", "magnetometer distortion model: full12 (3x3 soft + hard iron) | seed7 (the seed's 3 scales, 3 biases)", _choice("seed7", "full12")),
         "solve_in_background": Key(bool, True, "run the least-squares re-solves in a worker process (the daemon); false = inline", None),
     },
     "ahrs": {
