@@ -28,7 +28,7 @@ STANDARD_GRAVITY_M_S2 = 9.80665
 class LevellingParams:
     min_samples: int = 200
     """Samples needed before a result is given (1 s at 200 Hz)."""
-    max_accel_std_m_s2: float = 0.15
+    max_accel_std_m_s2: float = 0.3
     """Largest per-axis standard deviation of f that still counts as at rest."""
     max_gyro_std_rad_s: float = math.radians(0.5)
     """Largest per-axis standard deviation of the rate that still counts as at rest."""

@@ -5,8 +5,9 @@
   every block that passes the stillness test (estimators.levelling) becomes the current levelling
   and gyro bias, so a vehicle that is handled, then set down, levels on its last still block.
 - launch: |specific force| exceeds g by ``detect_accel_m_s2`` for ``detect_hold_s`` (the first
-  sample of that run is the launch time). Launch is only accepted after one good levelling:
-  without it neither the azimuth nor the attitude has a start.
+  sample of that run is the launch time). A launch before any still block passed levels on the
+  rest data of the current block with relaxed limits (an event says so); with too little data
+  the flight starts unlevelled (the attitude filter then levels itself in flight).
 - in-flight: the boost is over: the excess has stayed below the threshold for ``detect_hold_s``,
   or ``boost_window_s`` has passed since launch.
 
@@ -63,8 +64,18 @@ def phase_step(state: PhaseState, gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray
             state = replace(state, above_since_s=since)
             if time_s - since >= params.detect_hold_s:
                 if state.level is None:
-                    events.append(("launch_ignored", "acceleration above threshold before any levelling"))
-                    return replace(state, above_since_s=None, block=LevellingState(), block_start_s=time_s), events
+                    # a launch before a full still block: level on what rest data there is, rather
+                    # than stay blind for the whole flight (flagged: a short or unsteady rest)
+                    res = levelling_result(state.block, replace(params.levelling, min_samples=20,
+                                                                 max_accel_std_m_s2=1.0,
+                                                                 max_gyro_std_rad_s=0.05))
+                    if res.ok:
+                        state = replace(state, level=res, level_time_s=time_s)
+                        events.append(("levelled", f"on a short rest ({res.samples} samples): roll "
+                                       f"{np.degrees(res.roll_rad):.2f} deg, pitch {np.degrees(res.pitch_rad):.2f} deg"))
+                    else:
+                        events.append(("launch_unlevelled", f"launch before any levelling ({res.reason}); "
+                                       "attitude from the attitude filter only"))
                 state = replace(state, phase=LAUNCH, launch_time_s=since, below_since_s=None)
                 events.append(("phase", LAUNCH))
             return state, events
