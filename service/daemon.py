@@ -38,7 +38,8 @@ CALIBRATION_SAVE_S = 30.0
 SD_STATUS_PERIOD_S = 5.0
 _SHOWN_RATES = ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU", "SCALED_PRESSURE", "ATTITUDE")
 _EVENT_SEVERITY = {"link_lost": "warning", "fc_reboot": "warning", "time_gap": "warning",
-                   "transport_error": "error", "not_still": "info", "strapdown": "warning"}
+                   "transport_error": "error", "not_still": "info", "strapdown": "warning",
+                   "imu_input": "warning"}
 
 
 def _fmt_angle(rad: float | None, sigma: float | None, width: int = 6) -> str:
@@ -346,6 +347,7 @@ class Daemon:
         self.bus.publish("health", health_payload(
             self.link.connected, sol.phase if sol else "boot", now - self.started_s, self.link.stats.rates_hz(),
             {"imu_samples": c.imu_samples, "imu_rejected": c.imu_rejected,
-             "pressure_samples": c.pressure_samples, **{f"sent_{k}": v for k, v in self.sent.items()}},
+             "pressure_samples": c.pressure_samples, **{f"sent_{k}": v for k, v in self.sent.items()},
+             **{f"imu_input_{k}": v for k, v in self.pipeline.input_checks.counts.items()}},
             status=status_line(sol, self.link.stats.rates_hz(), self.link.connected).split(" | ")[0],
             autopilot=self.link.fc_autopilot, time_rx_s=now))

@@ -48,6 +48,7 @@ from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent,
                                        SyntheticAhrsOutput, SyntheticAhrsParams, synthetic_ahrs_init,
                                        synthetic_ahrs_output, synthetic_ahrs_step)
 from mavlink_io.samples import FcAttitude, FcEkfStatus, FcHeartbeat, ImuSample, PressureSample
+from service.input_checks import ImuInputChecks, InputCheckParams
 from service.heading_arbitration import (ArbitrationParams, ArbitrationState, SourceReading,
                                          arbitrate)
 from service.phases import IN_FLIGHT, LAUNCH, PRE_LAUNCH, PhaseParams, PhaseState, phase_step
@@ -171,6 +172,7 @@ class Pipeline:
         self.strapdown: StrapdownState | None = None
         self.gyro_bias_rad_s = np.zeros(3)
         self.counters = PipelineCounters()
+        self.input_checks = ImuInputChecks(InputCheckParams(gap_s=cfg["mavlink"]["imu_gap_s"]))
         self.events: list[tuple[str, str]] = []
         self.last_time_fc_s: float | None = None
         self.fc_attitude: FcAttitude | None = None
@@ -180,6 +182,14 @@ class Pipeline:
 
     def on_imu(self, s: ImuSample) -> NavSolution | None:
         gyro_s, accel_s, t = s.gyro_rad_s, s.accel_m_s2, s.time_fc_s
+        verdict = self.input_checks.check(s)  # service/input_checks.py: bad values never reach the estimators
+        for ev in verdict.events:
+            self._event(*ev)
+        if verdict.reset:
+            self.on_fc_reboot()
+        if verdict.reject is not None:
+            self.counters.reject(verdict.reject)
+            return None
         if not (np.all(np.isfinite(gyro_s)) and np.all(np.isfinite(accel_s)) and math.isfinite(t)):
             self.counters.reject("non-finite IMU sample")
             return None
