@@ -334,8 +334,12 @@ def daemon_supports_geofence() -> tuple[bool, str]:
     return True, ""
 
 
-def run_daemon(kind: str, seed: int, raw: dict | None = None, speed: float = 10.0, flight_s: float = 200.0) -> dict:
-    """The same flight with the real daemon (sim + daemon processes, the UDP tap reads commands)."""
+def run_daemon(kind: str, seed: int, raw: dict | None = None, speed: float = 3.0, flight_s: float = 200.0) -> dict:
+    """The same flight with the real daemon (sim + daemon processes, the UDP tap reads commands).
+
+    ``speed`` 3: the pure-Python daemon keeps up with 600 IMU samples/s of wall time on the
+    development machine; at 10x it falls behind, the UDP buffer overflows and a 0.4 s boost can
+    be lost (no launch detected)."""
     from sim.truthlog import load_truth_log
     from sitl import Sitl
     raw = raw or fence_raw()
