@@ -21,10 +21,11 @@ exactly; every delivered RAW_IMU became an ImuSample or a counted stale-time dro
 ImuSample equals the values its frame was built from (a damaged frame never leaks a value);
 bad bytes show in crc_errors / framing_errors / unknown_ids; parser_errors stays 0.
 
-Load (``run_load``): simulator + daemon as processes (bench/sitl.py) with RAW_IMU requested at
-``--imu-hz``; the daemon's own counters from its "stopped" log line (``imu_samples=``) against the
-RAW_IMU the simulator sent (its MAVLink sequence via a UDP tap), the daemon's RSS at start and end
-(psutil), and its CPU.
+Load (``run_load``): simulator + daemon as processes (bench/sitl.py), real time, RAW_IMU requested
+at ``--imu-hz``; the daemon's own counters from its "stopped" log line: IMU messages its link
+accepted (``imu_messages``) against the samples its Pipeline took (``imu_samples`` +
+``imu_rejected``) = lost inside the daemon; lost before it (socket buffer, sender) from the MAVLink
+sequence (``link_seq_lost``); the daemon's RSS at start and end and its CPU (psutil).
 """
 from __future__ import annotations
 
@@ -243,57 +244,66 @@ def run_fuzz(stream: FuzzStream, seed: int = 0, max_chunk: int = 512) -> dict:
 
 # --- load -----------------------------------------------------------------------------------
 
-STOPPED_RE = re.compile(r"msg=stopped .*?imu_samples=(\d+) imu_rejected=(\d+)")
+STOPPED_KEYS = ("imu_samples", "imu_rejected", "imu_messages", "link_accepted", "link_seq_lost", "link_bad_data",
+                "link_stale_drops", "link_losses", "fc_reboots")
 
 
-def daemon_stopped_counts(log_text: str) -> tuple[int, int] | None:
-    """(imu_samples, imu_rejected) from the daemon's "stopped" log line, or None."""
-    m = STOPPED_RE.search(log_text)
-    return (int(m.group(1)), int(m.group(2))) if m else None
+def daemon_stopped_counts(log_text: str) -> dict | None:
+    """The counters of the daemon's "stopped" log line (service/daemon.py close()), or None."""
+    line = next((ln for ln in log_text.splitlines() if "msg=stopped" in ln), None)
+    if line is None:
+        return None
+    out = {}
+    for k in STOPPED_KEYS:
+        m = re.search(rf"\b{k}=(\d+)", line)
+        if m:
+            out[k] = int(m.group(1))
+    return out
 
 
 def run_load(duration_s: float, imu_hz: float = 1000.0, seed: int = 5) -> dict:
-    """Simulator + daemon (as processes) at ``imu_hz`` RAW_IMU for ``duration_s`` wall seconds at
-    real-time speed; RAW_IMU counted at a tap between them; the daemon's RSS at start and end."""
+    """Simulator + daemon (as processes, real time) with RAW_IMU at ``imu_hz`` for ``duration_s``
+    wall seconds. In vs processed inside the daemon: the IMU messages its link accepted
+    (``imu_messages``) against the samples its Pipeline took (``imu_samples`` + ``imu_rejected``)
+    plus the link's stale-time drops; lost before the daemon (socket buffer, the sender):
+    ``link_seq_lost``. RSS and CPU of the daemon process by psutil."""
     import psutil
 
-    from bench.sitl import Sitl
+    sys.path.insert(0, str(ROOT / "bench"))
+    from sitl import Sitl
 
-    sim_s = duration_s + 5.0
-    with Sitl(scenario="inclined_rail", speed=1.0, seed=seed, tap=True,
+    sim_s = duration_s + 30.0
+    with Sitl(scenario="inclined_rail", speed=1.0, seed=seed,
               config_overrides={"mavlink": {"imu_rate_hz": float(imu_hz)}},
               sim_args=["--duration", str(sim_s)]) as s:
-        s.wait_for(lambda: len(s.tap.sent_by_daemon("HEARTBEAT")) > 0, 30)
         proc = psutil.Process(s.daemon.pid)
+        s.wait_for(lambda: "flight controller link up" in s.log("daemon"), 60)
         time.sleep(3.0)  # the streams are requested and running
         rss_start = proc.memory_info().rss
         cpu0 = proc.cpu_times()
         t0 = time.monotonic()
-        rss_samples = [rss_start]
+        rss = [(0.0, rss_start)]
         while time.monotonic() - t0 < duration_s - 3.0 and s.sim.poll() is None:
-            time.sleep(min(5.0, duration_s / 10))
-            rss_samples.append(proc.memory_info().rss)
+            time.sleep(min(10.0, max(1.0, duration_s / 20)))
+            rss.append((time.monotonic() - t0, proc.memory_info().rss))
         cpu1 = proc.cpu_times()
         wall = time.monotonic() - t0
         rss_end = proc.memory_info().rss
         s.stop()
         daemon_log = s.log("daemon")
-        rx = s.tap.forwarded["to_daemon"]
-    counts = daemon_stopped_counts(daemon_log)
-    imu_to_daemon = _raw_imu_count(s)
-    return {"imu_rate_requested_hz": imu_hz, "duration_s": duration_s,
-            "raw_imu_sent_to_daemon": imu_to_daemon, "datagrams_to_daemon": rx,
-            "daemon_imu_samples": counts[0] if counts else None,
-            "daemon_imu_rejected": counts[1] if counts else None,
+    c = daemon_stopped_counts(daemon_log) or {}
+    processed = c.get("imu_samples", 0) + c.get("imu_rejected", 0)
+    in_daemon = c.get("imu_messages", 0) - c.get("link_stale_drops", 0)
+    rate = c.get("imu_messages", 0) / (duration_s + 3.0)
+    half = [r for t, r in rss if t >= wall / 2]
+    return {"imu_rate_requested_hz": imu_hz, "duration_s": duration_s, **c,
+            "imu_processed": processed, "imu_lost_inside_daemon": in_daemon - processed,
+            "imu_rate_received_hz_approx": rate,
             "daemon_cpu_percent": 100.0 * ((cpu1.user - cpu0.user) + (cpu1.system - cpu0.system)) / wall,
             "rss_start_mb": rss_start / 2**20, "rss_end_mb": rss_end / 2**20,
-            "rss_max_mb": max(rss_samples) / 2**20, "workdir": str(s.workdir)}
-
-
-def _raw_imu_count(s) -> int:
-    """RAW_IMU frames the simulator sent towards the daemon (decoded at the tap, from the
-    datagrams it forwarded): recorded by the tap as it relays."""
-    return getattr(s.tap, "raw_imu_forwarded", -1)
+            "rss_max_mb": max(r for _t, r in rss) / 2**20,
+            "rss_second_half_growth_mb": (half[-1] - half[0]) / 2**20 if len(half) > 1 else 0.0,
+            "workdir": str(s.workdir)}
 
 
 def main(argv=None) -> int:
@@ -328,10 +338,12 @@ def main(argv=None) -> int:
         dur = a.load_s or (60.0 if a.quick else 1800.0)
         r = run_load(dur, a.imu_hz)
         results["load"] = r
-        print(f"load: {r['imu_rate_requested_hz']:.0f} Hz RAW_IMU for {dur:.0f} s: sent to daemon "
-              f"{r['raw_imu_sent_to_daemon']}, daemon processed {r['daemon_imu_samples']} "
-              f"(rejected {r['daemon_imu_rejected']}), CPU {r['daemon_cpu_percent']:.0f} % of a core, "
-              f"RSS {r['rss_start_mb']:.1f} -> {r['rss_end_mb']:.1f} MB (max {r['rss_max_mb']:.1f})")
+        print(f"load: {r['imu_rate_requested_hz']:.0f} Hz RAW_IMU requested, {dur:.0f} s: link accepted "
+              f"{r.get('imu_messages')} IMU messages (~{r['imu_rate_received_hz_approx']:.0f} Hz), lost before "
+              f"the daemon (sequence) {r.get('link_seq_lost')}, Pipeline processed {r['imu_processed']} "
+              f"(rejected {r.get('imu_rejected')}), lost inside the daemon {r['imu_lost_inside_daemon']}; "
+              f"CPU {r['daemon_cpu_percent']:.0f} % of a core; RSS {r['rss_start_mb']:.1f} -> "
+              f"{r['rss_end_mb']:.1f} MB (max {r['rss_max_mb']:.1f}, second half {r['rss_second_half_growth_mb']:+.1f})")
     Path(a.json).parent.mkdir(parents=True, exist_ok=True)
     Path(a.json).write_text(json.dumps(results, indent=1, default=str))
     ok = all(not v.get("problems") for v in results.values())

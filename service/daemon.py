@@ -170,8 +170,14 @@ class Daemon:
             except OSError:
                 pass
         c = self.pipeline.counters
-        log.info("stopped", extra={"fields": {"imu_samples": c.imu_samples, "imu_rejected": c.imu_rejected,
-                                              "sent": self.sent}})
+        fields = {"imu_samples": c.imu_samples, "imu_rejected": c.imu_rejected, "sent": self.sent}
+        if self.link is not None:  # what the link saw, for the count in vs processed (RELIABILITY.md)
+            ls = self.link.stats
+            imu = sum(ls.messages_by_type.get(k, 0) for k in ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU"))
+            fields.update(imu_messages=imu, link_accepted=ls.accepted, link_seq_lost=ls.seq_lost,
+                          link_bad_data=ls.crc_errors + ls.framing_errors, link_stale_drops=ls.stale_time_drops,
+                          link_losses=ls.link_losses, fc_reboots=ls.fc_reboots)
+        log.info("stopped", extra={"fields": fields})
 
     def run(self, duration_s: float | None = None) -> int:
         for sig in (signal.SIGTERM, signal.SIGINT):

@@ -95,7 +95,8 @@ class InputCheckParams:
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 raise ValueError(f"InputCheckParams.{name} must be a finite number > 0, got {v!r}")
         if not isinstance(self.frozen_live_fraction, (int, float)) or not 0.0 < self.frozen_live_fraction <= 1.0:
-            raise ValueError(f"InputCheckParams.frozen_live_fraction must be in (0, 1], got {self.frozen_live_fraction!r}")
+            raise ValueError("InputCheckParams.frozen_live_fraction must be in (0, 1], "
+                             f"got {self.frozen_live_fraction!r}")
         for name in ("clip_repeats", "frozen_min_samples", "reset_after_samples"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
