@@ -12,7 +12,6 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
@@ -23,8 +22,8 @@ from mavlink_io.samples import ImuSample  # noqa: E402
 from mavlink_io.transport import NullTransport  # noqa: E402
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_100k_mixed_frames_every_frame_accounted(seed):
+def test_100k_mixed_frames_every_frame_accounted():
+    seed = 0
     stream = fuzz_stream(100_000, seed)
     t0 = time.perf_counter()
     r = run_fuzz(stream, seed)
