@@ -1,7 +1,7 @@
 """Link faults end to end (issue 10): the simulator's fault switches against the daemon process.
 
-GIVEN the simulator (real time) with 10 % of its packets dropped, 1 % corrupted, a 10 s outage in
-flight (no traffic either way) and an FC reboot later in flight (2 s silence, time_boot restarts,
+GIVEN the simulator (real time) with 10 % of its packets dropped, 1 % corrupted, 1 % duplicated,
+1 % reordered, a 3 s outage on the launcher, a 10 s outage in flight (no traffic either way) and an FC reboot later in flight (2 s silence, time_boot restarts,
 stream rates back to the defaults), a UDP tap between it and the daemon
 WHEN the daemon flies it
 THEN it never crashes; it reports the link lost and restored, its ATTITUDE resumes within 2 s
@@ -24,8 +24,10 @@ REST_S = 20.0
 OUTAGE = (32.0, 42.0)
 REBOOT_AT_S, REBOOT_SILENCE_S = 55.0, 2.0
 END_S = 72.0
+PRELAUNCH_OUTAGE = (8.0, 11.0)
 FAULTS = ["--set", "faults.drop_rate=0.10", "--set", "faults.corrupt_rate=0.01",
-          "--set", f"faults.outages=[[{OUTAGE[0]}, {OUTAGE[1]}]]",
+          "--set", "faults.duplicate_rate=0.01", "--set", "faults.reorder_rate=0.01",
+          "--set", f"faults.outages=[[{PRELAUNCH_OUTAGE[0]}, {PRELAUNCH_OUTAGE[1]}], [{OUTAGE[0]}, {OUTAGE[1]}]]",
           "--set", f"faults.reboot_at_s={REBOOT_AT_S}", "--set", f"faults.reboot_silence_s={REBOOT_SILENCE_S}",
           "--set", f"launcher.rest_s={REST_S}", "--duration", str(END_S)]
 
@@ -49,11 +51,21 @@ def test_no_crash_and_faults_counted(flight):
     log = flight.log("daemon")
     assert "Traceback" not in log
     assert flight.daemon.returncode == 0
-    m = re.search(r"msg=stopped .*link_seq_lost=(\d+) link_bad_data=(\d+).*link_losses=(\d+) fc_reboots=(\d+)", log)
+    m = re.search(r"msg=stopped .*link_seq_lost=(\d+) link_bad_data=(\d+) link_stale_drops=(\d+) "
+                  r"link_losses=(\d+) fc_reboots=(\d+)", log)
     assert m, "no stopped line with link counters"
-    seq_lost, bad, losses, reboots = map(int, m.groups())
-    print(f"daemon link counters: seq_lost {seq_lost} bad_data {bad} link_losses {losses} fc_reboots {reboots}")
-    assert seq_lost > 1000 and bad > 10 and losses >= 2 and reboots == 1
+    seq_lost, bad, stale, losses, reboots = map(int, m.groups())
+    print(f"daemon link counters: seq_lost {seq_lost} bad_data {bad} stale_drops {stale} link_losses {losses} "
+          f"fc_reboots {reboots}")
+    assert seq_lost > 1000 and bad > 10 and stale > 10 and losses >= 3 and reboots == 1
+
+
+def test_prelaunch_outage_levelling_still_done(flight):
+    """A 3 s outage on the launcher (pre-launch): reported, and the daemon still levels and
+    detects the launch."""
+    log = flight.log("daemon")
+    assert log.count("event=link_lost") >= 3  # pre-launch outage, in-flight outage, reboot silence
+    assert "event=levelled" in log and "msg=launch event=phase" in log
 
 
 def test_outage_reported_recovered_within_2_s_and_streams_rerequested(flight):
