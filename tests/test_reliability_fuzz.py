@@ -50,6 +50,13 @@ def test_byte_by_byte_fragmentation():
     assert r["imu_samples"] > 500
 
 
+def test_one_frame_per_datagram():
+    """As UDP delivers (each frame its own datagram): the same accounting holds."""
+    r = run_fuzz(fuzz_stream(30_000, 5), 5, datagrams=True)
+    assert r["problems"] == []
+    assert r["imu_samples"] > 3000
+
+
 def test_link_decodes_cleanly_after_the_fuzz():
     stream = fuzz_stream(20_000, 3)
     t = [0.0]
