@@ -117,6 +117,8 @@ _OK = Verdict()
 
 @dataclass
 class ImuInputChecks:
+    """The state of the checks for one IMU stream; ``check(sample) -> Verdict`` per sample, in
+    FC-time order as received. ``counts``: samples per kind (KINDS), for the health topic."""
     params: InputCheckParams = field(default_factory=InputCheckParams)
     counts: dict = field(default_factory=lambda: {k: 0 for k in KINDS})
     _last_t: float | None = None
