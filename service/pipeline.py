@@ -33,6 +33,8 @@ from dataclasses import replace as dc_replace
 
 from estimators.azimuth import (AzimuthOutput, AzimuthParams, azimuth_apply_solve, azimuth_init,
                                 azimuth_launch, azimuth_prelaunch_step, azimuth_step)
+from estimators.declination import (DeclinationParams, RestState, estimate_declination,
+                                    rest_accumulate)
 from estimators.geomag import EarthField, earth_field, field_from_vector
 from estimators.levelling import LevellingParams
 from estimators.mag_error_kf import Kf1State
@@ -121,6 +123,13 @@ class Pipeline:
         self.field = site_field(cfg)
         dec_sigma = self.field.declination_sigma_rad
         self.declination_sigma_rad = dec_sigma if math.isfinite(dec_sigma) else 0.0
+
+        # method E: declination from Earth rate at rest, when the gyros can see it (else the WMM's)
+        self.declination_rad = self.field.declination_rad
+        self.rest = RestState()
+        """Rest data of consecutive still blocks (what method E uses at launch)."""
+        self._rest_candidate = RestState()
+        self.declination_result = None
 
         # method A
         self.azimuth_params = AzimuthParams(
@@ -224,7 +233,7 @@ class Pipeline:
         self._acc_n += 1
         if mag_s is not None:
             self._acc_mag = mag_s
-        if t < self._filter_due_s:
+        if t < self._filter_due_s - 0.05 * self.filter_period_s:  # tolerance: timestamp jitter
             return None
         # slots advance by one period, so the mean rate is exact under timestamp jitter
         self._filter_due_s += self.filter_period_s
@@ -243,7 +252,7 @@ class Pipeline:
         if att is not None:
             self.polar_hdg, hdiag = polar_heading_step(
                 self.polar_hdg, HeadingInputs(t, gyro_b, att.roll_rad, att.pitch_rad, att.cov_roll_pitch_rad2,
-                                              mag_b, self.field.declination_rad, self.declination_sigma_rad),
+                                              mag_b, self.declination_rad, self.declination_sigma_rad),
                 self.polar_hdg_params)
             if hdiag.measured and hdiag.source_available != self._hdg_available:
                 self._hdg_available = hdiag.source_available
@@ -312,7 +321,15 @@ class Pipeline:
     def _step_azimuth(self, prev_phase: str, gyro_s, accel_s, mag_s, t: float) -> None:
         if self.phase.phase == PRE_LAUNCH:
             self.azimuth = azimuth_prelaunch_step(self.azimuth, gyro_s, accel_s, t)
+            if mag_s is not None:
+                self._rest_candidate = rest_accumulate(self._rest_candidate, gyro_s, accel_s, mag_s)
+            if self.phase.block_start_s == t:  # a still block ended on this sample
+                if self.phase.level_time_s == t:  # ... and passed: the rest so far is usable
+                    self.rest = self._rest_candidate
+                else:  # handled or moved: start over
+                    self._rest_candidate = self.rest = RestState()
         elif prev_phase == PRE_LAUNCH:  # launch detected on this sample
+            self._declination_at_launch()
             self.azimuth = azimuth_prelaunch_step(self.azimuth, gyro_s, accel_s, t)
             self.azimuth, why = azimuth_launch(self.azimuth, self.phase.launch_time_s)
             if why:
@@ -331,8 +348,28 @@ class Pipeline:
             self._azimuth_status = out.status
             self.azimuth_out = out
 
+    def _declination_at_launch(self) -> None:
+        """Method E on the rest before launch: a measured declination only if the gyros resolve
+        Earth rate (the check says why not, and the WMM value stays); a local anomaly is flagged."""
+        lat = self.cfg["site"]["lat_deg"]
+        if lat is None:
+            return
+        res = estimate_declination(self.rest, math.radians(lat), self.field.declination_rad,
+                                   self.declination_sigma_rad,
+                                   DeclinationParams(gyro_bias_sigma_rad_s=self.gyro_bias_sigma_rad_s))
+        self.declination_result = res
+        self._event("declination", res.message)
+        if res.anomaly:
+            self._event("magnetic_anomaly", f"measured declination {math.degrees(res.measured_declination_rad):.1f} deg "
+                        f"vs WMM {math.degrees(res.wmm_declination_rad):.1f} deg")
+        if res.source == "measured":
+            self.declination_rad = res.declination_rad
+            self.declination_sigma_rad = res.sigma_rad
+
     def _start_flight(self, s: ImuSample) -> None:
         level = self.phase.level
+        if level is None:  # launched unlevelled: roll/pitch come from the attitude filter alone
+            return
         self.gyro_bias_rad_s = level.gyro_bias_rad_s.copy()
         # yaw unknown at launch: 0 until a heading source exists
         self.strapdown = strapdown_init(quat_from_euler(level.roll_rad, level.pitch_rad, 0.0))

