@@ -15,7 +15,7 @@ explicit "landed" may never come): ``begin_flight`` moves an older ``current`` i
 ``completed``; a ``current`` with the same flight id is resumed (restart in flight).
 
 File safety:
-- atomic writes: write a temp file in the same directory, flush + fsync, ``os.replace`` over
+- atomic writes (service/state_file.py): a temp file in the same directory, flush + fsync, ``os.replace`` over
   the old file, fsync the directory. A crash leaves either the old or the new file.
 - the payload is checked by a SHA-256 over its canonical JSON and a format/version header;
   a truncated, corrupted or unknown-version file is renamed ``<name>.corrupt[.N]`` and the store
@@ -38,13 +38,12 @@ Use in the daemon::
 """
 from __future__ import annotations
 
-import hashlib
 import json
-import os
 import pathlib
 from dataclasses import dataclass, field, replace
 
 from estimators.mag_error_kf import Kf1State, kf1_from_dict, kf1_to_dict
+from service import state_file
 
 FILE_FORMAT = "azimuthd-synthetic-ahrs-calibration"
 FILE_VERSION = 1
@@ -67,11 +66,6 @@ class CalibrationHistory:
     """How the history was obtained: empty | loaded | missing | corrupt: <why>."""
 
 
-def _checksum(payload: dict) -> str:
-    canon = json.dumps(payload, sort_keys=True, separators=(",", ":"), allow_nan=False)
-    return hashlib.sha256(canon.encode("utf-8")).hexdigest()
-
-
 def _fe_to_dict(fe: FlightEstimate) -> dict:
     return {"flight_id": fe.flight_id, "wall_time_s": fe.wall_time_s, "kf1": kf1_to_dict(fe.kf1)}
 
@@ -87,19 +81,10 @@ def _fe_from_dict(d: dict) -> FlightEstimate:
 def history_to_document(history: CalibrationHistory) -> dict:
     payload = {"current": None if history.current is None else _fe_to_dict(history.current),
                "completed": [_fe_to_dict(fe) for fe in history.completed]}
-    return {"format": FILE_FORMAT, "version": FILE_VERSION, "sha256": _checksum(payload),
-            "payload": payload}
+    return state_file.document(FILE_FORMAT, FILE_VERSION, payload)
 
 
-def history_from_document(doc: object) -> CalibrationHistory:
-    """Validate a parsed file; ValueError saying what is wrong."""
-    if not isinstance(doc, dict) or doc.get("format") != FILE_FORMAT:
-        raise ValueError("not an azimuthd calibration file")
-    if doc.get("version") != FILE_VERSION:
-        raise ValueError(f"unsupported version {doc.get('version')!r}")
-    payload = doc.get("payload")
-    if not isinstance(payload, dict) or doc.get("sha256") != _checksum(payload):
-        raise ValueError("checksum mismatch")
+def _history_from_payload(payload: dict) -> CalibrationHistory:
     cur = payload.get("current")
     completed = payload.get("completed")
     if not isinstance(completed, list):
@@ -107,6 +92,11 @@ def history_from_document(doc: object) -> CalibrationHistory:
     return CalibrationHistory(current=None if cur is None else _fe_from_dict(cur),
                               completed=tuple(_fe_from_dict(d) for d in completed),
                               status="loaded")
+
+
+def history_from_document(doc: object) -> CalibrationHistory:
+    """Validate a parsed file; ValueError saying what is wrong."""
+    return _history_from_payload(state_file.payload_from_document(doc, FILE_FORMAT, FILE_VERSION, "calibration"))
 
 
 # --- the rules (pure) -----------------------------------------------------------------------
@@ -172,57 +162,16 @@ class CalibrationStore:
 
     def load(self) -> CalibrationHistory:
         """Read the file; a damaged one is set aside as *.corrupt and an empty history returned."""
-        self._remove_stale_temps()
+        payload, status = state_file.read_document(self.path, FILE_FORMAT, FILE_VERSION, "calibration")
+        if payload is None:
+            return CalibrationHistory(status=status)
         try:
-            raw = self.path.read_bytes()
-        except FileNotFoundError:
-            return CalibrationHistory(status="missing")
-        try:
-            doc = json.loads(raw.decode("utf-8"))
-            hist = history_from_document(doc)
-        except (ValueError, UnicodeDecodeError) as exc:  # JSONDecodeError is a ValueError
-            moved = self._set_aside()
-            return CalibrationHistory(status=f"corrupt: {exc}; moved to {moved}")
-        return hist
+            return _history_from_payload(payload)
+        except ValueError as exc:
+            return CalibrationHistory(status=f"corrupt: {exc}; moved to {state_file.set_aside(self.path)}")
 
     def save(self, history: CalibrationHistory) -> bool:
         """Atomic write; False (and ``last_error``) on an OS error, never a partial file."""
         data = json.dumps(history_to_document(history), indent=1, allow_nan=False).encode("utf-8")
-        tmp = self.path.with_name(f".{self.path.name}.tmp.{os.getpid()}")
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            with open(tmp, "wb") as f:
-                f.write(data)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, self.path)
-            dfd = os.open(self.path.parent, os.O_RDONLY)
-            try:
-                os.fsync(dfd)
-            finally:
-                os.close(dfd)
-        except OSError as exc:
-            self.last_error = f"{type(exc).__name__}: {exc}"
-            try:
-                tmp.unlink()
-            except OSError:
-                pass
-            return False
-        self.last_error = ""
-        return True
-
-    def _set_aside(self) -> pathlib.Path:
-        target = self.path.with_name(self.path.name + ".corrupt")
-        n = 1
-        while target.exists():
-            target = self.path.with_name(f"{self.path.name}.corrupt.{n}")
-            n += 1
-        os.replace(self.path, target)
-        return target
-
-    def _remove_stale_temps(self) -> None:
-        for p in self.path.parent.glob(f".{self.path.name}.tmp.*"):
-            try:
-                p.unlink()
-            except OSError:
-                pass
+        self.last_error = state_file.atomic_write_bytes(self.path, data)
+        return not self.last_error

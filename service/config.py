@@ -139,6 +139,11 @@ SPEC: dict[str, dict[str, Key]] = {
         "filter_rate_hz": Key(_F, 50.0, "rate of the attitude/heading filters and of the NavSolution (the IMU is integrated at its full rate)", _range(5, 1000)),
         "use_fc_when_trusted": Key(bool, True, "fuse the FC's own yaw while its estimator is trusted (GNSS healthy, agrees with our gyros)", None),
     },
+    "deviation": {
+        "calibrate": Key(bool, False, "fit the magnetometer deviation model (method D) in flight, while a trusted heading exists: fly a calibration manoeuvre", None),
+        "apply": Key(bool, True, "correct the magnetometer of the heading filter with the stored deviation coefficients", None),
+        "min_coverage": Key(_F, 0.5, "apply the coefficients only when the manoeuvre covered this fraction of heading/roll/pitch bins", _range(0, 1)),
+    },
     "outputs": {
         "attitude_hz": Key(_F, 50.0, "ATTITUDE / ATTITUDE_QUATERNION rate we send", _range(1, 400)),
         "odometry_hz": Key(_F, 10.0, "ODOMETRY (heading feed to the FC's EKF) rate, only while heading is valid", _range(5, 100)),

@@ -23,6 +23,7 @@ from mavlink_io.link import LinkConfig, LinkEvent, MavlinkLink
 from mavlink_io.outputs import OutputScheduler, odometry_profile_for_autopilot
 from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcHeartbeat, FcSysStatus,
                                 ImuSample, PressureSample)
+from service import state_file
 from service.calibration_keeper import CalibrationKeeper
 from service.config import state_dir
 from service.logs import RateLimitedLog
@@ -35,6 +36,8 @@ log = logging.getLogger("azimuthd.daemon")
 ZENOH_RETRY_S = 30.0
 HEALTH_PERIOD_S = 1.0
 CALIBRATION_SAVE_S = 30.0
+DEVIATION_FILE = "deviation.json"
+DEVIATION_FORMAT = "azimuthd-magnetometer-deviation"
 SD_STATUS_PERIOD_S = 5.0
 _SHOWN_RATES = ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU", "SCALED_PRESSURE", "ATTITUDE")
 _EVENT_SEVERITY = {"link_lost": "warning", "fc_reboot": "warning", "time_gap": "warning",
@@ -90,7 +93,9 @@ class Daemon:
         if cfg["azimuth"]["solve_in_background"]:
             from service.solver import BackgroundSolver
             solver = BackgroundSolver()
-        self.pipeline = Pipeline(cfg, kf1_learn=kf1_learn, kf1_applied=kf1_applied, solver=solver)
+        self.deviation_path = state_dir(cfg) / DEVIATION_FILE
+        self.pipeline = Pipeline(cfg, kf1_learn=kf1_learn, kf1_applied=kf1_applied, solver=solver,
+                                 deviation=self._load_deviation())
         out = cfg["outputs"]
         self.scheduler = OutputScheduler({"ATTITUDE": out["attitude_hz"], "ATTITUDE_QUATERNION": out["attitude_hz"],
                                           "ODOMETRY": out["odometry_hz"],
@@ -156,9 +161,33 @@ class Daemon:
                         error=str(exc), retry_s=ZENOH_RETRY_S)
             self._next["zenoh_retry"] = self.clock() + ZENOH_RETRY_S
 
+    def _load_deviation(self):
+        """Method D's coefficients from the state directory (a damaged file is set aside)."""
+        from estimators.mag_deviation import DeviationState
+        payload, status = state_file.read_document(self.deviation_path, DEVIATION_FORMAT, 1, "deviation")
+        if status.startswith("corrupt"):
+            log.error("deviation file damaged, set aside", extra={"fields": {"status": status}})
+        if payload is None:
+            return None
+        try:
+            return DeviationState.from_dict(payload["state"])
+        except (KeyError, TypeError, ValueError) as exc:
+            log.error("deviation file unusable, set aside", extra={"fields": {
+                "error": str(exc), "moved_to": str(state_file.set_aside(self.deviation_path))}})
+            return None
+
+    def _save_deviation(self) -> None:
+        dev = self.pipeline.deviation
+        if dev is None or not self.cfg["deviation"]["calibrate"]:
+            return
+        err = state_file.write_document(self.deviation_path, DEVIATION_FORMAT, 1, {"state": dev.to_dict()})
+        if err:
+            self.rl.log(logging.ERROR, "deviation_save", "deviation coefficients not saved", error=err)
+
     def close(self) -> None:
         self.notifier.notify("STOPPING=1")
         self.calibration.save(self.pipeline.kf1_estimate(), final=True)
+        self._save_deviation()
         self.pipeline.solver.close()
         if self.bus is not None:
             self.bus.close()
@@ -231,6 +260,7 @@ class Daemon:
             self._publish_health(now)
         if self._due("calibration", now, CALIBRATION_SAVE_S):
             self.calibration.save(self.pipeline.kf1_estimate())
+            self._save_deviation()
         if self.bus is not None and self.geofence is not None and self._due("geofence_state", now, 0.5):
             self.bus.publish("geofence", self.geofence.state())
 

@@ -37,6 +37,8 @@ from estimators.declination import (DeclinationParams, RestState, estimate_decli
                                     rest_accumulate)
 from estimators.geomag import EarthField, earth_field, field_from_vector
 from estimators.levelling import LevellingParams
+from estimators.mag_deviation import (DeviationParams, DeviationState, corrected_mag, deviation_coverage,
+                                      deviation_init, deviation_step)
 from estimators.mag_error_kf import Kf1State
 from estimators.polar_attitude import (PolarAttitudeParams, polar_attitude_estimate,
                                        polar_attitude_init, polar_attitude_step)
@@ -57,6 +59,11 @@ from service.phases import IN_FLIGHT, LAUNCH, PRE_LAUNCH, PhaseParams, PhaseStat
 from service.solution import NavSolution
 
 log = logging.getLogger("azimuthd.pipeline")
+
+DEVIATION_PERIOD_S = 0.1
+"""Interval of method D's RLS updates during a calibration manoeuvre (s)."""
+DEVIATION_MAX_REF_SIGMA_RAD = math.radians(2.0)
+"""The heading a calibration manoeuvre is referred to must be at least this good."""
 
 B1_HEADING_PERIOD_S = 0.1
 """How often variant B1 is handed the heading of the other sources (s)."""
@@ -100,7 +107,7 @@ class Pipeline:
     """Holds the estimator states; every update is a pure step on them."""
 
     def __init__(self, cfg: dict, kf1_learn: Kf1State | None = None, kf1_applied: Kf1State | None = None,
-                 solver=None):
+                 solver=None, deviation: DeviationState | None = None):
         """``solver``: where method A's re-solves run (service/solver.py); None = inline, inside
         ``on_imu`` (deterministic: replay and tests)."""
         self.cfg = cfg
@@ -130,6 +137,20 @@ class Pipeline:
         """Rest data of consecutive still blocks (what method E uses at launch)."""
         self._rest_candidate = RestState()
         self.declination_result = None
+
+        # method D: deviation coefficients, fitted while [deviation] calibrate is on (a calibration
+        # manoeuvre under a trusted heading), applied to C's magnetometer once they cover enough
+        dev = cfg["deviation"]
+        self.deviation_params = DeviationParams()
+        self.deviation = deviation
+        self.deviation_calibrate = dev["calibrate"]
+        if self.deviation_calibrate and self.deviation is None:
+            self.deviation = deviation_init(self.deviation_params)
+        self.deviation_min_coverage = dev["min_coverage"]
+        self.deviation_apply = dev["apply"]
+        self._deviation_in_use: bool | None = None
+        self._deviation_last_s = -math.inf
+        self._deviation_coverage_reported = 0.0
 
         # method A
         self.azimuth_params = AzimuthParams(
@@ -247,6 +268,9 @@ class Pipeline:
         C = self.C_body_from_sensor
         gyro_b, accel_b = C @ gyro_s, C @ accel_s
         mag_b = C @ mag_s if mag_s is not None else None
+        mag_b_raw = mag_b
+        if mag_b is not None:
+            mag_b = self._deviation_corrected(mag_b)
         self.polar_att, _ = polar_attitude_step(self.polar_att, t, gyro_b, accel_b, self.polar_att_params)
         att = polar_attitude_estimate(self.polar_att)
         if att is not None:
@@ -259,7 +283,10 @@ class Pipeline:
                 self._event("heading_filter", "magnetometer heading available" if hdiag.source_available
                             else f"magnetometer heading unavailable: {hdiag.reason}")
         self._step_ahrs(ImuEvent(t, gyro_s, mag_s))
-        return self._solution(s, gyro_s, att)
+        sol = self._solution(s, gyro_s, att)
+        if self.deviation_calibrate and mag_b_raw is not None:
+            self._deviation_learn(sol, mag_b_raw, t)
+        return sol
 
     def on_pressure(self, s: PressureSample) -> None:
         self.pressure = s
@@ -347,6 +374,46 @@ class Pipeline:
                 self._event("azimuth", f"{out.status}: {out.reason}" if out.reason else out.status)
             self._azimuth_status = out.status
             self.azimuth_out = out
+
+    def _deviation_corrected(self, mag_body_gauss: np.ndarray) -> np.ndarray:
+        """Method D's correction of the magnetometer (body axes) for C, once it covers enough
+        headings, rolls and pitches; the raw field otherwise."""
+        if self.deviation is None or not self.deviation_apply:
+            return mag_body_gauss
+        use = deviation_coverage(self.deviation, self.deviation_params).overall >= self.deviation_min_coverage
+        if use != self._deviation_in_use:
+            self._deviation_in_use = use
+            cov = deviation_coverage(self.deviation, self.deviation_params)
+            self._event("deviation", f"compensation {'applied' if use else 'not applied'}: coverage "
+                        f"{cov.overall:.2f} (headings {cov.heading_fraction:.2f}, rolls {cov.roll_fraction:.2f}, "
+                        f"pitches {cov.pitch_fraction:.2f})"
+                        f", needed {self.deviation_min_coverage:.2f}")
+        if not use:
+            return mag_body_gauss
+        h = polar_heading_estimate(self.polar_hdg)
+        if not (h.initialised and math.isfinite(h.heading_rad)):
+            return mag_body_gauss
+        att = polar_attitude_estimate(self.polar_att)
+        if att is None:
+            return mag_body_gauss
+        return corrected_mag(self.deviation, mag_body_gauss, h.heading_rad, att.roll_rad, att.pitch_rad)
+
+    def _deviation_learn(self, sol: NavSolution, mag_body_gauss: np.ndarray, t: float) -> None:
+        """Calibration manoeuvre (METHODS.md D): one RLS update at DEVIATION_PERIOD_S against a
+        heading that does not come from the magnetometer alone (A's solution or the trusted FC)."""
+        if t - self._deviation_last_s < DEVIATION_PERIOD_S or not sol.heading_valid:
+            return
+        sources = set(sol.heading_source.split("+"))
+        if not sources & {"azimuth", "fc"} or sol.heading_sigma_rad is None \
+                or sol.heading_sigma_rad > DEVIATION_MAX_REF_SIGMA_RAD:
+            return
+        self._deviation_last_s = t
+        self.deviation, _ = deviation_step(self.deviation, mag_body_gauss, self.field.e_ned_gauss,
+                                           sol.heading_rad, sol.roll_rad, sol.pitch_rad, self.deviation_params)
+        cov = deviation_coverage(self.deviation, self.deviation_params).overall
+        if cov >= self._deviation_coverage_reported + 0.25:
+            self._deviation_coverage_reported = cov
+            self._event("deviation", f"calibration manoeuvre coverage {cov:.2f}")
 
     def _declination_at_launch(self) -> None:
         """Method E on the rest before launch: a measured declination only if the gyros resolve
