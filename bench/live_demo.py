@@ -44,7 +44,8 @@ def compare_with_truth(attitude: list, truth: dict, launch_time_s: float | None)
         out["heading_rms_deg"] = float(np.sqrt(np.mean(d_yaw ** 2)))
         out["heading_max_abs_deg"] = float(np.max(np.abs(d_yaw)))
         if launch_time_s is not None and math.isfinite(launch_time_s):
-            out["time_to_first_heading_s"] = float(t[valid][0] - launch_time_s)
+            # negative: a heading (magnetometer, FC) was valid on the launcher already
+            out["first_heading_after_launch_s"] = float(t[valid][0] - launch_time_s)
     if launch_time_s is not None and math.isfinite(launch_time_s):
         first = (t >= launch_time_s) & (t <= launch_time_s + 60.0)
         if np.any(first):
