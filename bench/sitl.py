@@ -225,6 +225,13 @@ class Sitl:
         self._sim_out = out("sim.log")
         self.daemon = subprocess.Popen(self.daemon_cmd, cwd=ROOT, env=env, stdout=self._daemon_out or None,
                                        stderr=subprocess.STDOUT if self._daemon_out else None)
+        # the simulator pushes (udpout) from its first second: start it only once the daemon
+        # listens, or a slow daemon start (imports on a loaded machine) misses the launch
+        if self._daemon_out:
+            t_end = time.monotonic() + 60.0
+            while time.monotonic() < t_end and "msg=started" not in self.log("daemon") \
+                    and self.daemon.poll() is None:
+                time.sleep(0.05)
         self.sim = subprocess.Popen(self.sim_cmd, cwd=ROOT, env=env, stdout=self._sim_out or None,
                                     stderr=subprocess.STDOUT if self._sim_out else None)
         return self
