@@ -69,6 +69,10 @@ class _OutQueue:
 
 class Transport:
     endpoint: Endpoint
+    datagram: bool = False
+    """True when each chunk returned by :meth:`read` is exactly one datagram (UDP), so the link
+    may treat a chunk as a unit; False for byte streams (TCP, serial), where a chunk boundary
+    means nothing and a frame may span chunks."""
 
     def __init__(self, endpoint: Endpoint):
         self.endpoint = endpoint
@@ -141,6 +145,8 @@ def _resolve(host: str, port: int, kind: int) -> tuple:
 
 class UdpTransport(Transport):
     """udpin (bind and reply to the autopilot's address) or udpout (send to a fixed address)."""
+
+    datagram = True
 
     def __init__(self, endpoint: Endpoint):
         super().__init__(endpoint)
