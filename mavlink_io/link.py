@@ -6,7 +6,7 @@ Usage::
     while running:
         for item in link.poll(timeout_s=0.005):
             ...  # ImuSample | PressureSample | FcAttitude | FcHeartbeat | FcEkfStatus |
-                 # FcSysStatus | CommandAck | LinkEvent
+                 # FcSysStatus | CommandAck | IncomingCommand | LinkEvent
     link.send(link.mav.attitude_encode(...))  # outputs, from our identity; never raises
     link.close()
 
@@ -15,7 +15,13 @@ What ``poll()`` does, in order, without ever raising on bad input:
 2. wait up to ``timeout_s`` for bytes (less if a timer is due), read everything available;
 3. parse with pymavlink (MAVLink 2 out, 1 or 2 in, ardupilotmega dialect); bad CRC / framing /
    unknown ids are counted in :class:`~mavlink_io.stats.LinkStats`;
-4. keep only the autopilot's messages (its system id, its component; our own echoes and other
+4. MAVLink 2 signing (with ``signing_key``): a signed frame is verified by
+   :mod:`mavlink_io.signing` (signature first, then the timestamp; pymavlink never checks incoming
+   signatures: its check lets one forged far-future frame block a stream) and dropped when it
+   fails; unsigned frames are dropped by the ``require_signed`` policy;
+   commands (COMMAND_LONG/INT) addressed exactly to our component, from any source, become
+   IncomingCommand (broadcast ones are counted, not yielded: the FC acts on them);
+   then keep only the autopilot's messages (its system id, its component; our own echoes and other
    components are counted and ignored), learn the autopilot from its HEARTBEAT;
 5. decode into the typed samples of :mod:`mavlink_io.samples` (SI units, FC time via
    :mod:`mavlink_io.timebase`: unwrap, reboot, gap), rejecting non-finite values; one IMU
@@ -26,7 +32,14 @@ What ``poll()`` does, in order, without ever raising on bad input:
 Rates are (re)requested when the autopilot is first seen, after an FC reboot, when the link
 comes back, and when a requested stream stays silent. LinkEvent kinds: autopilot_detected,
 rates_requested, rates_acked, fc_reboot, time_gap, time_wrap, link_lost, link_restored,
-reconnect, transport_error (a port that cannot be opened or died; retried with backoff).
+reconnect, transport_error (a port that cannot be opened or died; retried with backoff),
+signature_rejected and unsigned_command_rejected (the first, then at most one per 10 s per kind
+with the count in between; they name source, message type and reason, never key or signature bytes).
+
+Signing, outgoing: ``self.mav`` (the sending MAVLink object) signs with pymavlink's own signer;
+its timestamp starts above max(signing_timestamp_floor, wall clock), is pulled up to the wall clock
+about once a second and to the newest verified incoming timestamp (a board without a real-time
+clock follows the FC), never goes back; ``signing_timestamp`` exposes it for persistence.
 
 Identity: HEARTBEAT type MAV_TYPE_ONBOARD_CONTROLLER, autopilot MAV_AUTOPILOT_INVALID, component
 ``component_id`` (191), system id = the vehicle's (configured, or learned from the autopilot's
@@ -49,14 +62,24 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from mavlink_io import decode as dec
 from mavlink_io.rates import DATA_STREAM_OF, Finished, RateRequester, SendInterval, data_stream_requests
 from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcHeartbeat, FcSysStatus,
-                                ImuSample, PressureSample)
+                                ImuSample, IncomingCommand, PressureSample)
+from mavlink_io.signing import IFLAG_SIGNED, TIMESTAMP_MAX, SignatureVerifier, check_key, timestamp_from_unix_s
 from mavlink_io.stats import LinkStats
 from mavlink_io.timebase import FcTimebase, TimebaseParams
 from mavlink_io.transport import Transport, TransportDead, make_transport
 from mavlink_io.url import Endpoint, parse_url
 
 LINK_EVENT_KINDS = ("autopilot_detected", "rates_requested", "rates_acked", "fc_reboot", "time_gap",
-                    "time_wrap", "link_lost", "link_restored", "reconnect", "transport_error")
+                    "time_wrap", "link_lost", "link_restored", "reconnect", "transport_error",
+                    "signature_rejected", "unsigned_command_rejected")
+
+REQUIRE_SIGNED = ("commands", "all", "none")
+COMMAND_TYPES = ("COMMAND_LONG", "COMMAND_INT")
+SECURITY_REPORT_PERIOD_S = 10.0
+"""signature_rejected / unsigned_command_rejected: the first one, then at most one per this period
+per kind, with the count since the last report (a flood of forged frames is not a log flood)."""
+SIGNING_REFRESH_S = 1.0
+"""How often the outgoing signing timestamp is pulled up to the wall clock (poll's timers)."""
 
 DEFAULT_STREAM_RATES_HZ = {"RAW_IMU": 200.0, "SCALED_PRESSURE": 50.0, "ATTITUDE": 50.0,
                            "EKF_STATUS_REPORT": 2.0, "SYS_STATUS": 2.0, "HIGHRES_IMU": 200.0}
@@ -120,6 +143,20 @@ class LinkConfig:
     reconnect_backoff_s: float = 0.5
     reconnect_backoff_max_s: float = 5.0
     rate_window_s: float = 2.0
+    signing_key: bytes | None = field(default=None, repr=False, compare=False)
+    """MAVLink 2 signing secret key, exactly 32 bytes; None = no signing (everything accepted as
+    unsigned, nothing signed). Never shown in repr/str or in any error message."""
+    sign_outgoing: bool = True
+    """With a key: sign what we send."""
+    require_signed: str = "commands"
+    """With a key: which unsigned frames are dropped. "commands": COMMAND_LONG/COMMAND_INT addressed
+    to us (our system or 0, our component or 0); "all": every unsigned frame (MAVLink 1 included);
+    "none": none. A signed frame that fails verification is always dropped."""
+    signing_link_id: int = 0
+    """Our link id in the signature block (0..255)."""
+    signing_timestamp_floor: int = 0
+    """Our outgoing signing timestamps start above max(this, the wall clock), in 10 us units since
+    2015-01-01 UTC (persist ``link.signing_timestamp`` and pass it back here after a restart)."""
 
     def __post_init__(self) -> None:
         parse_url(self.url)  # ValueError naming the URL
@@ -145,6 +182,15 @@ class LinkConfig:
         if self.imu_source != "auto" and self.imu_source not in IMU_SOURCES:
             raise ValueError(f"LinkConfig.imu_source must be 'auto' or one of {', '.join(IMU_SOURCES)}, "
                              f"got {self.imu_source!r}")
+        if self.signing_key is not None:
+            check_key(self.signing_key, "LinkConfig.signing_key")
+        if not isinstance(self.sign_outgoing, bool):
+            raise ValueError(f"LinkConfig.sign_outgoing must be true or false, got {self.sign_outgoing!r}")
+        if self.require_signed not in REQUIRE_SIGNED:
+            raise ValueError(f"LinkConfig.require_signed must be one of {', '.join(REQUIRE_SIGNED)}, "
+                             f"got {self.require_signed!r}")
+        _check_int("signing_link_id", self.signing_link_id, 0, 255)
+        _check_int("signing_timestamp_floor", self.signing_timestamp_floor, 0, TIMESTAMP_MAX - 1)
         if not isinstance(self.stream_rates_hz, dict):
             raise ValueError(f"LinkConfig.stream_rates_hz must be a dict name -> Hz, got {type(self.stream_rates_hz).__name__}")
         for name, rate in self.stream_rates_hz.items():
@@ -174,7 +220,41 @@ class _Writer:
         self._link._write(bytes(buf))
 
 
-Item = ImuSample | PressureSample | FcAttitude | FcHeartbeat | FcEkfStatus | FcSysStatus | CommandAck | LinkEvent
+Item = (ImuSample | PressureSample | FcAttitude | FcHeartbeat | FcEkfStatus | FcSysStatus | CommandAck
+        | IncomingCommand | LinkEvent)
+
+
+class _ReportLimiter:
+    """The first report of a kind, then at most one per ``period_s``, carrying the count of the
+    ones held back since the previous report; ``due()`` flushes a held-back count once the period
+    has passed even if nothing new arrives."""
+
+    def __init__(self, period_s: float):
+        self.period_s = period_s
+        self._last_s: dict[str, float] = {}
+        self._held: dict[str, int] = {}
+        self._held_detail: dict[str, str] = {}
+
+    def report(self, kind: str, detail: str, now: float) -> str | None:
+        last = self._last_s.get(kind)
+        if last is not None and now - last < self.period_s:
+            self._held[kind] = self._held.get(kind, 0) + 1
+            self._held_detail[kind] = detail
+            return None
+        self._last_s[kind] = now
+        n = self._held.pop(kind, 0)
+        self._held_detail.pop(kind, None)
+        return detail + (f" ({n} more since the last report)" if n else "")
+
+    def due(self, now: float) -> list[tuple[str, str]]:
+        out = []
+        for kind, n in list(self._held.items()):
+            if now - self._last_s[kind] >= self.period_s:
+                out.append((kind, f"{n} more in {now - self._last_s[kind]:.0f} s, the last: "
+                                  f"{self._held_detail.pop(kind)}"))
+                del self._held[kind]
+                self._last_s[kind] = now
+        return out
 
 
 class MavlinkLink:
@@ -186,9 +266,10 @@ class MavlinkLink:
     """
 
     def __init__(self, cfg: LinkConfig, clock: Callable[[], float] = time.monotonic,
-                 transport: Transport | None = None):
+                 transport: Transport | None = None, wall_clock: Callable[[], float] = time.time):
         """cfg: LinkConfig; clock: monotonic seconds (injectable for tests and replay);
-        transport: override the transport made from cfg.url (e.g. NullTransport for replay).
+        transport: override the transport made from cfg.url (e.g. NullTransport for replay);
+        wall_clock: Unix time, s (only for the outgoing signing timestamp).
         Never raises for an unreachable port or device (it is retried with backoff and reported
         as a "transport_error" LinkEvent); raises ValueError only for a bad configuration."""
         self.cfg = cfg
@@ -197,7 +278,21 @@ class MavlinkLink:
         self.stats = LinkStats(rate_window_s=cfg.rate_window_s)
         self.mav = mavlink2.MAVLink(_Writer(self), srcSystem=cfg.system_id or _PLACEHOLDER_SYSID,
                                     srcComponent=cfg.component_id)
-        self.mav.robust_parsing = True
+        # parsing has its own MAVLink object WITHOUT a key: pymavlink's own signature check records
+        # a stream's timestamp before comparing the signature (one forged far-future frame blocks the
+        # genuine stream); incoming signatures are verified by mavlink_io.signing instead
+        self._rx_mav = mavlink2.MAVLink(None, srcSystem=0, srcComponent=0)
+        self._rx_mav.robust_parsing = True
+        self.wall_clock = wall_clock
+        self._verifier: SignatureVerifier | None = None
+        if cfg.signing_key is not None:
+            self._verifier = SignatureVerifier(cfg.signing_key)
+            sg = self.mav.signing
+            sg.secret_key = bytes(cfg.signing_key)
+            sg.link_id = cfg.signing_link_id
+            sg.sign_outgoing = cfg.sign_outgoing
+            sg.timestamp = max(cfg.signing_timestamp_floor, self._wall_timestamp()) + 1
+        self._security_reports = _ReportLimiter(SECURITY_REPORT_PERIOD_S)
         self.target_system: int | None = cfg.system_id
         self.target_component: int | None = cfg.autopilot_component_id
         self.fc_autopilot: str | None = None
@@ -218,6 +313,7 @@ class MavlinkLink:
         self._closed = False
         now = clock()
         self._next_heartbeat_s = now
+        self._next_signing_refresh_s = now + SIGNING_REFRESH_S
         self._transport: Transport = transport if transport is not None else make_transport(self.endpoint)
         self._open_ok = False
         self._ever_opened = False
@@ -233,6 +329,12 @@ class MavlinkLink:
     def local_address(self) -> tuple | None:
         """The bound address of a listening transport (udpin/tcpin; useful with port 0)."""
         return self._transport.local_address if self._open_ok else None
+
+    @property
+    def signing_timestamp(self) -> int | None:
+        """Our current outgoing signing timestamp (10 us units since 2015-01-01 UTC), None without
+        a key. Persist it and pass it back as ``signing_timestamp_floor`` after a restart."""
+        return self.mav.signing.timestamp if self._verifier is not None else None
 
     def subscribe(self, callback: Callable) -> None:
         """Call ``callback(msg)`` with every accepted raw pymavlink message from the autopilot
@@ -401,18 +503,19 @@ class MavlinkLink:
 
     def _reset_parser(self) -> None:
         # a new byte stream: drop any half frame of the old one (pymavlink has no reset method)
-        self.mav.buf = bytearray()
-        self.mav.buf_index = 0
-        self.mav.expected_length = mavlink2.HEADER_LEN_V1 + 2
-        self.mav.have_prefix_error = False
+        rx = self._rx_mav
+        rx.buf = bytearray()
+        rx.buf_index = 0
+        rx.expected_length = mavlink2.HEADER_LEN_V1 + 2
+        rx.have_prefix_error = False
 
     def _parse(self, data: bytes) -> list:
         out = []
         try:
-            m = self.mav.parse_char(data)
+            m = self._rx_mav.parse_char(data)
             while m is not None:
                 out.append(m)
-                m = self.mav.parse_char(b"")
+                m = self._rx_mav.parse_char(b"")
         except Exception as exc:  # noqa: BLE001 - the transport never dies on bad bytes
             self.stats.parser_errors += 1
             self.last_error = f"parser: {exc}"
@@ -436,6 +539,11 @@ class MavlinkLink:
 
     def _service_timers(self, now: float, items: list) -> None:
         self.stats.set_now(now)
+        if now >= self._next_signing_refresh_s:
+            self._next_signing_refresh_s = now + SIGNING_REFRESH_S
+            self._refresh_signing_timestamp()
+        for kind, detail in self._security_reports.due(now):
+            self._event(kind, detail, now, items)
         if now >= self._next_heartbeat_s:
             self._send_heartbeat_due(now)
         self._run_rate_actions(self._rates.poll(now), now, items)
@@ -631,6 +739,13 @@ class MavlinkLink:
         if src == (self.mav.srcSystem, self.mav.srcComponent):
             self.stats.own_echoes += 1
             return
+        signed = self._signing_policy(msg, mtype, src, rx_s, items)
+        if signed is None:
+            return
+        from_fc = self.target_system is not None and self.target_component is not None \
+            and src == (self.target_system, self.target_component)
+        if mtype in COMMAND_TYPES and self._command_in(msg, mtype, src, signed, rx_s, items) and not from_fc:
+            return
         if mtype == "HEARTBEAT" and self._is_vehicle_heartbeat(msg):
             self._learn_autopilot(msg, rx_s, items)
         if self.target_system is None or self.target_component is None \
@@ -656,6 +771,91 @@ class MavlinkLink:
             except Exception as exc:  # noqa: BLE001 - a subscriber's bug must not stop the link
                 self.stats.subscriber_errors += 1
                 self.last_error = f"subscriber {getattr(cb, '__qualname__', cb)!s} on {mtype}: {exc!r}"
+
+    # --- signing and incoming commands ---------------------------------------------------------
+
+    def _wall_timestamp(self) -> int:
+        try:
+            return timestamp_from_unix_s(float(self.wall_clock()))
+        except (TypeError, ValueError, OverflowError):  # a broken wall clock: keep our own count
+            return 0
+
+    def _refresh_signing_timestamp(self) -> None:
+        """Outgoing timestamp = max(current, wall clock): never back (pymavlink adds 1 per frame)."""
+        if self._verifier is not None:
+            sg = self.mav.signing
+            sg.timestamp = min(max(sg.timestamp, self._wall_timestamp()), TIMESTAMP_MAX)
+
+    def _to_us(self, msg, mtype: str) -> bool:
+        """A command whose target is us: our system or broadcast, our component or broadcast."""
+        return (mtype in COMMAND_TYPES and msg.target_system in (0, self.mav.srcSystem)
+                and msg.target_component in (0, self.cfg.component_id))
+
+    def _security_event(self, kind: str, detail: str, now: float, items: list) -> None:
+        detail = self._security_reports.report(kind, detail, now)
+        if detail is not None:
+            self._event(kind, detail, now, items)
+
+    def _signing_policy(self, msg, mtype: str, src: tuple[int, int], rx_s: float, items: list) -> bool | None:
+        """None: drop the frame (counted, reported); else whether it carried a signature that
+        verified with our key. Without a key everything passes as unsigned (False)."""
+        if self._verifier is None:
+            return False
+        header = getattr(msg, "_header", None)
+        frame = getattr(msg, "_msgbuf", None)
+        if header is not None and frame is not None and header.incompat_flags & IFLAG_SIGNED:
+            v = self._verifier.verify(frame, src[0], src[1], self.mav.signing.timestamp)
+            if v.ok:
+                self.stats.signed_accepted += 1
+                # the spec's clock rule: our timestamp is at least the newest valid one seen (a
+                # companion without a real-time clock follows the FC's)
+                sg = self.mav.signing
+                sg.timestamp = max(sg.timestamp, v.timestamp)
+                return True
+            if v.replay:
+                self.stats.signature_replay += 1
+                why = ("timestamp not after the last one of its stream (replay)" if v.reason == "old_timestamp"
+                       else "new stream more than 60 s behind our timestamp (replay)")
+            else:
+                self.stats.signature_bad += 1
+                why = "signature does not match our key" if v.reason == "bad_signature" else "malformed signature block"
+            self._security_event("signature_rejected", f"{mtype} from system {src[0]} component {src[1]} "
+                                                       f"(link id {v.link_id}) dropped: {why}", rx_s, items)
+            return None
+        policy = self.cfg.require_signed
+        is_cmd_to_us = self._to_us(msg, mtype)
+        if policy == "all" or (policy == "commands" and is_cmd_to_us):
+            self.stats.unsigned_rejected += 1
+            if is_cmd_to_us:
+                self.stats.unsigned_commands_rejected += 1
+                self._security_event("unsigned_command_rejected",
+                                     f"unsigned {mtype} (command {msg.command}) from system {src[0]} "
+                                     f"component {src[1]} to {msg.target_system}/{msg.target_component} "
+                                     f"dropped: require_signed={policy}", rx_s, items)
+            return None
+        return False
+
+    def _command_in(self, msg, mtype: str, src: tuple[int, int], signed: bool, rx_s: float,
+                    items: list) -> bool:
+        """Yield an IncomingCommand for a command addressed exactly to our component; count a
+        broadcast one (the FC acts on it; we must not act twice). True when it was for us."""
+        if not self._to_us(msg, mtype):
+            return False
+        if msg.target_system != self.mav.srcSystem or msg.target_component != self.cfg.component_id:
+            self.stats.commands_broadcast_ignored += 1
+            return True
+        if mtype == "COMMAND_LONG":
+            params = tuple(float(getattr(msg, f"param{i}")) for i in range(1, 8))
+            frame, confirmation, is_int = None, int(msg.confirmation), False
+        else:
+            params = (*(float(getattr(msg, f"param{i}")) for i in range(1, 5)), int(msg.x), int(msg.y), float(msg.z))
+            frame, confirmation, is_int = int(msg.frame), 0, True
+        self.stats.commands_received += 1
+        items.append(IncomingCommand(time_rx_s=rx_s, command=int(msg.command), params=params, is_int=is_int,
+                                     frame=frame, confirmation=confirmation, source_system=src[0],
+                                     source_component=src[1], target_system=int(msg.target_system),
+                                     target_component=int(msg.target_component), signed=signed))
+        return True
 
     def _fc_time(self, stream: str, mtype: str, msg, rx_s: float, items: list,
                  gap_s: float | None = None) -> float | None:

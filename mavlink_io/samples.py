@@ -119,3 +119,28 @@ class CommandAck:
     result_param2: int
     target_system: int
     target_component: int
+
+
+@dataclass(frozen=True, slots=True)
+class IncomingCommand:
+    """COMMAND_LONG / COMMAND_INT addressed to our component (target_system our system id,
+    target_component exactly our component id), from any source (a ground station routed through
+    the FC, the FC itself). Yielded after the link's signing policy; the link does not answer it
+    (the command server sends COMMAND_ACK with ``link.send()``)."""
+    time_rx_s: float
+    command: int
+    """MAV_CMD."""
+    params: tuple
+    """COMMAND_LONG: (p1..p7) floats; COMMAND_INT: (p1, p2, p3, p4) floats, x (int), y (int), z (float)."""
+    is_int: bool
+    """True when it came as COMMAND_INT."""
+    frame: int | None
+    """COMMAND_INT's MAV_FRAME; None for COMMAND_LONG."""
+    confirmation: int
+    """COMMAND_LONG's confirmation counter; 0 for COMMAND_INT."""
+    source_system: int
+    source_component: int
+    target_system: int
+    target_component: int
+    signed: bool
+    """True only when it carried a signature that verified with our key (False without a key)."""

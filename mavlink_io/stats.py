@@ -79,6 +79,30 @@ class LinkStats:
     """Sends skipped because a listening transport has no peer yet (not an error)."""
     heartbeats_sent: int = 0
     rate_requests_sent: int = 0
+    signed_accepted: int = 0
+    """Signed frames whose signature and timestamp verified with our key."""
+    signature_bad: int = 0
+    """Signed frames dropped: signature mismatch (wrong key, altered or forged frame)."""
+    signature_replay: int = 0
+    """Signed frames dropped: timestamp not after the stream's last (replay), or a new stream more
+    than 60 s behind our timestamp."""
+    unsigned_rejected: int = 0
+    """Unsigned frames dropped by the require_signed policy (all types, commands included)."""
+    unsigned_commands_rejected: int = 0
+    """Of unsigned_rejected: COMMAND_LONG/COMMAND_INT addressed to us (policy "commands" or "all")."""
+    commands_received: int = 0
+    """COMMAND_LONG/COMMAND_INT addressed to our component, yielded as IncomingCommand."""
+    commands_broadcast_ignored: int = 0
+    """Commands with a broadcast target (system or component 0): the FC acts on them, we do not."""
+    datagram_resets: int = 0
+    """UDP: parser resets at a datagram that starts with a MAVLink magic byte while the parser
+    held a partial frame (a damaged frame cannot swallow the next datagram's frames)."""
+    udp_split_frames_seen: int = 0
+    """UDP: frames completed across datagrams (the sender splits frames, e.g. a serial-to-UDP
+    bridge); after the first, per-datagram resets are off for this link until it is reopened."""
+    kernel_rx_drops: int | None = None
+    """UDP datagrams the kernel dropped because our receive buffer was full (None when the
+    transport cannot tell); refreshed about once a second by poll()."""
     rate_results: dict[str, str] = field(default_factory=dict)
     """Last SET_MESSAGE_INTERVAL outcome per message: accepted, denied, unsupported, failed,
     no_ack, data_stream (fallback REQUEST_DATA_STREAM)."""
