@@ -129,10 +129,13 @@ class UdpTap:
 
     The simulator pushes to ``sim_side_port``; the tap forwards to the daemon's udpin port and
     relays the daemon's replies back to the simulator, recording every message the daemon sent
-    (an observer outside both processes).
+    (an observer outside both processes). With ``record_to_daemon`` (message types, e.g.
+    ``("RAW_IMU",)``) it also decodes what the simulator sends and records when it forwarded each
+    message of those types to the daemon: the same monotonic clock, read in the same thread, as
+    the receive times in ``from_daemon`` (bench/speed.py's latency RAW_IMU -> ATTITUDE).
     """
 
-    def __init__(self, daemon_port: int):
+    def __init__(self, daemon_port: int, record_to_daemon: tuple[str, ...] = ()):
         from pymavlink.dialects.v20 import ardupilotmega
         self.daemon_addr = ("127.0.0.1", daemon_port)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -141,6 +144,14 @@ class UdpTap:
         self.parser = ardupilotmega.MAVLink(None)
         self.parser.robust_parsing = True
         self.from_daemon: list[tuple[float, object]] = []
+        """(receive monotonic s, message) of every message the daemon sent."""
+        self.record_to_daemon = frozenset(record_to_daemon)
+        self.to_daemon: list[tuple[float, object]] = []
+        """(forward monotonic s, message) of the simulator's messages of the types in record_to_daemon."""
+        self._sim_parser = None
+        if self.record_to_daemon:  # decoding the 400 Hz stream costs this thread time: only on request
+            self._sim_parser = ardupilotmega.MAVLink(None)
+            self._sim_parser.robust_parsing = True
         self.forwarded = {"to_daemon": 0, "to_sim": 0}
         self._sim_addr = None
         self._stop = threading.Event()
@@ -159,17 +170,21 @@ class UdpTap:
                 continue
             except OSError:
                 return
+            now = time.monotonic()  # receive time of a daemon message, forward time of a simulator one
             if addr == self.daemon_addr:
                 if self._sim_addr is not None:
                     self.sock.sendto(data, self._sim_addr)
                     self.forwarded["to_sim"] += 1
-                now = time.monotonic()
                 for msg in self.parser.parse_buffer(data) or []:
                     self.from_daemon.append((now, msg))
             else:
                 self._sim_addr = addr
                 self.sock.sendto(data, self.daemon_addr)
                 self.forwarded["to_daemon"] += 1
+                if self._sim_parser is not None:
+                    for msg in self._sim_parser.parse_buffer(data) or []:
+                        if msg.get_type() in self.record_to_daemon:
+                            self.to_daemon.append((now, msg))
 
     def sent_by_daemon(self, mtype: str) -> list:
         return [m for _, m in self.from_daemon if m.get_type() == mtype]
@@ -186,7 +201,8 @@ class Sitl:
     def __init__(self, scenario: str = "inclined_rail", speed: float = 1.0, seed: int = 1,
                  workdir: Path | None = None, config_overrides: dict | None = None,
                  sim_args: list[str] | None = None, daemon_args: list[str] | None = None,
-                 status_interval_s: float = 0.0, capture_output: bool = True, tap: bool = False):
+                 status_interval_s: float = 0.0, capture_output: bool = True, tap: bool = False,
+                 tap_record_to_daemon: tuple[str, ...] = ()):
         import tempfile
         self.scenario = scenario
         self.workdir = Path(workdir or tempfile.mkdtemp(prefix="azimuthd-sitl-"))
@@ -203,7 +219,7 @@ class Sitl:
         for section, keys in (config_overrides or {}).items():
             overrides.setdefault(section, {}).update(keys)
         self.config_path = write_config(self.workdir / "azimuthd.toml", overrides)
-        self.tap = UdpTap(self.fc_port) if tap else None
+        self.tap = UdpTap(self.fc_port, tap_record_to_daemon) if tap else None
         sim_port = self.tap.sim_side_port if self.tap else self.fc_port
         self.sim_cmd = [sys.executable, "-m", "service.cli", "sim", "--scenario", scenario,
                         "--mavlink", f"udpout:127.0.0.1:{sim_port}", "--speed", str(speed),

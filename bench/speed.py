@@ -344,50 +344,11 @@ def time_case(factory, run, items, n_imu: int, budget_s: float) -> dict:
 
 def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | None = None,
                      rt_priority: int = 0) -> dict:
-    import socket
     import tempfile
 
     import psutil
 
-    from bench.sitl import Sitl, UdpTap
-
-    class ImuTap(UdpTap):
-        """UdpTap that also records when each RAW_IMU was forwarded to the daemon (same clock,
-        same thread as the receive times of what the daemon sends)."""
-
-        def __init__(self, daemon_port: int):
-            super().__init__(daemon_port)
-            from pymavlink.dialects.v20 import ardupilotmega
-            self.sim_parser = ardupilotmega.MAVLink(None)
-            self.sim_parser.robust_parsing = True
-            self.imu_fwd: list[tuple[int, float]] = []   # (time_usec, forward monotonic s)
-            self.att_rx: list[tuple[int, float]] = []    # (time_boot_ms, receive monotonic s)
-
-        def _run(self) -> None:
-            self.sock.settimeout(0.2)
-            while not self._stop.is_set():
-                try:
-                    data, addr = self.sock.recvfrom(65536)
-                except (TimeoutError, socket.timeout):
-                    continue
-                except OSError:
-                    return
-                if addr == self.daemon_addr:
-                    now = time.monotonic()
-                    if self._sim_addr is not None:
-                        self.sock.sendto(data, self._sim_addr)
-                        self.forwarded["to_sim"] += 1
-                    for msg in self.parser.parse_buffer(data) or []:
-                        if msg.get_type() == "ATTITUDE":
-                            self.att_rx.append((msg.time_boot_ms, now))
-                else:
-                    self._sim_addr = addr
-                    now = time.monotonic()
-                    self.sock.sendto(data, self.daemon_addr)
-                    self.forwarded["to_daemon"] += 1
-                    for msg in self.sim_parser.parse_buffer(data) or []:
-                        if msg.get_type() == "RAW_IMU":
-                            self.imu_fwd.append((msg.time_usec, now))
+    from bench.sitl import Sitl
 
     window_s = 12.0 if quick else 30.0
     rest_s = 6.0
@@ -396,8 +357,11 @@ def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | No
     scen_text = scen_text.replace("rest_s = 60.0", f"rest_s = {rest_s}")
     scenario = workdir / "inclined_rail_short_rest.toml"
     scenario.write_text(scen_text)
+    # the tap timestamps every RAW_IMU it forwards to the daemon and every message the daemon sends
+    # back, on one monotonic clock in one thread
     sitl = Sitl(scenario=str(scenario), speed=1.0, workdir=workdir,
-                config_overrides={"mavlink": {"imu_rate_hz": RATE_HZ}}, tap=False)
+                config_overrides={"mavlink": {"imu_rate_hz": RATE_HZ}}, tap=True,
+                tap_record_to_daemon=("RAW_IMU",))
     if profile_out:
         # the daemon under cProfile with a CPU-time clock (waiting in select and being preempted by
         # other processes on this shared machine do not count)
@@ -406,10 +370,7 @@ def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | No
                 "p = cProfile.Profile(time.process_time); p.enable(); rc = main(sys.argv[1:]); "
                 f"p.disable(); p.dump_stats({str(profile_out)!r}); sys.exit(rc)")
         sitl.daemon_cmd[i:i + 2] = ["-c", code]
-    tap = ImuTap(sitl.fc_port)
-    sitl.tap = tap
-    port = tap.sim_side_port
-    sitl.sim_cmd = [c if not c.startswith("udpout:127.0.0.1:") else f"udpout:127.0.0.1:{port}" for c in sitl.sim_cmd]
+    tap = sitl.tap
     out: dict = {"window_s": window_s, "rate_hz": RATE_HZ, "attitude_out_hz": 50.0}
     with sitl:
         if rt_priority > 0:
@@ -422,26 +383,28 @@ def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | No
             out["sched"] = f"SCHED_FIFO {rt_priority} (daemon and tap)"
         else:
             out["sched"] = "SCHED_OTHER (default)"
-        if not sitl.wait_for(lambda: len(tap.att_rx) > 20, 60.0):
+        if not sitl.wait_for(lambda: len(tap.sent_by_daemon("ATTITUDE")) > 20, 60.0):
             raise RuntimeError(f"the daemon sent no ATTITUDE within 60 s; see {workdir}")
         dproc, sproc = psutil.Process(sitl.daemon.pid), psutil.Process(sitl.sim.pid)
         d0, s0, w0 = dproc.cpu_times(), sproc.cpu_times(), time.monotonic()
-        n_imu0 = len(tap.imu_fwd)
+        n_imu0 = len(tap.to_daemon)
         time.sleep(window_s)
         d1, s1, w1 = dproc.cpu_times(), sproc.cpu_times(), time.monotonic()
-        n_imu1 = len(tap.imu_fwd)
+        n_imu1 = len(tap.to_daemon)
         wall = w1 - w0
         out["daemon_cpu_pct"] = 100.0 * ((d1.user - d0.user) + (d1.system - d0.system)) / wall
         out["sim_cpu_pct"] = 100.0 * ((s1.user - s0.user) + (s1.system - s0.system)) / wall
         out["imu_rate_received_hz"] = (n_imu1 - n_imu0) / wall
+    imu_fwd = [(m.time_usec, t) for t, m in tap.to_daemon]   # (time_usec, forward monotonic s)
+    att_rx = [(m.time_boot_ms, t) for t, m in tap.from_daemon if m.get_type() == "ATTITUDE"]  # (.., receive s)
     # match ATTITUDE -> RAW_IMU by FC time
-    imu_us = np.array([u for u, _ in tap.imu_fwd], dtype=np.int64)
-    imu_t = np.array([t for _, t in tap.imu_fwd])
+    imu_us = np.array([u for u, _ in imu_fwd], dtype=np.int64)
+    imu_t = np.array([t for _, t in imu_fwd])
     order = np.argsort(imu_us, kind="stable")
     imu_us, imu_t = imu_us[order], imu_t[order]
     lat = []
     unmatched = 0
-    for ms, t_rx in tap.att_rx:
+    for ms, t_rx in att_rx:
         # time_boot_ms is the sample's FC time truncated or rounded to ms (int(3.24 * 1000) is
         # 3239): the sample is within 1 ms of it, and at 400 Hz (2.5 ms) only one sample can be
         lo = np.searchsorted(imu_us, ms * 1000 - 1000, side="left")
@@ -452,9 +415,9 @@ def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | No
         lat.append(t_rx - imu_t[lo])
     lat_ms = np.array(lat) * 1e3
     if raw is not None:
-        raw.update(imu_fwd=tap.imu_fwd, att_rx=tap.att_rx, workdir=str(workdir))
+        raw.update(imu_fwd=imu_fwd, att_rx=att_rx, workdir=str(workdir))
     out.update({"attitude_matched": int(lat_ms.size), "attitude_unmatched": unmatched,
-                "raw_imu_forwarded": len(tap.imu_fwd)})
+                "raw_imu_forwarded": len(imu_fwd)})
     if lat_ms.size:
         out.update({"latency_p50_ms": float(np.percentile(lat_ms, 50)),
                     "latency_p99_ms": float(np.percentile(lat_ms, 99)),
