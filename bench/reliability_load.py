@@ -178,10 +178,15 @@ def fuzz_stream(n_frames: int, seed: int = 0) -> FuzzStream:
 
 
 def run_fuzz(stream: FuzzStream, seed: int = 0, max_chunk: int = 512, datagrams: bool = False,
-             reset_per_datagram: bool = False) -> dict:
+             reset_per_datagram: bool = False, datagram_semantics: bool | None = None) -> dict:
     """Feed the stream to a MavlinkLink in random fragments (``datagrams``: one frame per feed,
-    as UDP delivers; ``reset_per_datagram``: what a parser reset at each datagram would save, a
-    measurement for mavlink_io, not what the link does); the accounting and its checks.
+    as UDP delivers) and check the accounting.
+
+    ``datagram_semantics``: whether the link treats each feed as one UDP datagram (its parser
+    reset at a datagram that starts with a magic byte while a partial frame is held, and its
+    learning of a sender that splits frames); None = ``datagrams`` (what the link does on UDP).
+    ``False`` with ``datagrams`` measures the link as it was before (a byte stream);
+    ``reset_per_datagram``: an unconditional reset before every feed (the upper bound).
 
     Returns the figures (counts, time) and ``problems``: a list of broken invariants (empty = pass)."""
     from mavlink_io.link import LinkConfig, MavlinkLink
@@ -196,6 +201,7 @@ def run_fuzz(stream: FuzzStream, seed: int = 0, max_chunk: int = 512, datagrams:
     cuts = np.cumsum(rng.integers(1, max_chunk + 1, size=len(data) // max(1, max_chunk // 2) + 2))
     cuts = cuts[cuts < len(data)]
     bounds = stream.bounds if datagrams else [0, *cuts.tolist(), len(data)]
+    semantics = datagrams if datagram_semantics is None else datagram_semantics
     n_imu = 0
     bad_values = 0
     worst_feed_s = 0.0
@@ -205,7 +211,7 @@ def run_fuzz(stream: FuzzStream, seed: int = 0, max_chunk: int = 512, datagrams:
         ts = time.perf_counter()
         if reset_per_datagram:
             link._reset_parser()  # noqa: SLF001 - the measurement of a possible fix
-        items = link.feed(data[bounds[i]:bounds[i + 1]], clock[0])
+        items = link.feed(data[bounds[i]:bounds[i + 1]], clock[0], datagram=semantics)
         worst_feed_s = max(worst_feed_s, time.perf_counter() - ts)
         for it in items:
             if isinstance(it, ImuSample):
@@ -246,6 +252,7 @@ def run_fuzz(stream: FuzzStream, seed: int = 0, max_chunk: int = 512, datagrams:
             "foreign_messages": s.foreign_messages, "imu_samples": n_imu,
             "stale_time_drops": s.stale_time_drops, "parser_errors": s.parser_errors,
             "intact_lost_to_neighbours": intact - s.accepted,
+            "datagram_resets": s.datagram_resets, "udp_split_frames_seen": s.udp_split_frames_seen,
             "elapsed_s": elapsed, "frames_per_s": stream.frames / elapsed, "worst_feed_ms": 1e3 * worst_feed_s,
             "problems": problems}
 
@@ -342,13 +349,22 @@ def main(argv=None) -> int:
               f"foreign {r['foreign_messages']}; intact frames lost to a damaged neighbour "
               f"{r['intact_lost_to_neighbours']}")
         print("  problems: " + ("none" if not r["problems"] else "; ".join(r["problems"])))
-        for name, kw in (("datagrams", {"datagrams": True}),
-                         ("datagrams_reset", {"datagrams": True, "reset_per_datagram": True})):
+        for name, label, kw in (
+                ("datagrams_as_stream", "one frame per datagram, parsed as a byte stream (the link before)",
+                 {"datagrams": True, "datagram_semantics": False}),
+                ("datagrams", "one frame per datagram, the link as it is (reset at a magic byte)",
+                 {"datagrams": True}),
+                ("datagrams_reset", "one frame per datagram, unconditional reset (upper bound)",
+                 {"datagrams": True, "reset_per_datagram": True}),
+                ("split_as_stream", "random fragments as datagrams, parsed as a byte stream (the link before)",
+                 {"datagram_semantics": False}),
+                ("split", "random fragments as datagrams (serial-to-UDP bridge), the link as it is",
+                 {"datagram_semantics": True})):
             d = run_fuzz(stream, a.seed, **kw)
             results["fuzz_" + name] = d
-            print(f"  one frame per datagram{' + parser reset per datagram' if 'reset' in name else ''}: "
-                  f"accepted {d['accepted']} of {d['intact_fc_frames']} intact FC frames, "
-                  f"{d['intact_lost_to_neighbours']} lost to a damaged neighbour; problems: "
+            print(f"  {label}: accepted {d['accepted']} of {d['intact_fc_frames']} intact FC frames "
+                  f"({d['intact_lost_to_neighbours']} lost), datagram resets {d['datagram_resets']}, split frames "
+                  f"seen {d['udp_split_frames_seen']}; problems: "
                   + ("none" if not d["problems"] else "; ".join(d["problems"])))
     if a.load or both:
         dur = a.load_s or (60.0 if a.quick else 1800.0)

@@ -71,7 +71,7 @@ from mavlink_io.url import Endpoint, parse_url
 
 LINK_EVENT_KINDS = ("autopilot_detected", "rates_requested", "rates_acked", "fc_reboot", "time_gap",
                     "time_wrap", "link_lost", "link_restored", "reconnect", "transport_error",
-                    "signature_rejected", "unsigned_command_rejected")
+                    "signature_rejected", "unsigned_command_rejected", "udp_split_frames")
 
 REQUIRE_SIGNED = ("commands", "all", "none")
 COMMAND_TYPES = ("COMMAND_LONG", "COMMAND_INT")
@@ -79,7 +79,9 @@ SECURITY_REPORT_PERIOD_S = 10.0
 """signature_rejected / unsigned_command_rejected: the first one, then at most one per this period
 per kind, with the count since the last report (a flood of forged frames is not a log flood)."""
 SIGNING_REFRESH_S = 1.0
-"""How often the outgoing signing timestamp is pulled up to the wall clock (poll's timers)."""
+"""How often the outgoing signing timestamp is pulled up to the wall clock and the transport's
+kernel drop counter is read (poll's timers)."""
+_MAGIC_BYTES = (0xFD, 0xFE)
 
 DEFAULT_STREAM_RATES_HZ = {"RAW_IMU": 200.0, "SCALED_PRESSURE": 50.0, "ATTITUDE": 50.0,
                            "EKF_STATUS_REPORT": 2.0, "SYS_STATUS": 2.0, "HIGHRES_IMU": 200.0}
@@ -316,6 +318,11 @@ class MavlinkLink:
         self._next_signing_refresh_s = now + SIGNING_REFRESH_S
         self._transport: Transport = transport if transport is not None else make_transport(self.endpoint)
         self._open_ok = False
+        self._udp_split_sender = False
+        """A datagram transport whose sender splits frames across datagrams: no per-datagram reset."""
+        self._split_seen = False
+        self._kernel_drops_closed = 0
+        self._kernel_drops_socket = 0
         self._ever_opened = False
         self._announce_reconnect = False
         self._had_peer = False
@@ -356,17 +363,22 @@ class MavlinkLink:
             return False
         return self.stats.messages_sent > before
 
-    def feed(self, data: bytes, rx_s: float | None = None, peer: object = None) -> list[Item]:
+    def feed(self, data: bytes, rx_s: float | None = None, peer: object = None,
+             datagram: bool | None = None) -> list[Item]:
         """Process bytes as if they had just been received (rx_s: receive time, default the clock).
 
         The receive path of poll() without the transport: for replaying recorded streams (tlog)
-        and for tests. Timers (heartbeat, link timeout, rate retries) run in poll(), not here."""
+        and for tests. ``datagram``: treat ``data`` as one UDP datagram (parser reset rules of
+        poll(); None = as the link's transport). Timers (heartbeat, link timeout, rate retries)
+        run in poll(), not here."""
         items: list[Item] = []
         if self._closed:
             return items
         rx = self.clock() if rx_s is None else rx_s
         self.stats.bytes_received += len(data)
-        for msg in self._parse(data):
+        if datagram is None:
+            datagram = bool(getattr(self._transport, "datagram", False))
+        for msg in self._parse_chunk(data, datagram, rx, items):
             self._handle(msg, peer, rx, items)
         items.extend(self._pending)
         self._pending = []
@@ -375,6 +387,7 @@ class MavlinkLink:
     def close(self) -> None:
         if not self._closed:
             self._closed = True
+            self._bank_kernel_drops()
             self._transport.close()
             self._open_ok = False
 
@@ -414,9 +427,10 @@ class MavlinkLink:
                 self._check_up(self.clock(), items)
             if chunks:
                 rx_s = self.clock()
+                datagram = bool(getattr(self._transport, "datagram", False))
                 for data, peer in chunks:
                     self.stats.bytes_received += len(data)
-                    for msg in self._parse(data):
+                    for msg in self._parse_chunk(data, datagram, rx_s, items):
                         self._handle(msg, peer, rx_s, items)
             has_peer = self._open_ok and self._transport.has_peer
             if has_peer and not self._had_peer:
@@ -449,6 +463,7 @@ class MavlinkLink:
             return
         self._open_ok = True
         self._reset_parser()
+        self._udp_split_sender = False  # a new socket may have a new sender: learn again
         self._announce_reconnect = self._ever_opened
         self._ever_opened = True
         self._check_up(now, items)
@@ -466,6 +481,7 @@ class MavlinkLink:
         self.last_error = None
 
     def _transport_dead(self, reason: str, now: float, items: list | None) -> None:
+        self._bank_kernel_drops()
         self._transport.close()
         self._open_ok = False
         self.stats.transport_errors += 1
@@ -509,13 +525,51 @@ class MavlinkLink:
         rx.expected_length = mavlink2.HEADER_LEN_V1 + 2
         rx.have_prefix_error = False
 
-    def _parse(self, data: bytes) -> list:
+    def _parse_chunk(self, data: bytes, datagram: bool, rx_s: float, items: list) -> list:
+        """Parse one read. On a datagram transport a datagram normally holds whole frames (ArduPilot,
+        PX4, mavlink-router, pymavlink), so a partial frame left by the previous datagram is a
+        damaged frame whose length byte lies: if this datagram starts with a magic byte, the parser
+        is reset first, so the damaged frame cannot swallow this datagram's intact frames. A sender
+        that splits frames across datagrams (a serial-to-UDP bridge: socat, ser2net) shows itself
+        when a datagram that does not start with a magic byte completes a held frame that decodes
+        (CRC with CRC_EXTRA): from then on this link parses UDP as a byte stream (no resets) until
+        the transport is reopened."""
+        held = self._rx_mav.buf_len()
+        if not datagram or held == 0:
+            return self._parse(data)
+        if not self._udp_split_sender and data[:1] and data[0] in _MAGIC_BYTES:
+            self._reset_parser()
+            self.stats.datagram_resets += 1
+            return self._parse(data)
+        out = self._parse(data, held=held)
+        if self._split_seen and not self._udp_split_sender:
+            self._udp_split_sender = True
+            self._event("udp_split_frames", "the UDP sender splits MAVLink frames across datagrams (a serial-to-UDP "
+                                            "bridge?): no parser reset per datagram on this link until it is reopened",
+                        rx_s, items)
+        return out
+
+    def _parse(self, data: bytes, held: int = 0) -> list:
+        """All messages in the parser after adding ``data``. ``held``: bytes the parser held before
+        (a partial frame): a frame that decodes and began in them sets ``_split_seen``."""
         out = []
+        self._split_seen = False
+        rx = self._rx_mav
+        total = held + len(data)
         try:
-            m = self._rx_mav.parse_char(data)
+            m = rx.parse_char(data)
             while m is not None:
                 out.append(m)
-                m = self._rx_mav.parse_char(b"")
+                if held:
+                    end = total - rx.buf_len()  # offset after m, counted from the held bytes' start
+                    if end - len(getattr(m, "_msgbuf", b"")) < held:
+                        mtype = m.get_type()
+                        if mtype != "BAD_DATA" and not mtype.startswith("UNKNOWN_"):
+                            self.stats.udp_split_frames_seen += 1
+                            self._split_seen = True
+                    else:
+                        held = 0  # past the boundary
+                m = rx.parse_char(b"")
         except Exception as exc:  # noqa: BLE001 - the transport never dies on bad bytes
             self.stats.parser_errors += 1
             self.last_error = f"parser: {exc}"
@@ -542,6 +596,7 @@ class MavlinkLink:
         if now >= self._next_signing_refresh_s:
             self._next_signing_refresh_s = now + SIGNING_REFRESH_S
             self._refresh_signing_timestamp()
+            self._read_kernel_drops()
         for kind, detail in self._security_reports.due(now):
             self._event(kind, detail, now, items)
         if now >= self._next_heartbeat_s:
@@ -779,6 +834,27 @@ class MavlinkLink:
             return timestamp_from_unix_s(float(self.wall_clock()))
         except (TypeError, ValueError, OverflowError):  # a broken wall clock: keep our own count
             return 0
+
+    def _read_kernel_drops(self) -> None:
+        """stats.kernel_rx_drops from the transport (UDP: datagrams the kernel dropped, our receive
+        buffer full), summed over reopened sockets (the transport's count is per socket); None
+        while the transport cannot tell."""
+        fn = getattr(self._transport, "kernel_rx_drops", None)
+        if fn is None or not self._open_ok:
+            return
+        try:
+            n = fn()
+        except OSError:
+            return
+        if n is not None:
+            self._kernel_drops_socket = int(n)
+            self.stats.kernel_rx_drops = self._kernel_drops_closed + self._kernel_drops_socket
+
+    def _bank_kernel_drops(self) -> None:
+        """The socket is about to close: keep its last count in the total."""
+        self._read_kernel_drops()
+        self._kernel_drops_closed += self._kernel_drops_socket
+        self._kernel_drops_socket = 0
 
     def _refresh_signing_timestamp(self) -> None:
         """Outgoing timestamp = max(current, wall clock): never back (pymavlink adds 1 per frame)."""
