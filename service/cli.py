@@ -48,7 +48,12 @@ def _cmd_run(argv: list[str]) -> int:
         return 2
     setup_logging(cfg["service"]["log_level"])
     from service.daemon import Daemon
-    return Daemon(cfg).run(duration_s=args.duration)
+    try:
+        daemon = Daemon(cfg)
+    except ConfigError as exc:  # found while starting: e.g. the signing key file
+        print(f"azimuthd: config error: {exc}", file=sys.stderr)
+        return 2
+    return daemon.run(duration_s=args.duration)
 
 
 def _cmd_sim(argv: list[str]) -> int:

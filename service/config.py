@@ -104,6 +104,10 @@ SPEC: dict[str, dict[str, Key]] = {
         "imu_rate_hz": Key(_F, 200.0, "requested RAW_IMU / HIGHRES_IMU rate", _range(1, 1000)),
         "pressure_rate_hz": Key(_F, 50.0, "requested SCALED_PRESSURE rate", _range(1, 200)),
         "attitude_rate_hz": Key(_F, 50.0, "requested rate of the FC's own ATTITUDE (reference for method B)", _range(1, 200)),
+        "signing_key_file": Key(str, "", "MAVLink 2 signing key file (64 hex characters or 32 bytes, mode 600); \"${CREDENTIALS_DIRECTORY}/NAME\" for a systemd LoadCredential=; \"\" = signing off", None),
+        "sign_outgoing": Key(bool, True, "sign what we send (with a key)", None),
+        "require_signed": Key(str, "commands", "with a key, which unsigned messages are refused: commands (commands to our component) | all | none", _choice("commands", "all", "none")),
+        "accept_commands": Key(bool, True, "act on commands to our component (MAV_CMD_REQUEST_MESSAGE, MAV_CMD_DO_FENCE_ENABLE); false = deny them all", None),
     },
     "site": {
         "lat_deg": Key(_F, None, "launch site latitude (required unless earth_field_ned_gauss is set)", _range(-90, 90)),

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import signal
 import time
 
@@ -21,11 +22,14 @@ from pymavlink.dialects.v20 import common as mavlink2
 from mavlink_io.commands import CommandProtocol, CommandProtocolParams, statustext_message
 from mavlink_io.link import LinkConfig, LinkEvent, MavlinkLink
 from mavlink_io.outputs import OutputScheduler, odometry_profile_for_autopilot
+from mavlink_io.outputs import encode_attitude, encode_attitude_quaternion
 from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcHeartbeat, FcSysStatus,
-                                ImuSample, PressureSample)
+                                ImuSample, IncomingCommand, PressureSample)
 from service import state_file
 from service.calibration_keeper import CalibrationKeeper
+from service.command_server import MSG_ATTITUDE, MSG_ATTITUDE_QUATERNION, MSG_HEARTBEAT, CommandServer
 from service.config import state_dir
+from service.link_health import InputLossMonitor
 from service.logs import RateLimitedLog
 from service.pipeline import Pipeline
 from service.sdnotify import Notifier
@@ -38,11 +42,19 @@ HEALTH_PERIOD_S = 1.0
 CALIBRATION_SAVE_S = 30.0
 DEVIATION_FILE = "deviation.json"
 DEVIATION_FORMAT = "azimuthd-magnetometer-deviation"
+SIGNING_FILE = "signing.json"
+SIGNING_FORMAT = "azimuthd-mavlink-signing-timestamp"
+SIGNING_RESTART_MARGIN = 6_000_000
+"""10-us units (60 s) added to the persisted signing timestamp at start: it is saved every
+CALIBRATION_SAVE_S, and our timestamps may have advanced that much (plus 10 us per message sent)
+since; a receiver rejects a timestamp that goes back."""
 SD_STATUS_PERIOD_S = 5.0
 _SHOWN_RATES = ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU", "SCALED_PRESSURE", "ATTITUDE")
 _EVENT_SEVERITY = {"link_lost": "warning", "fc_reboot": "warning", "time_gap": "warning",
                    "transport_error": "error", "not_still": "info", "strapdown": "warning",
-                   "imu_input": "warning"}
+                   "imu_input": "warning", "signature_rejected": "warning",
+                   "unsigned_command_rejected": "warning", "input_overflow": "warning", "input_loss": "warning",
+                   "loop_stall": "warning", "command": "info", "started_in_flight": "warning"}
 
 
 def _fmt_angle(rad: float | None, sigma: float | None, width: int = 6) -> str:
@@ -83,16 +95,24 @@ class Daemon:
         self.geofence_cfg = cfg.get("geofence")
         if self.geofence_cfg is not None:
             rates["GLOBAL_POSITION_INT"] = 5.0  # the FC's position while GNSS is healthy (DR start)
+        self.signing_key = None
+        self.signing_path = state_dir(cfg) / SIGNING_FILE
+        floor = 0
+        if m["signing_key_file"]:
+            from service.signing_key import load_signing_key
+            self.signing_key = load_signing_key(m["signing_key_file"])  # SigningKeyError: exit 2
+            floor = self._load_signing_floor()
         self.link_cfg = LinkConfig(url=m["url"], component_id=m["component_id"],
                                    system_id=m["system_id"] or None, heartbeat_hz=m["heartbeat_hz"],
                                    link_timeout_s=m["link_timeout_s"], imu_gap_s=m["imu_gap_s"],
-                                   stream_rates_hz=rates)
+                                   stream_rates_hz=rates,
+                                   signing_key=self.signing_key.secret if self.signing_key else None,
+                                   sign_outgoing=m["sign_outgoing"], require_signed=m["require_signed"],
+                                   signing_timestamp_floor=floor)
         self.calibration = CalibrationKeeper(state_dir(cfg), clock=time.time)
         kf1_learn, kf1_applied = self.calibration.start()
-        solver = None
-        if cfg["azimuth"]["solve_in_background"]:
-            from service.solver import BackgroundSolver
-            solver = BackgroundSolver()
+        from service.solver import make_solver
+        solver = make_solver(cfg["azimuth"]["solve_in_background"])
         self.deviation_path = state_dir(cfg) / DEVIATION_FILE
         self.pipeline = Pipeline(cfg, kf1_learn=kf1_learn, kf1_applied=kf1_applied, solver=solver,
                                  deviation=self._load_deviation())
@@ -115,6 +135,9 @@ class Daemon:
         self.geofence = None
         self.commands: CommandProtocol | None = None
         self.gnss = {"sys": None, "ekf": None}
+        self.command_server = CommandServer(m["accept_commands"], fence_configured=self.geofence_cfg is not None)
+        self.loss_monitor = InputLossMonitor()
+        self._last_step_s: float | None = None
         if self.geofence_cfg is not None:
             from service.geofence import GeofenceMonitor
             site = cfg["site"]
@@ -135,6 +158,10 @@ class Daemon:
             from mavlink_io.url import parse_url
             conn = mavutil.mavlink_connection(parse_url(url).pymavlink_url, source_system=1,
                                               source_component=self.link_cfg.component_id, dialect="ardupilotmega")
+            if self.signing_key is not None and self.link_cfg.sign_outgoing:
+                # each output link its own signing link id (a receiver keeps one timestamp per link id)
+                conn.setup_signing(self.signing_key.secret, sign_outgoing=True,
+                                   initial_timestamp=self.link.signing_timestamp, link_id=len(self.extra_ports) + 1)
             self.extra_ports.append(conn)
         if self.geofence is not None:
             gf = self.geofence_cfg
@@ -143,6 +170,7 @@ class Daemon:
                 CommandProtocolParams(ack_timeout_s=gf.command_timeout_s, max_tries=gf.command_tries))
             self.link.subscribe(self._on_raw)
         self._open_zenoh()
+        self._log_security()
         log.info("started", extra={"fields": {"mavlink": self.link_cfg.url, "extra_outputs": len(self.extra_ports),
                                               "zenoh": self.bus is not None}})
         self.notifier.notify("STATUS=waiting for the flight controller")
@@ -160,6 +188,39 @@ class Daemon:
             self.rl.log(logging.ERROR, "zenoh_open", "zenoh unavailable; MAVLink outputs continue, retrying",
                         error=str(exc), retry_s=ZENOH_RETRY_S)
             self._next["zenoh_retry"] = self.clock() + ZENOH_RETRY_S
+
+    def _log_security(self) -> None:
+        m = self.cfg["mavlink"]
+        if os.geteuid() == 0:
+            log.warning("running as root: nothing in azimuthd needs it; the systemd unit runs it as an "
+                        "unprivileged dynamic user (systemd/azimuthd.service)")
+        if self.signing_key is not None:
+            log.info("mavlink signing on", extra={"fields": {
+                "key_fingerprint": self.signing_key.fingerprint, "sign_outgoing": m["sign_outgoing"],
+                "require_signed": m["require_signed"]}})
+        elif m["accept_commands"]:
+            log.warning("mavlink signing off: anyone on the link can send commands to our component "
+                        "(set [mavlink] signing_key_file, docs/SECURITY.md)")
+
+    def _load_signing_floor(self) -> int:
+        """The outgoing signing timestamp of the last run (+ margin): never sign backwards, even on a
+        companion computer without a real-time clock."""
+        payload, status = state_file.read_document(self.signing_path, SIGNING_FORMAT, 1, "signing")
+        if status.startswith("corrupt"):
+            log.error("signing timestamp file damaged, set aside", extra={"fields": {"status": status}})
+        try:
+            last = int(payload["timestamp_10us"]) if payload is not None else 0
+        except (KeyError, TypeError, ValueError):
+            last = 0
+        return last + SIGNING_RESTART_MARGIN if last > 0 else 0
+
+    def _save_signing_timestamp(self) -> None:
+        ts = self.link.signing_timestamp if self.link is not None else None
+        if ts is None:
+            return
+        err = state_file.write_document(self.signing_path, SIGNING_FORMAT, 1, {"timestamp_10us": int(ts)})
+        if err:
+            self.rl.log(logging.ERROR, "signing_save", "signing timestamp not saved", error=err)
 
     def _load_deviation(self):
         """Method D's coefficients from the state directory (a damaged file is set aside)."""
@@ -188,6 +249,7 @@ class Daemon:
         self.notifier.notify("STOPPING=1")
         self.calibration.save(self.pipeline.kf1_estimate(), final=True)
         self._save_deviation()
+        self._save_signing_timestamp()
         self.pipeline.solver.close()
         if self.bus is not None:
             self.bus.close()
@@ -205,7 +267,8 @@ class Daemon:
             imu = sum(ls.messages_by_type.get(k, 0) for k in ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU"))
             fields.update(imu_messages=imu, link_accepted=ls.accepted, link_seq_lost=ls.seq_lost,
                           link_bad_data=ls.crc_errors + ls.framing_errors, link_stale_drops=ls.stale_time_drops,
-                          link_losses=ls.link_losses, fc_reboots=ls.fc_reboots)
+                          link_losses=ls.link_losses, fc_reboots=ls.fc_reboots,
+                          kernel_rx_drops=getattr(ls, "kernel_rx_drops", 0) or 0)
         log.info("stopped", extra={"fields": fields})
 
     def run(self, duration_s: float | None = None) -> int:
@@ -225,9 +288,13 @@ class Daemon:
     # --- the loop -----------------------------------------------------------------------------
 
     def step(self, timeout_s: float) -> None:
+        t0 = self.clock()
+        if self._last_step_s is not None:
+            self.loss_monitor.on_step_gap(t0 - self._last_step_s - timeout_s)
         for item in self.link.poll(timeout_s=timeout_s):
             self.dispatch(item)
         now = self.clock()
+        self._last_step_s = now
         if self.commands is not None:
             for o in self.commands.poll(now):
                 self._command_outcome(o, now)
@@ -261,6 +328,11 @@ class Daemon:
         if self._due("calibration", now, CALIBRATION_SAVE_S):
             self.calibration.save(self.pipeline.kf1_estimate())
             self._save_deviation()
+            self._save_signing_timestamp()
+        ls = self.link.stats
+        for kind, _sev, detail in self.loss_monitor.update(now, ls.accepted, ls.seq_lost,
+                                                           getattr(ls, "kernel_rx_drops", None)):
+            self._event(kind, detail)
         if self.bus is not None and self.geofence is not None and self._due("geofence_state", now, 0.5):
             self.bus.publish("geofence", self.geofence.state())
 
@@ -301,11 +373,42 @@ class Daemon:
         elif isinstance(item, FcSysStatus):
             self.gnss["sys"] = item.gps_healthy
             self._gnss_health()
+        elif isinstance(item, IncomingCommand):
+            self._on_command(item)
         elif isinstance(item, CommandAck):
             if self.commands is not None:
                 now = self.clock()
                 for o in self.commands.on_command_ack(item, now):
                     self._command_outcome(o, now)
+
+    # --- commands to our component (service/command_server.py) ---------------------------------
+
+    def _on_command(self, cmd: IncomingCommand) -> None:
+        now = self.clock()
+        d = self.command_server.decide(cmd, now, have_solution=self.last_solution is not None)
+        msg = None
+        if d.action == "request_message" and not d.repeat:
+            msg = self._requested_message(d.message_id)
+            if msg is None:  # e.g. ATTITUDE_QUATERNION while the heading is not valid
+                d = self.command_server.revise(d, mavlink2.MAV_RESULT_TEMPORARILY_REJECTED, "not available now")
+        ack = self.link.mav.command_ack_encode(cmd.command, d.result, 0, 0, cmd.source_system, cmd.source_component)
+        self.link.send(ack)  # the ACK first, then what was asked for (MAVLink command protocol)
+        if msg is not None:
+            self._send(msg)
+        if d.action in ("fence_enable", "fence_disable") and not d.repeat and self.geofence is not None:
+            self.geofence.actions_enabled = d.action == "fence_enable"
+        self._event("command", f"{d.reason}: {d.result_name}")
+
+    def _requested_message(self, message_id: int):
+        if message_id == MSG_HEARTBEAT:
+            return self.link.mav.heartbeat_encode(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID,
+                                                  0, 0, mavlink2.MAV_STATE_ACTIVE)
+        sol = self.last_solution
+        if message_id == MSG_ATTITUDE:
+            return encode_attitude(sol)
+        if message_id == MSG_ATTITUDE_QUATERNION:
+            return encode_attitude_quaternion(sol)
+        return None
 
     # --- geofence (docs/GEOFENCE.md) ----------------------------------------------------------
 
@@ -376,6 +479,13 @@ class Daemon:
         if self.bus is not None:
             self.bus.publish_solution(sol, now)
 
+    _LINK_COUNTERS = ("seq_lost", "crc_errors", "framing_errors", "kernel_rx_drops", "signed_accepted",
+                      "signature_bad", "signature_replay", "unsigned_rejected", "unsigned_commands_rejected")
+
+    def _link_counters(self) -> dict[str, int]:
+        ls = self.link.stats
+        return {f"link_{k}": int(getattr(ls, k) or 0) for k in self._LINK_COUNTERS if hasattr(ls, k)}
+
     def _publish_health(self, now: float) -> None:
         from service.zenoh_bus import health_payload
         c = self.pipeline.counters
@@ -384,6 +494,8 @@ class Daemon:
             self.link.connected, sol.phase if sol else "boot", now - self.started_s, self.link.stats.rates_hz(),
             {"imu_samples": c.imu_samples, "imu_rejected": c.imu_rejected,
              "pressure_samples": c.pressure_samples, **{f"sent_{k}": v for k, v in self.sent.items()},
-             **{f"imu_input_{k}": v for k, v in self.pipeline.input_checks.counts.items()}},
+             **{f"imu_input_{k}": v for k, v in self.pipeline.input_checks.counts.items()},
+             **self._link_counters(),
+             **{f"commands_{k.lower()}": v for k, v in self.command_server.counts.items()}},
             status=status_line(sol, self.link.stats.rates_hz(), self.link.connected).split(" | ")[0],
             autopilot=self.link.fc_autopilot, time_rx_s=now))

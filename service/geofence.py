@@ -157,6 +157,9 @@ class GeofenceMonitor:
         self._flight_start_s: float | None = None
         self.alt_reference = "none"
         self.counters = {"updates": 0, "breaches": 0, "actions_sent": 0, "clears": 0}
+        self.actions_enabled = True
+        """False after MAV_CMD_DO_FENCE_ENABLE 0 to our component: the monitor keeps dead reckoning
+        and predicting (and says so) but sends no divert until enabled again."""
 
     # --- inputs from the daemon ------------------------------------------------------------
 
@@ -444,6 +447,8 @@ class GeofenceMonitor:
         return out
 
     def _may_act(self, t: float) -> tuple[bool, str]:
+        if not self.actions_enabled:
+            return False, "disabled by command"
         if self.cfg.require_armed and self.armed is not True:
             return False, "FC not armed" if self.armed is False else "FC armed state unknown"
         return True, ""

@@ -52,12 +52,15 @@ class BackgroundSolver:
         ctx = multiprocessing.get_context("forkserver")
         self._pool = cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx)
         self._future: cf.Future | None = None
+        self._inline: InlineSolver | None = None
         self.failures = 0
 
     def busy(self) -> bool:
         return self._future is not None and not self._future.done()
 
     def submit(self, state, time_s: float) -> bool:
+        if self._pool is None:  # the worker could not be restarted: inline from now on
+            return self._inline.submit(state, time_s)
         if self.busy():
             return False
         try:
@@ -68,6 +71,8 @@ class BackgroundSolver:
         return True
 
     def poll(self):
+        if self._pool is None:
+            return self._inline.poll()
         f = self._future
         if f is None or not f.done():
             return None
@@ -85,8 +90,29 @@ class BackgroundSolver:
         self.failures += 1
         log.error("azimuth solver process died; restarting it", extra={"fields": {"error": repr(exc)}})
         self._pool.shutdown(wait=False, cancel_futures=True)
-        self._pool = cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver"))
         self._future = None
+        try:
+            self._pool = cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver"))
+        except OSError as exc2:
+            self._pool = None
+            self._inline = InlineSolver()
+            log.error("azimuth solver process cannot be restarted; solving in the main loop from now on",
+                      extra={"fields": {"error": repr(exc2)}})
 
     def close(self) -> None:
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+
+
+def make_solver(background: bool):
+    """The daemon's solver: a worker process if asked and possible, else inline (with the reason
+    logged: e.g. an interpreter or /dev/shm the service user may not use). Inline solves cost the
+    loop tens to hundreds of milliseconds each, a degraded but working mode."""
+    if not background:
+        return InlineSolver()
+    try:
+        return BackgroundSolver()
+    except OSError as exc:
+        log.error("azimuth solver process unavailable; solving in the main loop",
+                  extra={"fields": {"error": repr(exc)}})
+        return InlineSolver()
