@@ -86,6 +86,50 @@ def scenario_site(scenario: str) -> dict:
     return out
 
 
+def pipeline_inputs(run) -> list:
+    """The samples the daemon's link would hand a ``service.pipeline.Pipeline`` for a
+    ``sim.offline`` SimRun, in time order: ImuSample (RAW_IMU), PressureSample, FcAttitude (yaw in
+    (-pi, pi] as ATTITUDE carries it), each with receive time = FC time; at equal FC times the
+    pressure and the FC attitude come before the IMU sample."""
+    from mavlink_io.samples import FcAttitude, ImuSample, PressureSample
+    items = []
+    for t, g, a, m in zip(run.time_s.tolist(), run.gyro_rad_s, run.accel_m_s2, run.mag_gauss):
+        items.append((t, 2, ImuSample(t, t, g.copy(), a.copy(), m.copy(), "RAW_IMU", 0)))
+    for t, p, d, k in zip(run.baro_time_s.tolist(), run.press_abs_pa.tolist(), run.press_diff_pa.tolist(),
+                          run.temperature_k.tolist()):
+        items.append((t, 1, PressureSample(t, t, p, d, k)))
+    for t, e in zip(run.fc_time_s.tolist(), run.fc_euler_rad):
+        items.append((t, 0, FcAttitude(t, t, float(e[0]), float(e[1]), float(math.remainder(e[2], 2 * math.pi)),
+                                       np.zeros(3))))
+    items.sort(key=lambda x: (x[0], x[1]))
+    return [x[2] for x in items]
+
+
+def feed_pipeline(pipeline, items, events: list | None = None):
+    """Feed ``items`` (ImuSample, PressureSample, FcAttitude) to ``pipeline`` as the daemon does:
+    ``on_imu`` then ``drain_events`` per IMU sample, ``on_pressure``, ``on_fc_attitude``. Yields the
+    solutions ``on_imu`` returns (None is not yielded); the drained events are appended to
+    ``events`` when given. A generator: nothing is fed until it is iterated."""
+    from mavlink_io.samples import FcAttitude, ImuSample, PressureSample
+    on_imu, on_press, on_att, drain = (pipeline.on_imu, pipeline.on_pressure, pipeline.on_fc_attitude,
+                                       pipeline.drain_events)
+    for it in items:
+        c = type(it)
+        if c is ImuSample:
+            sol = on_imu(it)
+            drained = drain()
+            if events is not None:
+                events += drained
+            if sol is not None:
+                yield sol
+        elif c is PressureSample:
+            on_press(it)
+        elif c is FcAttitude:
+            on_att(it)
+        else:
+            raise TypeError(f"feed_pipeline: not a Pipeline input: {c.__name__}")
+
+
 @dataclass
 class OutputListener:
     """Receives what the daemon sends to an extra output URL (as a ground station would)."""

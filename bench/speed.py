@@ -86,22 +86,6 @@ def make_stream(quick: bool):
     return run
 
 
-def stream_items(run):
-    """The samples the daemon's link would hand over, in time order (IMU after same-time others)."""
-    from mavlink_io.samples import FcAttitude, ImuSample, PressureSample
-    items = []
-    for t, g, a, m in zip(run.time_s.tolist(), run.gyro_rad_s, run.accel_m_s2, run.mag_gauss):
-        items.append((t, 2, ImuSample(t, t, g.copy(), a.copy(), m.copy(), "RAW_IMU", 0)))
-    for t, p, d, k in zip(run.baro_time_s.tolist(), run.press_abs_pa.tolist(), run.press_diff_pa.tolist(),
-                          run.temperature_k.tolist()):
-        items.append((t, 1, PressureSample(t, t, p, d, k)))
-    for t, e in zip(run.fc_time_s.tolist(), run.fc_euler_rad):
-        items.append((t, 0, FcAttitude(t, t, float(e[0]), float(e[1]), float(math.remainder(e[2], 2 * math.pi)),
-                                       np.zeros(3))))
-    items.sort(key=lambda x: (x[0], x[1]))
-    return [x[2] for x in items]
-
-
 def site_config(run) -> dict:
     from service.config import validate
     s = run.site
@@ -116,22 +100,13 @@ def site_config(run) -> dict:
 # reported as errors, not hidden.
 
 def case_pipeline(run, items):
-    from mavlink_io.samples import FcAttitude, ImuSample, PressureSample
+    from bench.sitl import feed_pipeline
     from service.pipeline import Pipeline
     cfg = site_config(run)
 
     def one_pass():
-        p = Pipeline(cfg)
-        on_imu, on_press, on_att, drain = p.on_imu, p.on_pressure, p.on_fc_attitude, p.drain_events
-        for it in items:
-            c = type(it)
-            if c is ImuSample:
-                on_imu(it)
-                drain()
-            elif c is PressureSample:
-                on_press(it)
-            elif c is FcAttitude:
-                on_att(it)
+        for _ in feed_pipeline(Pipeline(cfg), items):
+            pass
     return one_pass
 
 
@@ -498,8 +473,9 @@ def main(argv=None) -> int:
     versions = ensure_references(not args.no_install)
     print("reference filters (benchmark only): " +
           ", ".join(f"{k} {v or 'NOT AVAILABLE'}" for k, v in versions.items()))
+    from bench.sitl import pipeline_inputs
     run = make_stream(args.quick)
-    items = stream_items(run)
+    items = pipeline_inputs(run)   # the samples the daemon's link would hand over, in time order
     n_imu = len(run.time_s)
     print(f"stream: sim inclined_rail, {n_imu} IMU samples at {RATE_HZ:.0f} Hz ({n_imu / RATE_HZ:.0f} s, "
           f"launch at {run.truth.launch_time_s:.0f} s), {len(run.baro_time_s)} pressure, "

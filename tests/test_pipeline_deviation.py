@@ -6,10 +6,9 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-from sitl import scenario_site  # noqa: E402
+from sitl import feed_pipeline, pipeline_inputs, scenario_site  # noqa: E402
 
 from estimators.mag_deviation import DeviationState, deviation_coverage  # noqa: E402
-from mavlink_io.samples import FcAttitude, ImuSample, PressureSample  # noqa: E402
 from service import state_file  # noqa: E402
 from service.config import validate  # noqa: E402
 from service.pipeline import Pipeline  # noqa: E402
@@ -21,19 +20,9 @@ def calibrated():
     run = simulate("inclined_rail", seed=4, imu_rate_hz=100.0, duration_s=240.0)
     cfg = validate({**scenario_site("inclined_rail"), "deviation": {"calibrate": True}})
     p = Pipeline(cfg)
-    kb = kf = 0
     events = []
-    for k, t in enumerate(run.time_s):
-        while kb < len(run.baro_time_s) and run.baro_time_s[kb] <= t:
-            p.on_pressure(PressureSample(run.baro_time_s[kb], 0.0, run.press_abs_pa[kb], run.press_diff_pa[kb],
-                                         run.temperature_k[kb]))
-            kb += 1
-        while kf < len(run.fc_time_s) and run.fc_time_s[kf] <= t:
-            e = run.fc_euler_rad[kf]
-            p.on_fc_attitude(FcAttitude(run.fc_time_s[kf], 0.0, e[0], e[1], e[2], np.zeros(3)))
-            kf += 1
-        p.on_imu(ImuSample(t, 0.0, run.gyro_rad_s[k], run.accel_m_s2[k], run.mag_gauss[k], "RAW_IMU"))
-        events += p.drain_events()
+    for _ in feed_pipeline(p, pipeline_inputs(run), events):
+        pass
     return p, events
 
 

@@ -17,9 +17,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
-from sitl import scenario_site  # noqa: E402
+from sitl import feed_pipeline, pipeline_inputs, scenario_site  # noqa: E402
 
-from mavlink_io.samples import FcAttitude, ImuSample, PressureSample  # noqa: E402
+from mavlink_io.samples import ImuSample  # noqa: E402
 from service.config import validate  # noqa: E402
 from service.input_checks import RAW_GYRO_LIMIT_RAD_S, ImuInputChecks, InputCheckParams  # noqa: E402
 from service.pipeline import Pipeline  # noqa: E402
@@ -34,37 +34,18 @@ FAULT_T = 30.0  # in flight (launch at ~15 s)
 def _make():
     run = simulate(scenario="inclined_rail", seed=3, imu_grade="consumer", imu_rate_hz=RATE_HZ,
                    duration_s=DUR_S, overrides={"launcher": {"rest_s": REST_S}})
-    items = []
-    for t, g, a, m in zip(run.time_s.tolist(), run.gyro_rad_s, run.accel_m_s2, run.mag_gauss):
-        items.append((t, 2, ImuSample(t, t, g.copy(), a.copy(), m.copy(), "RAW_IMU", 0)))
-    for t, p, d, k in zip(run.baro_time_s.tolist(), run.press_abs_pa.tolist(), run.press_diff_pa.tolist(),
-                          run.temperature_k.tolist()):
-        items.append((t, 1, PressureSample(t, t, p, d, k)))
-    for t, e in zip(run.fc_time_s.tolist(), run.fc_euler_rad):
-        items.append((t, 0, FcAttitude(t, t, float(e[0]), float(e[1]), float(math.remainder(e[2], 2 * math.pi)),
-                                       np.zeros(3))))
-    items.sort(key=lambda x: (x[0], x[1]))
     site = scenario_site("inclined_rail")
     s = run.site
     site["site"].update(lat_deg=s["lat_deg"], lon_deg=s["lon_deg"], alt_m=s["alt_m"], decimal_year=s["decimal_year"])
     cfg = validate({**site, "mavlink": {"imu_rate_hz": RATE_HZ}})
-    return run, [x[2] for x in items], cfg
+    return run, pipeline_inputs(run), cfg
 
 
 RUN, ITEMS, CFG = _make()
 
 
 def _run(p, items, sols, events):
-    for it in items:
-        if isinstance(it, ImuSample):
-            sol = p.on_imu(it)
-            if sol is not None:
-                sols.append(sol)
-            events += p.drain_events()
-        elif isinstance(it, PressureSample):
-            p.on_pressure(it)
-        else:
-            p.on_fc_attitude(it)
+    sols.extend(feed_pipeline(p, items, events))
 
 
 _PREFIX = {}
