@@ -44,7 +44,6 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from estimators.declination import DeclinationParams, estimate_declination, rest_from_arrays  # noqa: E402
 from estimators.geomag import earth_field  # noqa: E402
-from estimators.levelling import LevellingState, levelling_step  # noqa: E402
 from estimators.mag_deviation import (DeviationParams, corrected_heading, deviation_coverage,  # noqa: E402
                                       deviation_init, deviation_step, fit_hard_soft_iron,
                                       reference_field_body, residual_sigma_gauss)
@@ -53,6 +52,8 @@ from estimators.polar_attitude import (PolarAttitudeParams, polar_attitude_estim
 from estimators.polar_heading import (HeadingInputs, PolarHeadingParams, magnetic_heading,  # noqa: E402
                                       polar_heading_estimate, polar_heading_init, polar_heading_step)
 from sim.offline import simulate  # noqa: E402
+
+from bench._prelaunch import levelling_at_rest  # noqa: E402
 
 DEG = math.pi / 180.0
 RATE_HZ = 100.0
@@ -128,11 +129,7 @@ def deviation_flight(seed: int, grade: str, n_cal_turn_legs: int | None = None) 
     t_cal0, t_cal1 = t_launch + CAL_START_AFTER_LAUNCH_S, t[first_fig_end]
 
     t0 = time.perf_counter()
-    lev = LevellingState()
-    k = 0
-    while t[k] < LEVEL_S:
-        lev = levelling_step(lev, gyro[k], accel[k])
-        k += 1
+    lev = levelling_at_rest(t, gyro, accel, LEVEL_S)
     pa = ATT[grade]
     sa = polar_attitude_init(pa, gyro_bias_rad_s=lev.gyro_mean_rad_s, gyro_bias_sigma_rad_s=BIAS_PRIOR[grade])
     ph_params = PolarHeadingParams()

@@ -41,13 +41,14 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from estimators.geomag import earth_field  # noqa: E402
-from estimators.levelling import LevellingState, levelling_step  # noqa: E402
 from estimators.polar_attitude import (PolarAttitudeParams, polar_attitude_estimate,  # noqa: E402
                                        polar_attitude_init, polar_attitude_step)
 from estimators.polar_heading import (HeadingInputs, PolarHeadingParams,  # noqa: E402
                                       polar_heading_estimate, polar_heading_init,
                                       polar_heading_step, vertical_rate_sigma_for_site)
 from sim.offline import simulate  # noqa: E402
+
+from bench._prelaunch import levelling_at_rest  # noqa: E402
 
 LATS_DEG = (45.0, 78.0, 85.0, 89.9)
 RATE_HZ = 100.0
@@ -94,11 +95,7 @@ def run_flight(lat_deg: float, seed: int, grade: str, duration_s: float | None) 
 
     t_start = time.perf_counter()
     # pre-launch levelling: gyro bias prior (the mean rate at rest, Earth rate included)
-    lev = LevellingState()
-    k = 0
-    while t[k] < LEVEL_S:
-        lev = levelling_step(lev, gyro[k], accel[k])
-        k += 1
+    lev = levelling_at_rest(t, gyro, accel, LEVEL_S)
     pa = ATT_PARAMS[grade]
     sa = polar_attitude_init(pa, gyro_bias_rad_s=lev.gyro_mean_rad_s,
                              gyro_bias_sigma_rad_s=GYRO_BIAS_PRIOR_SIGMA[grade])
