@@ -138,6 +138,7 @@ class Daemon:
         self.command_server = CommandServer(m["accept_commands"], fence_configured=self.geofence_cfg is not None)
         self.loss_monitor = InputLossMonitor()
         self._last_step_s: float | None = None
+        self._unsigned_seen = 0
         if self.geofence_cfg is not None:
             from service.geofence import GeofenceMonitor
             site = cfg["site"]
@@ -330,6 +331,12 @@ class Daemon:
             self._save_deviation()
             self._save_signing_timestamp()
         ls = self.link.stats
+        if ls.unsigned_rejected > self._unsigned_seen:
+            self._unsigned_seen = ls.unsigned_rejected
+            if not self.link.connected and self.cfg["mavlink"]["require_signed"] == "all":
+                self.rl.log(logging.WARNING, "unsigned_fc", "unsigned messages refused (require_signed = all) and no "
+                            "signed autopilot heard: set up signing on the FC, or require_signed = \"commands\"",
+                            unsigned_rejected=ls.unsigned_rejected)
         for kind, _sev, detail in self.loss_monitor.update(now, ls.accepted, ls.seq_lost,
                                                            getattr(ls, "kernel_rx_drops", None)):
             self._event(kind, detail)

@@ -142,3 +142,21 @@ def test_stack_runs_with_memory_deny_write_execute():
                           capture_output=True, text=True, timeout=60, cwd=REPO)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.strip() == "ok"
+
+
+def test_signing_credential_as_documented_verifies_and_keeps_the_exposure(tmp_path):
+    """The LoadCredential= line the unit's comment (and docs/SECURITY.md) tells operators to add,
+    in the unit: still verifies, exposure unchanged, and the config's path form matches it."""
+    tool = systemd_analyze()
+    text = UNIT.read_text()
+    line = next(ln.lstrip("# ").strip() for ln in text.splitlines() if ln.lstrip("# ").startswith("LoadCredential="))
+    assert line == "LoadCredential=mavlink_signing.key:/etc/azimuthd/mavlink_signing.key"
+    unit = unit_for_verify(tmp_path)
+    unit.write_text(unit.read_text().replace("[Service]\n", f"[Service]\n{line}\n", 1))
+    proc = subprocess.run([tool, "verify", str(unit)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and "azimuthd.service" not in proc.stderr, proc.stderr
+    proc = subprocess.run([tool, "security", "--offline=yes", "--no-pager", str(unit)],
+                          capture_output=True, text=True, timeout=60)
+    m = re.search(r"Overall exposure level for azimuthd\.service: (\d+\.\d+)", proc.stdout)
+    assert m and float(m.group(1)) <= MAX_EXPOSURE, proc.stdout
+    assert 'signing_key_file = "${CREDENTIALS_DIRECTORY}/mavlink_signing.key"' in text
