@@ -126,6 +126,23 @@ def test_no_action_while_disarmed_then_sent_when_armed():
     assert [c.name for _, c in cmds] == ["rtl"]
 
 
+def test_disabled_by_command_predicts_but_does_not_act_until_enabled():
+    """MAV_CMD_DO_FENCE_ENABLE 0 to our component (service/command_server.py): dead reckoning and
+    prediction go on, the breach latches and is reported, no divert is sent; enabled again, the
+    first action goes out at the next update."""
+    m = monitor()
+    m.actions_enabled = False
+    prelaunch(m)
+    cmds = run(m, 0.0, 85.0, 90.0)
+    assert cmds == [] and m.latched and m.dr is not None
+    events = m.drain_events()
+    assert any(e.kind == "geofence_no_action" and "disabled by command" in e.text for e in events)
+    assert m.state()["action_status"] == "blocked: disabled by command"
+    m.actions_enabled = True
+    cmds = run(m, 85.0, 86.0, 90.0)
+    assert [c.name for _, c in cmds] == ["rtl"]
+
+
 def test_no_action_on_the_ground():
     m = monitor(inclusion=[square(half=100.0)])
     for k in range(50):
