@@ -46,6 +46,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from service.replay import json_safe  # noqa: E402
 
 RATE_HZ = 400.0
 TARGET_STACK_US = 8.0
@@ -547,19 +548,9 @@ def main(argv=None) -> int:
           f"{time.monotonic() - t_all:.0f} s)")
     path = Path(args.json)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(_json_safe(result), indent=2) + "\n")
+    path.write_text(json.dumps(json_safe(result), indent=2) + "\n")
     print(f"json: {path}")
     return 0
-
-
-def _json_safe(v):
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    if isinstance(v, dict):
-        return {k: _json_safe(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_json_safe(x) for x in v]
-    return v
 
 
 if __name__ == "__main__":

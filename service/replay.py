@@ -499,13 +499,14 @@ def plot(res: ReplayResult, path: Path, title: str) -> None:
 
 # --- command line ------------------------------------------------------------------------------
 
-def _json_safe(v):
+def json_safe(v):
+    """A result for json.dumps: NaN/inf (not JSON) become null, tuples lists (benches use it too)."""
     if isinstance(v, float) and not math.isfinite(v):
         return None
     if isinstance(v, dict):
-        return {k: _json_safe(x) for k, x in v.items()}
+        return {k: json_safe(x) for k, x in v.items()}
     if isinstance(v, (list, tuple)):
-        return [_json_safe(x) for x in v]
+        return [json_safe(x) for x in v]
     return v
 
 
@@ -565,7 +566,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.plot:
         print(f"  plot: {args.plot}")
     if args.json:
-        Path(args.json).write_text(json.dumps(_json_safe(s), indent=2) + "\n")
+        Path(args.json).write_text(json.dumps(json_safe(s), indent=2) + "\n")
         print(f"  json: {args.json}")
     return 0
 
