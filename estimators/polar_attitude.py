@@ -128,6 +128,14 @@ class PolarAttitudeParams:
     """Innovation gate on the 3-dof specific-force residual (NIS); larger is rejected."""
     max_dt_s: float = 0.1
     """Largest IMU sample interval that is integrated; a longer gap is reported, not integrated."""
+    unseen_rate_sigma_rad_s: float = math.radians(10.0)
+    """Over an interval the filter did not see (a gap longer than ``max_dt_s``, or an interval
+    the caller reports with ``polar_attitude_unseen``) the vehicle kept manoeuvring: the attitude
+    error variance grows by (this rate x the interval)^2 per axis (rad/s) ..."""
+    unseen_max_sigma_rad: float = math.radians(30.0)
+    """... up to this sigma (rad): a wide prior on the attitude after an unseen interval of a few
+    seconds or more, so the specific force pulls roll/pitch back at the next updates and the
+    published sigma says how stale the state is."""
 
     def __post_init__(self) -> None:
         for name in ("update_period_s", "init_period_s", "gyro_noise_rad_s_rt_hz",
@@ -137,7 +145,7 @@ class PolarAttitudeParams:
                      "transport_rate_tau_s", "accel_bias_sigma_m_s2", "accel_bias_tau_s",
                      "gravity_variation_sigma_m_s2", "gravity_variation_tau_s", "gravity_m_s2",
                      "init_tilt_sigma_rad", "init_yaw_sigma_rad", "max_platform_yaw_sigma_rad",
-                     "gate_chi2", "max_dt_s"):
+                     "gate_chi2", "max_dt_s", "unseen_rate_sigma_rad_s", "unseen_max_sigma_rad"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
@@ -247,6 +255,69 @@ def polar_attitude_init(params: PolarAttitudeParams = PolarAttitudeParams(),
     return PolarAttitudeState(x_hat=x, bias_prior_sigma_rad_s=gyro_bias_sigma_rad_s)
 
 
+def polar_attitude_init_at(time_s: float, roll_rad: float, pitch_rad: float, tilt_sigma_rad: float,
+                           params: PolarAttitudeParams = PolarAttitudeParams(),
+                           gyro_bias_rad_s: np.ndarray | None = None,
+                           gyro_bias_sigma_rad_s: float | None = None) -> PolarAttitudeState:
+    """A filter initialised at ``time_s`` with a given roll/pitch (rad) and 1-sigma tilt
+    ``tilt_sigma_rad`` instead of levelling itself: for a start in flight, where the mean specific
+    force is not gravity (e.g. from a trusted FC attitude, or the accelerometer with a wide sigma).
+    P's azimuth is the body's azimuth at ``time_s`` (yaw 0), as after ``_init_step``. The next
+    sample starts the increments."""
+    for name, v in (("time_s", time_s), ("roll_rad", roll_rad), ("pitch_rad", pitch_rad)):
+        if not math.isfinite(v):
+            raise ValueError(f"{name} must be finite, got {v!r}")
+    if not (math.isfinite(tilt_sigma_rad) and tilt_sigma_rad > 0.0):
+        raise ValueError(f"tilt_sigma_rad must be finite and > 0, got {tilt_sigma_rad!r}")
+    st = polar_attitude_init(params, gyro_bias_rad_s, gyro_bias_sigma_rad_s)
+    q = quat_from_euler(roll_rad, pitch_rad, 0.0)
+    C_BP = dcm_from_quat(q).T
+    P = _initial_covariance(C_BP, replace(params, init_tilt_sigma_rad=tilt_sigma_rad), gyro_bias_sigma_rad_s)
+    return replace(st, initialised=True, time_s=time_s, q_P_from_body=q, P=P, gyro_prev_rad_s=None,
+                   acc_C_BP_start=C_BP)
+
+
+def polar_attitude_unseen(state: PolarAttitudeState, unseen_s: float,
+                          params: PolarAttitudeParams = PolarAttitudeParams()) -> PolarAttitudeState:
+    """Account for ``unseen_s`` seconds the filter did not see (no samples: a gap, a restarted
+    clock). The nominal attitude is kept (nothing better is known), but the vehicle kept turning:
+
+        P_att <- P_att + s^2 I,   s = min(unseen_rate_sigma_rad_s * unseen_s, unseen_max_sigma_rad)
+
+    (body-frame attitude error, all three axes; the part about P's vertical is capped at the next
+    update as always). The Gauss-Markov states are propagated over the interval (their means
+    decay, their variances relax toward the steady state), the partial update interval is dropped
+    and the increments restart at the next sample (whatever its time: a restarted clock may
+    start lower). The specific-force update then pulls roll and
+    pitch back within a few updates, with a sigma that is honest meanwhile."""
+    if not (math.isfinite(unseen_s) and unseen_s >= 0.0):
+        raise ValueError(f"unseen_s must be finite and >= 0, got {unseen_s!r}")
+    if not state.initialised:
+        return state
+    p = params
+    F = np.ones(N_STATES)
+    Q = np.zeros(N_STATES)
+    for sl, tau, sig in ((I_BG, p.gyro_bias_tau_s, p.gyro_bias_sigma_rad_s),
+                         (I_AV, p.vehicle_accel_tau_s, p.vehicle_accel_sigma_m_s2),
+                         (I_WIE, p.earth_rate_tau_s, p.earth_rate_sigma_rad_s),
+                         (I_WEP, p.transport_rate_tau_s, p.transport_rate_sigma_rad_s),
+                         (I_BA, p.accel_bias_tau_s, p.accel_bias_sigma_m_s2),
+                         (I_DG, p.gravity_variation_tau_s, p.gravity_variation_sigma_m_s2)):
+        phi, q = _gm(unseen_s, tau, sig)
+        F[sl] = phi
+        Q[sl] = q
+    P = F[:, None] * state.P * F[None, :]
+    P[np.diag_indices(N_STATES)] += Q
+    s = min(p.unseen_rate_sigma_rad_s * unseen_s, p.unseen_max_sigma_rad)
+    P[I_ATT, I_ATT] += np.eye(3) * s * s
+    x = state.x_hat.copy()
+    x[3:6] *= math.exp(-unseen_s / p.vehicle_accel_tau_s)
+    C_BP = dcm_from_quat(state.q_P_from_body).T
+    return replace(state, P=0.5 * (P + P.T), x_hat=x, time_s=None, gyro_prev_rad_s=None, acc_n=0, acc_dt_s=0.0,
+                   acc_f_sum_m_s2=np.zeros(3), acc_down_sum=np.zeros(3),
+                   acc_q_b0_from_b=np.array([1.0, 0.0, 0.0, 0.0]), acc_C_BP_start=C_BP)
+
+
 def _validate(time_s: float, gyro: np.ndarray, accel: np.ndarray) -> str:
     if gyro.shape != (3,) or accel.shape != (3,):
         return "gyro and accel must have shape (3,)"
@@ -269,13 +340,21 @@ def polar_attitude_step(state: PolarAttitudeState, time_s: float, gyro_body_rad_
     if not state.initialised:
         return _init_step(state, time_s, w, f, params)
 
+    if state.time_s is None:  # restart after polar_attitude_unseen (already accounted)
+        return replace(state, time_s=time_s, gyro_prev_rad_s=w), PolarAttitudeDiag(
+            reason="increments restarted")
     dt = time_s - state.time_s
     if dt <= 0.0:
         return state, PolarAttitudeDiag(reason=f"time not increasing (dt={dt:.6f} s)")
-    if dt > params.max_dt_s or state.gyro_prev_rad_s is None:
-        # keep attitude, restart the increments (strapdown.py's rule)
+    if state.gyro_prev_rad_s is None:  # restart after polar_attitude_unseen (already accounted)
         return replace(state, time_s=time_s, gyro_prev_rad_s=w), PolarAttitudeDiag(
-            reason=f"gap of {dt:.3f} s not integrated")
+            reason="increments restarted")
+    if dt > params.max_dt_s:
+        # keep the attitude, restart the increments (strapdown.py's rule), and let the covariance
+        # say what the unseen interval may have done to the attitude
+        st = polar_attitude_unseen(state, dt, params)
+        return replace(st, time_s=time_s, gyro_prev_rad_s=w), PolarAttitudeDiag(
+            reason=f"gap of {dt:.3f} s not integrated; attitude sigma widened")
 
     xh = state.x_hat
     b_g = xh[0:3]

@@ -110,6 +110,13 @@ class PolarHeadingParams:
     """Above this |pitch| the heading kinematics are singular: no propagation of psi from the
     gyros (variance still grows) and no measurement."""
     max_dt_s: float = 0.1
+    unseen_rate_sigma_rad_s: float = math.radians(20.0)
+    """Over an interval the filter did not see (a gap longer than ``max_dt_s``, or one reported
+    with ``polar_heading_unseen``) the vehicle kept turning: the heading variance grows by
+    (this rate x the interval)^2 (rad/s; a coordinated turn is 10-30 deg/s) ..."""
+    unseen_max_sigma_rad: float = math.pi
+    """... up to this sigma (rad): after a few unseen seconds the heading is as good as unknown
+    and the next magnetometer measurement takes it back."""
 
     def __post_init__(self) -> None:
         for name, v in self.__dict__.items():
@@ -245,12 +252,36 @@ def polar_heading_step(state: PolarHeadingState, u: HeadingInputs,
             return st, HeadingDiag(reason=f"time not increasing (dt={dt:.6f} s)")
         if dt <= params.max_dt_s and st.initialised:
             st = _predict(st, dt, w, u.roll_rad, u.pitch_rad, Prp, params)
+        elif st.initialised:  # a gap: not integrated, the heading may have turned meanwhile
+            st = polar_heading_unseen(st, dt, params)
     st = replace(st, time_s=u.time_s)
     if u.mag_body_gauss is None:
         return st, HeadingDiag(source_available=st.source_available)
     if st.last_mag_time_s is not None and u.time_s - st.last_mag_time_s + 1e-9 < params.mag_update_period_s:
         return st, HeadingDiag(source_available=st.source_available)
     return _measure(st, u, Prp, params)
+
+
+def polar_heading_unseen(state: PolarHeadingState, unseen_s: float,
+                         params: PolarHeadingParams = PolarHeadingParams()) -> PolarHeadingState:
+    """Account for ``unseen_s`` seconds without samples: the heading is kept but its variance
+    grows by min(unseen_rate_sigma_rad_s * unseen_s, unseen_max_sigma_rad)^2, and the GM states
+    relax over the interval, so the next magnetometer measurement pulls the heading back and the
+    published variance says how stale it is meanwhile."""
+    if not (math.isfinite(unseen_s) and unseen_s >= 0.0):
+        raise ValueError(f"unseen_s must be finite and >= 0, got {unseen_s!r}")
+    if not state.initialised:
+        return state
+    a_v, q_v = _gm(unseen_s, params.vertical_rate_tau_s, params.vertical_rate_sigma_rad_s)
+    a_b, q_b = _gm(unseen_s, params.gyro_bias_tau_s, params.gyro_bias_sigma_rad_s)
+    f = np.array([1.0, a_v, a_b, a_b])
+    P = f[:, None] * state.P * f[None, :] + np.diag([0.0, q_v, q_b, q_b])
+    s = min(params.unseen_rate_sigma_rad_s * unseen_s, params.unseen_max_sigma_rad)
+    P[0, 0] += s * s
+    x = state.x.copy()
+    x[1] *= a_v
+    # the next sample restarts the time (a restarted clock may start lower)
+    return replace(state, x=x, P=P, time_s=None, last_mag_time_s=None)
 
 
 def _predict(st, dt, w, phi, th, Prp, p):

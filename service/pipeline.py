@@ -41,9 +41,10 @@ from estimators.mag_deviation import (DeviationParams, DeviationState, corrected
                                       deviation_init, deviation_step)
 from estimators.mag_error_kf import Kf1State
 from estimators.polar_attitude import (PolarAttitudeParams, polar_attitude_estimate,
-                                       polar_attitude_init, polar_attitude_step)
+                                       polar_attitude_init, polar_attitude_init_at, polar_attitude_step,
+                                       polar_attitude_unseen)
 from estimators.polar_heading import (HeadingInputs, PolarHeadingParams, polar_heading_estimate,
-                                      polar_heading_init, polar_heading_step,
+                                      polar_heading_init, polar_heading_step, polar_heading_unseen,
                                       vertical_rate_sigma_for_site)
 from estimators.rotations import (dcm_from_quat, euler_from_quat, quat_conj, quat_from_euler,
                                   quat_mul, wrap_2pi)
@@ -55,7 +56,8 @@ from mavlink_io.samples import FcAttitude, FcEkfStatus, FcHeartbeat, ImuSample, 
 from service.input_checks import ImuInputChecks, InputCheckParams
 from service.heading_arbitration import (ArbitrationParams, ArbitrationState, SourceReading,
                                          arbitrate)
-from service.phases import IN_FLIGHT, LAUNCH, PRE_LAUNCH, PhaseParams, PhaseState, phase_step
+from service.phases import (IN_FLIGHT, LAUNCH, PRE_LAUNCH, FlightEvidence, PhaseParams, PhaseState,
+                            phase_step)
 from service.solution import NavSolution
 
 log = logging.getLogger("azimuthd.pipeline")
@@ -70,6 +72,9 @@ B1_HEADING_PERIOD_S = 0.1
 
 MAG_GROUP = "magnetometer"
 """Sources that share the magnetometer's errors (B and C): fused as one."""
+
+AIR_EVIDENCE_MAX_AGE_S = 1.0
+"""Air data older than this (FC time, s) is no evidence for the started-in-flight rule."""
 
 
 def decimal_year_now() -> float:
@@ -207,6 +212,10 @@ class Pipeline:
         self.last_time_fc_s: float | None = None
         self.fc_attitude: FcAttitude | None = None
         self.pressure: PressureSample | None = None
+        self.fc_armed: bool | None = None
+        """The FC's last HEARTBEAT: armed (None before the first)."""
+        self._last_rx_s: float | None = None
+        self._unseen_pending = False
 
     # --- inputs -------------------------------------------------------------------------------
 
@@ -230,13 +239,21 @@ class Pipeline:
         self.last_time_fc_s = t
         self.counters.imu_samples += 1
 
+        if self._unseen_pending:
+            self._unseen_pending = False
+            self._account_unseen(s)
+        self._last_rx_s = s.time_rx_s
+
         prev_phase = self.phase.phase
-        self.phase, events = phase_step(self.phase, gyro_s, accel_s, t, self.phase_params)
+        self.phase, events = phase_step(self.phase, gyro_s, accel_s, t, self.phase_params,
+                                        self._flight_evidence(t) if prev_phase == PRE_LAUNCH else None)
         for ev in events:
             self._event(*ev)
         self._step_azimuth(prev_phase, gyro_s, accel_s, mag_s, t)
         if prev_phase == PRE_LAUNCH and self.phase.phase == LAUNCH:
             self._start_flight(s)
+        elif prev_phase == PRE_LAUNCH and self.phase.started_in_flight:
+            self._start_in_flight(t, accel_s)
         elif self.phase.phase in (LAUNCH, IN_FLIGHT) and self.strapdown is not None:
             self.strapdown, diag = strapdown_step(self.strapdown, gyro_s - self.gyro_bias_rad_s, t,
                                                   self.strapdown_params)
@@ -300,6 +317,7 @@ class Pipeline:
         self._step_ahrs(FcAttitudeEvent(a.time_fc_s, np.array([a.roll_rad, a.pitch_rad, a.yaw_rad])))
 
     def on_fc_heartbeat(self, hb: FcHeartbeat) -> None:
+        self.fc_armed = bool(hb.armed)
         if self.last_time_fc_s is not None:
             self._step_ahrs(FcStatusEvent(self.last_time_fc_s, system_status=hb.system_status))
 
@@ -309,10 +327,14 @@ class Pipeline:
                                           horiz_pos_ok=st.horiz_pos_ok))
 
     def on_fc_reboot(self) -> None:
-        """The FC clock restarted: keep the attitude, restart the time bookkeeping."""
+        """The FC clock restarted: keep the attitude, restart the time bookkeeping. The interval
+        between the last sample before and the first after was not seen: at that sample the
+        attitude and heading filters widen their covariance by it (receive time; the FC clock
+        cannot measure it) and restart their increments."""
         self.last_time_fc_s = None
         if self.strapdown is not None:
             self.strapdown = StrapdownState(self.strapdown.q_ref_from_sensor)
+        self._unseen_pending = True
         self._event("fc_reboot", "FC time restarted; integration resumes at the next sample")
 
     def air_data(self):
@@ -345,13 +367,72 @@ class Pipeline:
                 self._event("reference", ("FC attitude trusted: " if out.reference_trusted
                                           else "FC attitude NOT trusted: ") + out.reference_reason)
 
+    def _flight_evidence(self, t: float) -> FlightEvidence:
+        """What the started-in-flight rule weighs besides the IMU (service/phases.py)."""
+        air = self.ahrs.air_last
+        fresh = air is not None and abs(t - air.time_s) <= AIR_EVIDENCE_MAX_AGE_S
+        has_pitot = self.pressure is not None and self.pressure.press_diff_pa is not None
+        return FlightEvidence(armed=self.fc_armed,
+                              airspeed_m_s=air.tas_m_s if fresh and has_pitot and not air.pitot_noisy else None,
+                              alt_rate_m_s=air.alt_rate_m_s if fresh and air.rate_valid else None)
+
+    def _fc_tilt_now(self, t: float) -> tuple[float, float] | None:
+        """The FC's roll/pitch if it is trusted and fresh at FC time ``t``, else None."""
+        fc, b = self.fc_attitude, self.ahrs_out
+        if fc is None or b is None or not b.reference_trusted or abs(t - fc.time_fc_s) > self.arb_params.max_age_s:
+            return None
+        return fc.roll_rad, fc.pitch_rad
+
+    def _start_in_flight(self, t: float, accel_sensor_m_s2: np.ndarray) -> None:
+        """Started in flight (service/phases.py): no levelling and no launch, so method A is off for
+        this run. Roll/pitch: the attitude filter C re-initialised from the trusted FC ATTITUDE, else
+        from the accelerometer with a wide sigma; heading from what stays valid (FC when trusted,
+        C's magnetometer heading re-acquired with the new tilt, B)."""
+        p = self.phase_params.in_flight
+        old = polar_attitude_estimate(self.polar_att)
+        fc = self._fc_tilt_now(t)
+        if fc is not None:
+            roll, pitch = fc
+            sigma, src = p.fc_tilt_sigma_rad, "the trusted FC attitude"
+        else:
+            sigma, src = p.accel_tilt_sigma_rad, "the accelerometer (FC attitude not trusted)"
+            if old is not None:  # C levelled itself on the accelerometer at start and has run since
+                roll, pitch = old.roll_rad, old.pitch_rad
+            else:
+                f = self.C_body_from_sensor @ accel_sensor_m_s2
+                roll, pitch = math.atan2(-f[1], -f[2]), math.atan2(f[0], math.hypot(f[1], f[2]))
+        bias = old.gyro_bias_rad_s if old is not None else None
+        self.polar_att = polar_attitude_init_at(t, roll, pitch, sigma, self.polar_att_params, bias)
+        self.polar_hdg = polar_heading_init(params=self.polar_hdg_params)
+        self._hdg_available = None
+        self._event("attitude", f"started in flight: roll/pitch from {src} (roll {math.degrees(roll):.1f} deg, "
+                    f"pitch {math.degrees(pitch):.1f} deg, sigma {math.degrees(sigma):.1f} deg)")
+        self._event("azimuth", "disabled: started in flight (method A needs the levelling and the launch)")
+
+    def _account_unseen(self, s: ImuSample) -> None:
+        """After an FC clock restart: widen C's attitude and heading covariance by the interval
+        not seen (receive time between the last sample before and this one)."""
+        if self._last_rx_s is None or not math.isfinite(s.time_rx_s):
+            return
+        unseen = max(0.0, s.time_rx_s - self._last_rx_s)
+        self.polar_att = polar_attitude_unseen(self.polar_att, unseen, self.polar_att_params)
+        self.polar_hdg = polar_heading_unseen(self.polar_hdg, unseen, self.polar_hdg_params)
+        # the filter slots restart here (the samples accumulated before belong to the old clock)
+        self._filter_due_s = -math.inf
+        self._acc_gyro, self._acc_accel, self._acc_n, self._acc_mag = np.zeros(3), np.zeros(3), 0, None
+        if unseen > 0.0:
+            self._event("unseen", f"{unseen:.1f} s not seen (FC clock restarted): attitude and heading "
+                        "sigma widened")
+
     def _step_azimuth(self, prev_phase: str, gyro_s, accel_s, mag_s, t: float) -> None:
+        if self.phase.started_in_flight:
+            return
         if self.phase.phase == PRE_LAUNCH:
             self.azimuth = azimuth_prelaunch_step(self.azimuth, gyro_s, accel_s, t)
             if mag_s is not None:
                 self._rest_candidate = rest_accumulate(self._rest_candidate, gyro_s, accel_s, mag_s)
             if self.phase.block_start_s == t:  # a still block ended on this sample
-                if self.phase.level_time_s == t:  # ... and passed: the rest so far is usable
+                if self.phase.block_passed_s == t:  # ... and passed: the rest so far is usable
                     self.rest = self._rest_candidate
                 else:  # handled or moved: start over
                     self._rest_candidate = self.rest = RestState()
@@ -502,6 +583,11 @@ class Pipeline:
                 return NavSolution(t, s.time_rx_s, self.phase.phase, None, None, None, rates_body)
             roll, pitch, _ = euler_from_quat(quat_mul(q_ns, self.q_sensor_from_body))
             roll_sigma = pitch_sigma = self._tilt_sigma_rad(t)
+        if self.phase.phase == PRE_LAUNCH and self.phase.level is None and self.fc_armed:
+            # armed and not levelled yet: the vehicle may be flying (the started-in-flight rule has
+            # not decided), so the accelerometer-levelled attitude is only as good as in a turn
+            wide = self.phase_params.in_flight.accel_tilt_sigma_rad
+            roll_sigma, pitch_sigma = max(roll_sigma or 0.0, wide), max(pitch_sigma or 0.0, wide)
 
         heading_rate = None
         if abs(math.cos(pitch)) > 1e-3:  # psi_dot = (q sin(phi) + r cos(phi)) / cos(theta)
@@ -517,6 +603,9 @@ class Pipeline:
         az = self.azimuth_out
         if az is not None:
             flags["azimuth"] = f"{az.status}: {az.reason}" if az.reason else az.status
+        if self.phase.started_in_flight:
+            flags["azimuth"] = "disabled: started in flight"
+            flags["started_in_flight"] = self.phase.in_flight_evidence
         if self.ahrs_out is not None:
             flags["fc_reference"] = "trusted" if self.ahrs_out.reference_trusted else self.ahrs_out.reference_reason
         if self._hdg_available is False:
