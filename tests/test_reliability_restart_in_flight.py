@@ -1,0 +1,75 @@
+"""A daemon killed in flight and restarted (what systemd's Restart=on-failure does), end to end.
+
+GIVEN the simulator flying the default scenario and the daemon as processes
+WHEN the daemon is SIGKILLed 15 s after the launch and started again 2 s later (RestartSec=2s)
+THEN the new daemon knows it starts in flight (the FC says armed and the pitot says airspeed):
+     it reports ``started_in_flight``, does not level on the moving vehicle, reports no launch
+     and no method-A solution, and the roll/pitch it sends stay within 4 deg of the truth in
+     the first 20 s and within 2 deg after (a daemon that levelled on the climb would be off by
+     the climb angle).
+"""
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from sitl import ROOT, Sitl, angle_diff_rad  # noqa: E402
+
+SPEED = 4.0
+FLIGHT_S = 140.0
+FIRST_20S_BOUND_DEG = 4.0
+"""Measured 2.7-3.2 deg in the first seconds: the restarted daemon has no at-rest gyro bias and
+starts from the FC's attitude (trusted here); C then pulls it in."""
+AFTER_20S_BOUND_DEG = 2.0
+"""As the first 60 s of a normal flight (tests/test_e2e_sitl.py); measured <= 1.3 deg."""
+
+
+@pytest.fixture(scope="module")
+def restarted():
+    with Sitl(scenario="inclined_rail", speed=SPEED, seed=6, sim_args=["--duration", str(FLIGHT_S)]) as s:
+        assert s.wait_for(lambda: "msg=launch event=phase" in s.log("daemon"), 120 / SPEED + 60)
+        time.sleep(15.0 / SPEED)
+        s.daemon.send_signal(signal.SIGKILL)
+        s.daemon.wait(10)
+        killed_at = time.monotonic()
+        time.sleep(2.0)
+        out = open(s.workdir / "daemon2.log", "w")
+        s.daemon = subprocess.Popen(s.daemon_cmd, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
+        s.wait_for(lambda: s.sim.poll() is not None, FLIGHT_S / SPEED + 60)
+        restarted_log = (s.workdir / "daemon2.log").read_text()
+    return s, killed_at, restarted_log
+
+
+def test_the_restarted_daemon_knows_it_is_in_flight(restarted):
+    _s, _k, log = restarted
+    assert "event=started_in_flight" in log, log[-3000:]
+    assert "event=levelled" not in log
+    assert "msg=launch event=phase" not in log
+    assert "level=error" not in log
+
+
+def test_attitude_after_the_restart_stays_near_the_truth(restarted):
+    s, killed_at, _log = restarted
+    truth = s.truth()
+    att = np.array([row for row in s.listener.attitude if row[4] > killed_at])
+    assert len(att) > 100, "the restarted daemon sent too little ATTITUDE"
+    t = att[:, 0]
+    idx = np.clip(np.searchsorted(truth["time_boot_s"], t), 0, len(truth["time_boot_s"]) - 1)
+    d_roll = np.degrees(np.abs(angle_diff_rad(att[:, 1], truth["roll_rad"][idx])))
+    d_pitch = np.degrees(np.abs(angle_diff_rad(att[:, 2], truth["pitch_rad"][idx])))
+    for lo in range(0, int(t[-1] - t[0]) + 1, 5):
+        w = (t >= t[0] + lo) & (t < t[0] + lo + 5)
+        if w.any():
+            print(f"  +{lo:3d}..{lo + 5:3d} s: roll max {d_roll[w].max():.2f}, pitch max {d_pitch[w].max():.2f} deg")
+    print(f"after restart: {len(att)} ATTITUDE, roll max {d_roll.max():.2f} deg, pitch max {d_pitch.max():.2f} deg, "
+          f"first at FC time {t[0]:.1f} s (launch {truth['launch_time_boot_s']:.1f} s)")
+    assert t[0] > truth["launch_time_boot_s"] + 15.0  # it really restarted in flight
+    early = t < t[0] + 20.0
+    assert d_roll[early].max() < FIRST_20S_BOUND_DEG and d_pitch[early].max() < FIRST_20S_BOUND_DEG
+    assert np.count_nonzero(~early) > 100
+    assert d_roll[~early].max() < AFTER_20S_BOUND_DEG and d_pitch[~early].max() < AFTER_20S_BOUND_DEG
