@@ -66,7 +66,7 @@ from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcHeartbeat
 from mavlink_io.signing import IFLAG_SIGNED, TIMESTAMP_MAX, SignatureVerifier, check_key, timestamp_from_unix_s
 from mavlink_io.stats import LinkStats
 from mavlink_io.timebase import FcTimebase, TimebaseParams
-from mavlink_io.transport import Transport, TransportDead, make_transport
+from mavlink_io.transport import UDP_RCVBUF_BYTES_DEFAULT, Transport, TransportDead, make_transport
 from mavlink_io.url import Endpoint, parse_url
 
 LINK_EVENT_KINDS = ("autopilot_detected", "rates_requested", "rates_acked", "fc_reboot", "time_gap",
@@ -159,8 +159,11 @@ class LinkConfig:
     signing_timestamp_floor: int = 0
     """Our outgoing signing timestamps start above max(this, the wall clock), in 10 us units since
     2015-01-01 UTC (persist ``link.signing_timestamp`` and pass it back here after a restart)."""
+    udp_rcvbuf_bytes: int = UDP_RCVBUF_BYTES_DEFAULT
+    """UDP receive buffer asked for (SO_RCVBUF; the kernel caps it at net.core.rmem_max)."""
 
     def __post_init__(self) -> None:
+        _check_int("udp_rcvbuf_bytes", self.udp_rcvbuf_bytes, 4096, 2**31 - 1)
         parse_url(self.url)  # ValueError naming the URL
         _check_int("component_id", self.component_id, 1, 255)
         if self.system_id is not None:
@@ -316,7 +319,8 @@ class MavlinkLink:
         now = clock()
         self._next_heartbeat_s = now
         self._next_signing_refresh_s = now + SIGNING_REFRESH_S
-        self._transport: Transport = transport if transport is not None else make_transport(self.endpoint)
+        self._transport: Transport = (transport if transport is not None
+                                      else make_transport(self.endpoint, rcvbuf_bytes=cfg.udp_rcvbuf_bytes))
         self._open_ok = False
         self._udp_split_sender = False
         """A datagram transport whose sender splits frames across datagrams: no per-datagram reset."""
@@ -336,6 +340,12 @@ class MavlinkLink:
     def local_address(self) -> tuple | None:
         """The bound address of a listening transport (udpin/tcpin; useful with port 0)."""
         return self._transport.local_address if self._open_ok else None
+
+    @property
+    def udp_rcvbuf_bytes_granted(self) -> int | None:
+        """What the kernel granted for the UDP receive buffer (Linux reports twice the effective
+        request); None for other transports or while closed."""
+        return getattr(self._transport, "rcvbuf_bytes_granted", None) if self._open_ok else None
 
     @property
     def signing_timestamp(self) -> int | None:

@@ -104,6 +104,7 @@ SPEC: dict[str, dict[str, Key]] = {
         "imu_rate_hz": Key(_F, 200.0, "requested RAW_IMU / HIGHRES_IMU rate", _range(1, 1000)),
         "pressure_rate_hz": Key(_F, 50.0, "requested SCALED_PRESSURE rate", _range(1, 200)),
         "attitude_rate_hz": Key(_F, 50.0, "requested rate of the FC's own ATTITUDE (reference for method B)", _range(1, 200)),
+        "udp_rcvbuf_bytes": Key(int, 4 * 1024 * 1024, "UDP receive buffer asked for (the kernel caps it at net.core.rmem_max)", _range(65536, 256 * 1024 * 1024)),
         "signing_key_file": Key(str, "", "MAVLink 2 signing key file (64 hex characters or 32 bytes, mode 600); \"${CREDENTIALS_DIRECTORY}/NAME\" for a systemd LoadCredential=; \"\" = signing off", None),
         "sign_outgoing": Key(bool, True, "sign what we send (with a key)", None),
         "require_signed": Key(str, "commands", "with a key, which unsigned messages are refused: commands (commands to our component) | all | none", _choice("commands", "all", "none")),
@@ -129,6 +130,9 @@ SPEC: dict[str, dict[str, Key]] = {
         "detect_accel_m_s2": Key(_F, 5.0, "launch when |specific force| exceeds g by this much ...", _range(0.3, 200)),
         "detect_hold_s": Key(_F, 0.05, "... for this long", _range(0.0, 5)),
         "boost_window_s": Key(_F, 1.0, "time after launch used for the flight direction (inclined case)", _range(0.05, 10)),
+        "in_flight_start_detect": Key(bool, True, "a daemon (re)started while the FC is armed and flying does not level or wait for a launch (airspeed, baro rate, motion, specific force)", None),
+        "in_flight_airspeed_m_s": Key(_F, 12.0, "... airspeed that means flying; set it above the strongest wind on the launcher", _range(3, 80)),
+        "in_flight_alt_rate_m_s": Key(_F, 1.5, "... |baro altitude rate| that means flying", _range(0.3, 30)),
     },
     "azimuth": {
         "distortion_model": Key(str, "full12", "magnetometer distortion model: full12 (3x3 soft + hard iron) | seed7 (the seed's 3 scales, 3 biases)", _choice("seed7", "full12")),

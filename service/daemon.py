@@ -108,7 +108,7 @@ class Daemon:
                                    stream_rates_hz=rates,
                                    signing_key=self.signing_key.secret if self.signing_key else None,
                                    sign_outgoing=m["sign_outgoing"], require_signed=m["require_signed"],
-                                   signing_timestamp_floor=floor)
+                                   signing_timestamp_floor=floor, udp_rcvbuf_bytes=m["udp_rcvbuf_bytes"])
         self.calibration = CalibrationKeeper(state_dir(cfg), clock=time.time)
         kf1_learn, kf1_applied = self.calibration.start()
         from service.solver import make_solver
@@ -192,6 +192,11 @@ class Daemon:
 
     def _log_security(self) -> None:
         m = self.cfg["mavlink"]
+        granted = self.link.udp_rcvbuf_bytes_granted
+        if granted is not None and granted // 2 < m["udp_rcvbuf_bytes"]:
+            log.warning("the kernel capped the UDP receive buffer (net.core.rmem_max): a burst the daemon cannot "
+                        "absorb is dropped and reported as input_overflow; docs/SECURITY.md says how to raise it",
+                        extra={"fields": {"asked_bytes": m["udp_rcvbuf_bytes"], "effective_bytes": granted // 2}})
         if os.geteuid() == 0:
             log.warning("running as root: nothing in azimuthd needs it; the systemd unit runs it as an "
                         "unprivileged dynamic user (systemd/azimuthd.service)")

@@ -16,6 +16,8 @@ the first levelling the evidence the daemon has is weighed every sample (``InFli
 the FC says armed (HEARTBEAT; without a heartbeat, or disarmed, the rule never fires), together
 with any of
 
+- the FC's own flying estimate where its HEARTBEAT has one (ArduPlane: MAV_STATE_ACTIVE only
+  while is_flying()) for ``hold_s``: the one evidence a smooth level cruise without a pitot has;
 - airspeed (differential pressure) above ``airspeed_m_s`` for ``hold_s``;
 - |baro altitude rate| above ``alt_rate_m_s`` for ``hold_s`` (once the rate filter has settled);
 - the IMU not still: every still block since the start failed the stillness test, for at least
@@ -91,6 +93,10 @@ class FlightEvidence:
     """True airspeed from the differential pressure (None: no pitot, or no fresh sample)."""
     alt_rate_m_s: float | None = None
     """Baro altitude rate (None: not settled yet or no fresh sample)."""
+    fc_reports_flying: bool | None = None
+    """The FC's own flying estimate, where its HEARTBEAT carries one: ArduPlane sends
+    MAV_STATE_ACTIVE only while its is_flying() says so (STANDBY when armed on the ground; CRITICAL
+    and EMERGENCY say nothing either way: None). None for autopilots whose ACTIVE means armed."""
 
 
 @dataclass(frozen=True)
@@ -121,6 +127,7 @@ class PhaseState:
     in_flight_evidence: str = ""
     # evidence bookkeeping of the started-in-flight rule (before the first levelling)
     airspeed_since_s: float | None = None
+    fc_flying_since_s: float | None = None
     alt_rate_since_s: float | None = None
     accel_norm_since_s: float | None = None
     not_still_total_s: float = 0.0
@@ -149,11 +156,14 @@ def _in_flight_evidence(state: PhaseState, excess_m_s2: float, time_s: float, ev
     state = replace(
         state,
         airspeed_since_s=since(state.airspeed_since_s, ev.airspeed_m_s is not None and ev.airspeed_m_s > p.airspeed_m_s),
+        fc_flying_since_s=since(state.fc_flying_since_s, ev.fc_reports_flying is True),
         alt_rate_since_s=since(state.alt_rate_since_s, ev.alt_rate_m_s is not None and abs(ev.alt_rate_m_s) > p.alt_rate_m_s),
         accel_norm_since_s=since(state.accel_norm_since_s, excess_m_s2 > p.accel_norm_m_s2))
     if ev.armed is not True:
         return state, ""
     found = []
+    if state.fc_flying_since_s is not None and time_s - state.fc_flying_since_s >= p.hold_s:
+        found.append("the FC reports flying (HEARTBEAT MAV_STATE_ACTIVE from ArduPlane)")
     if state.airspeed_since_s is not None and time_s - state.airspeed_since_s >= p.hold_s:
         found.append(f"airspeed {ev.airspeed_m_s:.1f} m/s > {p.airspeed_m_s:g} m/s")
     if state.alt_rate_since_s is not None and time_s - state.alt_rate_since_s >= p.hold_s:

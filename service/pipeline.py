@@ -56,8 +56,8 @@ from mavlink_io.samples import FcAttitude, FcEkfStatus, FcHeartbeat, ImuSample, 
 from service.input_checks import ImuInputChecks, InputCheckParams
 from service.heading_arbitration import (ArbitrationParams, ArbitrationState, SourceReading,
                                          arbitrate)
-from service.phases import (IN_FLIGHT, LAUNCH, PRE_LAUNCH, FlightEvidence, PhaseParams, PhaseState,
-                            phase_step)
+from service.phases import (IN_FLIGHT, LAUNCH, PRE_LAUNCH, FlightEvidence, InFlightParams, PhaseParams,
+                            PhaseState, phase_step)
 from service.solution import NavSolution
 
 log = logging.getLogger("azimuthd.pipeline")
@@ -75,6 +75,9 @@ MAG_GROUP = "magnetometer"
 
 AIR_EVIDENCE_MAX_AGE_S = 1.0
 """Air data older than this (FC time, s) is no evidence for the started-in-flight rule."""
+FIXED_WING = 1
+"""MAV_TYPE_FIXED_WING."""
+MAV_STATE_STANDBY, MAV_STATE_ACTIVE = 3, 4
 
 
 def decimal_year_now() -> float:
@@ -122,7 +125,10 @@ class Pipeline:
                                         levelling=LevellingParams(accel_bias_sigma_m_s2=imu["accel_bias_sigma_m_s2"]),
                                         detect_accel_m_s2=launch["detect_accel_m_s2"],
                                         detect_hold_s=launch["detect_hold_s"],
-                                        boost_window_s=launch["boost_window_s"])
+                                        boost_window_s=launch["boost_window_s"],
+                                        in_flight=InFlightParams(airspeed_m_s=launch["in_flight_airspeed_m_s"],
+                                                                 alt_rate_m_s=launch["in_flight_alt_rate_m_s"]))
+        self.in_flight_start_detect = launch["in_flight_start_detect"]
         self.strapdown_params = StrapdownParams(max_dt_s=cfg["mavlink"]["imu_gap_s"])
         # q_body_from_sensor: the sensor axes' attitude in the body frame (configured mount)
         self.q_body_from_sensor = quat_from_euler(math.radians(imu["mount_roll_deg"]),
@@ -214,6 +220,8 @@ class Pipeline:
         self.pressure: PressureSample | None = None
         self.fc_armed: bool | None = None
         """The FC's last HEARTBEAT: armed (None before the first)."""
+        self.fc_reports_flying: bool | None = None
+        """ArduPlane's own is_flying() from its HEARTBEAT (None: unknown, or another autopilot)."""
         self._last_rx_s: float | None = None
         self._unseen_pending = False
 
@@ -245,8 +253,9 @@ class Pipeline:
         self._last_rx_s = s.time_rx_s
 
         prev_phase = self.phase.phase
-        self.phase, events = phase_step(self.phase, gyro_s, accel_s, t, self.phase_params,
-                                        self._flight_evidence(t) if prev_phase == PRE_LAUNCH else None)
+        evidence = (self._flight_evidence(t) if prev_phase == PRE_LAUNCH and self.in_flight_start_detect
+                    else None)
+        self.phase, events = phase_step(self.phase, gyro_s, accel_s, t, self.phase_params, evidence)
         for ev in events:
             self._event(*ev)
         self._step_azimuth(prev_phase, gyro_s, accel_s, mag_s, t)
@@ -318,6 +327,12 @@ class Pipeline:
 
     def on_fc_heartbeat(self, hb: FcHeartbeat) -> None:
         self.fc_armed = bool(hb.armed)
+        # ArduPlane's system_status is its is_flying() estimate (ACTIVE / STANDBY); other
+        # autopilots' ACTIVE means armed, and CRITICAL/EMERGENCY (failsafes) say nothing
+        self.fc_reports_flying = None
+        if hb.autopilot == "ardupilot" and hb.vehicle_type == FIXED_WING \
+                and hb.system_status in (MAV_STATE_STANDBY, MAV_STATE_ACTIVE):
+            self.fc_reports_flying = hb.system_status == MAV_STATE_ACTIVE
         if self.last_time_fc_s is not None:
             self._step_ahrs(FcStatusEvent(self.last_time_fc_s, system_status=hb.system_status))
 
@@ -372,7 +387,7 @@ class Pipeline:
         air = self.ahrs.air_last
         fresh = air is not None and abs(t - air.time_s) <= AIR_EVIDENCE_MAX_AGE_S
         has_pitot = self.pressure is not None and self.pressure.press_diff_pa is not None
-        return FlightEvidence(armed=self.fc_armed,
+        return FlightEvidence(armed=self.fc_armed, fc_reports_flying=self.fc_reports_flying,
                               airspeed_m_s=air.tas_m_s if fresh and has_pitot and not air.pitot_noisy else None,
                               alt_rate_m_s=air.alt_rate_m_s if fresh and air.rate_valid else None)
 

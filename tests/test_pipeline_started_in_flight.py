@@ -27,7 +27,7 @@ RATE_HZ = 100.0
 REST_S = 5.0
 
 
-def fly(feed_from_s, feed_s, with_fc=True, rest_s=REST_S):
+def fly(feed_from_s, feed_s, with_fc=True, rest_s=REST_S, launch_cfg=None, system_status=4, pitot=True):
     """Simulate, feed the samples from ``feed_from_s`` for ``feed_s`` (HEARTBEAT armed at 1 Hz)."""
     run = simulate(scenario="inclined_rail", seed=3, imu_grade="consumer", imu_rate_hz=RATE_HZ,
                    duration_s=feed_from_s + feed_s, overrides={"launcher": {"rest_s": rest_s}})
@@ -36,18 +36,19 @@ def fly(feed_from_s, feed_s, with_fc=True, rest_s=REST_S):
         items.append((t, 2, ImuSample(t, t, g.copy(), a.copy(), m.copy(), "RAW_IMU", 0)))
     for t, p, d, k in zip(run.baro_time_s.tolist(), run.press_abs_pa.tolist(), run.press_diff_pa.tolist(),
                           run.temperature_k.tolist()):
-        items.append((t, 1, PressureSample(t, t, p, d, k)))
+        items.append((t, 1, PressureSample(t, t, p, d if pitot else None, k)))
     if with_fc:
         for t, e in zip(run.fc_time_s.tolist(), run.fc_euler_rad):
             items.append((t, 0, FcAttitude(t, t, float(e[0]), float(e[1]),
                                            float(math.remainder(e[2], 2 * math.pi)), np.zeros(3))))
     for t in np.arange(feed_from_s, feed_from_s + feed_s, 1.0).tolist():
-        items.append((t, -1, FcHeartbeat(t, 1, 1, "ardupilot", 1, 129, 0, 4, True)))
+        items.append((t, -1, FcHeartbeat(t, 1, 1, "ardupilot", 1, 129, 0, system_status, True)))
     items = sorted((x for x in items if x[0] >= feed_from_s), key=lambda x: (x[0], x[1]))
     site = scenario_site("inclined_rail")
     s = run.site
     site["site"].update(lat_deg=s["lat_deg"], lon_deg=s["lon_deg"], alt_m=s["alt_m"], decimal_year=s["decimal_year"])
-    p = Pipeline(validate({**site, "mavlink": {"imu_rate_hz": RATE_HZ}}))
+    p = Pipeline(validate({**site, "mavlink": {"imu_rate_hz": RATE_HZ},
+                           "launch": {**site.get("launch", {}), **(launch_cfg or {})}}))
     sols, events = [], []
     for _t, _o, it in items:
         if isinstance(it, ImuSample):
@@ -88,7 +89,7 @@ def test_started_60_s_after_launch_reports_no_launch_and_an_honest_attitude(with
     assert "levelled" not in kinds and "launch_unlevelled" not in kinds
     assert ("phase", "launch") not in events
     sif = [d for k, d in events if k == "started_in_flight"]
-    assert len(sif) == 1 and sif[0].startswith("FC armed, airspeed 2")  # 21.6 m/s in the level leg
+    assert len(sif) == 1 and sif[0].startswith("FC armed, ") and "airspeed 21.6 m/s" in sif[0]  # the level leg
     assert p.phase.started_in_flight and p.phase.launch_time_s is None and p.phase.level is None
     src = "the trusted FC attitude" if with_fc else "the accelerometer"
     assert any(k == "attitude" and src in d for k, d in events)
@@ -110,10 +111,35 @@ def test_started_60_s_after_launch_reports_no_launch_and_an_honest_attitude(with
 
 
 def test_armed_on_the_launcher_still_levels_and_launches():
-    run, p, sols, events = fly(0.0, REST_S + 15.0, rest_s=REST_S)
+    # ArduPlane on the ground says STANDBY (its is_flying() is false), as the simulator does
+    run, p, sols, events = fly(0.0, REST_S + 15.0, rest_s=REST_S, system_status=3)
     kinds = [k for k, _d in events]
     assert "started_in_flight" not in kinds
     assert "levelled" in kinds and ("phase", "launch") in events
     assert p.phase.launch_time_s == pytest.approx(run.truth.launch_time_s, abs=0.05)
     # armed: the first still block is held until decide_s (4.5 s), then it levels
     assert p.phase.level is not None and not p.phase.started_in_flight
+
+
+def test_the_config_keys_reach_the_rule():
+    """[launch] in_flight_airspeed_m_s above the flight's airspeed: another evidence decides
+    (ArduPlane's HEARTBEAT says it flies); in_flight_start_detect = false: the rule is off (what an
+    operator whose launch looks like a flight would choose), the old behaviour."""
+    _run, p, _sols, events = fly(REST_S + 60.0, 12.0, launch_cfg={"in_flight_airspeed_m_s": 40.0})
+    sif = [d for k, d in events if k == "started_in_flight"]
+    assert len(sif) == 1 and "airspeed" not in sif[0] and p.phase.started_in_flight
+    assert "the FC reports flying" in sif[0]
+    _run, p, _sols, events = fly(REST_S + 60.0, 12.0, launch_cfg={"in_flight_start_detect": False})
+    assert "started_in_flight" not in [k for k, _d in events] and not p.phase.started_in_flight
+
+
+def test_smooth_level_cruise_without_a_pitot():
+    """No pitot, level cruise (no baro rate), still blocks pass in smooth air: only the FC's own
+    estimate tells flight from a launcher. With ArduPlane's HEARTBEAT saying ACTIVE (is_flying)
+    the daemon knows it flies; with STANDBY it has no evidence at all (the failure this evidence
+    is for: it then levels in flight, as the daemon did before the rule existed)."""
+    _run, p, _sols, events = fly(REST_S + 60.0, 12.0, pitot=False)
+    sif = [d for k, d in events if k == "started_in_flight"]
+    assert len(sif) == 1 and "the FC reports flying" in sif[0] and "levelled" not in [k for k, _d in events]
+    _run, p, _sols, events = fly(REST_S + 60.0, 12.0, pitot=False, system_status=3)
+    assert "started_in_flight" not in [k for k, _d in events]
