@@ -16,31 +16,15 @@ import re
 import signal
 import time
 
-from test_security_signing_e2e import FakeFc, _free_udp_port, _start, _wait_started
+from test_security_signing_e2e import FakeFc, _start, _wait_started, daemon_config, free_udp_port
 
 BURST = 60_000
 
 
-def _config(tmp, port: int):
-    cfg = tmp / "azimuthd.toml"
-    cfg.write_text(f"""
-[mavlink]
-url = "udpin:127.0.0.1:{port}"
-[site]
-lat_deg = 47.0
-lon_deg = 8.0
-[zenoh]
-enabled = false
-[service]
-state_dir = "{tmp / 'state'}"
-""")
-    return cfg
-
-
 def test_a_burst_the_daemon_cannot_keep_up_with_is_reported_and_accounted(tmp_path):
-    port = _free_udp_port()
+    port = free_udp_port()
     log = tmp_path / "daemon.log"
-    p = _start(_config(tmp_path, port), log)
+    p = _start(daemon_config(tmp_path, port), log)
     try:
         _wait_started(p, log)
         fc = FakeFc(port)

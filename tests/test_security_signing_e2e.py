@@ -31,6 +31,8 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mav2
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))
+from sitl import free_udp_port, write_config  # noqa: E402
 KEY = hashlib.sha256(b"azimuthd e2e test key").digest()
 WRONG_KEY = hashlib.sha256(b"not the key").digest()
 GCS = (255, 190)
@@ -105,30 +107,15 @@ def acks_to_gcs(msgs: list) -> list:
     return [m for m in msgs if m.get_type() == "COMMAND_ACK" and (m.target_system, m.target_component) == GCS]
 
 
-def _free_udp_port() -> int:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
+def daemon_config(tmp: Path, port: int, mavlink: dict | None = None, log_level: str = "info") -> Path:
+    """The example config (bench/sitl.py write_config) for a daemon listening on ``port``."""
+    return write_config(tmp / "azimuthd.toml", {
+        "mavlink": {"url": f"udpin:127.0.0.1:{port}", **(mavlink or {})}, "site": {"lat_deg": 47.0, "lon_deg": 8.0},
+        "zenoh": {"enabled": False}, "service": {"state_dir": str(tmp / "state"), "log_level": log_level}})
 
 
 def _config(tmp: Path, key_file: Path, port: int) -> Path:
-    cfg = tmp / "azimuthd.toml"
-    cfg.write_text(f"""
-[mavlink]
-url = "udpin:127.0.0.1:{port}"
-signing_key_file = "{key_file}"
-[site]
-lat_deg = 47.0
-lon_deg = 8.0
-[zenoh]
-enabled = false
-[service]
-state_dir = "{tmp / 'state'}"
-log_level = "debug"
-""")
-    return cfg
+    return daemon_config(tmp, port, {"signing_key_file": str(key_file)}, log_level="debug")
 
 
 def _start(cfg: Path, log: Path) -> subprocess.Popen:
@@ -154,7 +141,7 @@ def flight(tmp_path_factory):
     key_file = tmp / "mavlink_signing.key"
     key_file.write_text(KEY.hex() + "\n")
     os.chmod(key_file, 0o600)
-    port = _free_udp_port()
+    port = free_udp_port()
     cfg = _config(tmp, key_file, port)
     res: dict = {"tmp": tmp}
     log1 = tmp / "daemon1.log"
@@ -255,7 +242,7 @@ def test_a_key_file_others_can_read_stops_the_start(tmp_path):
     key_file = tmp_path / "k"
     key_file.write_text(KEY.hex())
     os.chmod(key_file, 0o644)
-    cfg = _config(tmp_path, key_file, _free_udp_port())
+    cfg = _config(tmp_path, key_file, free_udp_port())
     r = subprocess.run([sys.executable, "-m", "service.cli", "run", "--config", str(cfg), "--duration", "5"],
                        cwd=ROOT, capture_output=True, timeout=60)
     assert r.returncode == 2

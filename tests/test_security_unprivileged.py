@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from test_security_signing_e2e import KEY, ROOT, FakeFc, _free_udp_port, independent_signature_ok, leaks
+from test_security_signing_e2e import KEY, ROOT, FakeFc, daemon_config, free_udp_port, independent_signature_ok, leaks
 
 NOBODY = 65534
 
@@ -59,21 +59,11 @@ def test_daemon_runs_as_an_unprivileged_user_with_no_capabilities():
         os.chmod(key, 0o400)
         os.chown(key, NOBODY, NOBODY)
         os.chown(creds, NOBODY, NOBODY)
-        port = _free_udp_port()
-        cfg = top / "azimuthd.toml"
-        cfg.write_text(f"""
-[mavlink]
-url = "udpin:127.0.0.1:{port}"
-signing_key_file = "${{CREDENTIALS_DIRECTORY}}/mavlink_signing.key"
-[site]
-lat_deg = 47.0
-lon_deg = 8.0
-[zenoh]
-enabled = false
-[service]
-state_dir = "{state}"
-log_level = "debug"
-""")
+        port = free_udp_port()
+        cfg = daemon_config(top, port, {"signing_key_file": "${CREDENTIALS_DIRECTORY}/mavlink_signing.key"},
+                            log_level="debug")
+        # the state directory is where the unit's StateDirectory= would be, owned by the user
+        assert (top / "state") == state
         os.chmod(cfg, 0o644)
         log = top / "daemon.log"
         env = dict(os.environ, CREDENTIALS_DIRECTORY=str(creds), PYTHONUNBUFFERED="1", HOME=str(state))
