@@ -295,17 +295,7 @@ def polar_attitude_unseen(state: PolarAttitudeState, unseen_s: float,
     if not state.initialised:
         return state
     p = params
-    F = np.ones(N_STATES)
-    Q = np.zeros(N_STATES)
-    for sl, tau, sig in ((I_BG, p.gyro_bias_tau_s, p.gyro_bias_sigma_rad_s),
-                         (I_AV, p.vehicle_accel_tau_s, p.vehicle_accel_sigma_m_s2),
-                         (I_WIE, p.earth_rate_tau_s, p.earth_rate_sigma_rad_s),
-                         (I_WEP, p.transport_rate_tau_s, p.transport_rate_sigma_rad_s),
-                         (I_BA, p.accel_bias_tau_s, p.accel_bias_sigma_m_s2),
-                         (I_DG, p.gravity_variation_tau_s, p.gravity_variation_sigma_m_s2)):
-        phi, q = _gm(unseen_s, tau, sig)
-        F[sl] = phi
-        Q[sl] = q
+    F, Q = _gm_diagonals(unseen_s, p)
     P = F[:, None] * state.P * F[None, :]
     P[np.diag_indices(N_STATES)] += Q
     s = min(p.unseen_rate_sigma_rad_s * unseen_s, p.unseen_max_sigma_rad)
@@ -402,6 +392,21 @@ def _gm(dt: float, tau: float, sigma: float) -> tuple[float, float]:
     return phi, sigma * sigma * (1.0 - phi * phi)
 
 
+def _gm_diagonals(dt: float, p: PolarAttitudeParams) -> tuple[np.ndarray, np.ndarray]:
+    """Transition and process-noise diagonals of the Gauss-Markov states over ``dt`` (the
+    attitude entries 0:3 are left 1 and 0 for the caller)."""
+    F = np.ones(N_STATES)
+    Q = np.zeros(N_STATES)
+    for sl, tau, sig in ((I_BG, p.gyro_bias_tau_s, p.gyro_bias_sigma_rad_s),
+                         (I_AV, p.vehicle_accel_tau_s, p.vehicle_accel_sigma_m_s2),
+                         (I_WIE, p.earth_rate_tau_s, p.earth_rate_sigma_rad_s),
+                         (I_WEP, p.transport_rate_tau_s, p.transport_rate_sigma_rad_s),
+                         (I_BA, p.accel_bias_tau_s, p.accel_bias_sigma_m_s2),
+                         (I_DG, p.gravity_variation_tau_s, p.gravity_variation_sigma_m_s2)):
+        F[sl], Q[sl] = _gm(dt, tau, sig)
+    return F, Q
+
+
 def _update(st: PolarAttitudeState, p: PolarAttitudeParams):
     T = st.acc_dt_s
     R_b0_b = dcm_from_quat(st.acc_q_b0_from_b)      # body rotation over the interval
@@ -416,18 +421,10 @@ def _update(st: PolarAttitudeState, p: PolarAttitudeParams):
     coupling = -0.5 * T * (C_BP_end + Rt @ C_BP_0)
     F[I_ATT, I_WIE] = coupling
     F[I_ATT, I_WEP] = coupling
-    Q = np.zeros(N_STATES)
+    phi_diag, Q = _gm_diagonals(T, p)
+    gm = np.arange(3, N_STATES)
+    F[gm, gm] = phi_diag[3:]
     Q[0:3] = p.gyro_noise_rad_s_rt_hz ** 2 * T
-    for sl, tau, sig in ((I_BG, p.gyro_bias_tau_s, p.gyro_bias_sigma_rad_s),
-                         (I_AV, p.vehicle_accel_tau_s, p.vehicle_accel_sigma_m_s2),
-                         (I_WIE, p.earth_rate_tau_s, p.earth_rate_sigma_rad_s),
-                         (I_WEP, p.transport_rate_tau_s, p.transport_rate_sigma_rad_s),
-                         (I_BA, p.accel_bias_tau_s, p.accel_bias_sigma_m_s2),
-                         (I_DG, p.gravity_variation_tau_s, p.gravity_variation_sigma_m_s2)):
-        phi, q = _gm(T, tau, sig)
-        idx = np.arange(sl.start, sl.stop)
-        F[idx, idx] = phi
-        Q[idx] = q
     P = F @ st.P @ F.T
     P[np.diag_indices(N_STATES)] += Q
     # manoeuvre-adaptive vehicle acceleration: flying along body x at speed V while turning at
