@@ -91,7 +91,18 @@ class Kf2Params:
     cov_period_s: float = 0.05
     """The covariance is propagated every this many seconds (attitude at every IMU sample)."""
     max_dt_s: float = 0.1
-    """Larger IMU gaps are not integrated (reported)."""
+    """Larger IMU gaps are not integrated (reported); the attitude covariance then grows as for an
+    unseen interval (``kf2_unseen``)."""
+    unseen_tilt_rate_sigma_rad_s: float = math.radians(10.0)
+    """Over an interval not seen (a gap, a restarted clock) the vehicle kept manoeuvring: roll and
+    pitch sigma grow by this rate x the interval (rad/s) ..."""
+    unseen_tilt_max_sigma_rad: float = math.radians(30.0)
+    """... up to this (rad); the same as method C's attitude filter (polar_attitude_unseen)."""
+    unseen_heading_rate_sigma_rad_s: float = math.radians(20.0)
+    """Heading sigma growth over an unseen interval (rad/s; a coordinated turn is 10-30 deg/s) ..."""
+    unseen_heading_max_sigma_rad: float = math.pi
+    """... up to this (rad): after a few unseen seconds the heading is as good as unknown (as method
+    C's heading filter, polar_heading_unseen)."""
     sigma_att_init_rad: float = math.radians(5.0)
     sigma_heading_init_rad: float = math.radians(30.0)
     sigma_gyro_bias_init_rad_s: float = math.radians(0.3)
@@ -206,6 +217,44 @@ def _propagate_cov(state: Kf2State, params: Kf2Params) -> Kf2State:
                    acc_angle_rad=np.zeros(3), acc_omega_sq=0.0)
 
 
+def kf2_propagate(state: Kf2State, params: Kf2Params = Kf2Params()) -> Kf2State:
+    """P propagated up to the last IMU sample (what every update does first)."""
+    return _propagate_cov(state, params)
+
+
+def kf2_heading_var(state: Kf2State) -> float:
+    """Variance of the heading (rad^2): element [2, 2] of ``kf2_euler_and_cov``."""
+    return float(kf2_euler_and_cov(state)[1][2, 2])
+
+
+def kf2_unseen(state: Kf2State, unseen_s: float, params: Kf2Params = Kf2Params()) -> Kf2State:
+    """Account for ``unseen_s`` seconds without IMU samples (a gap; a restarted clock, reported by
+    the caller). The attitude is kept, its covariance grows as method C's does over an unseen
+    interval (polar_attitude_unseen / polar_heading_unseen), here in Euler terms mapped to the body
+    rotation gamma = W d_euler (W = body_rate_matrix, as ``kf2_init``):
+
+        P_gamma <- P_gamma + W diag(s_t^2, s_t^2, s_h^2) W^T + (sigma_bg unseen_s)^2 I
+        s_t = min(unseen_tilt_rate_sigma * unseen_s, unseen_tilt_max_sigma)
+        s_h = min(unseen_heading_rate_sigma * unseen_s, unseen_heading_max_sigma)
+
+    (the last term: the gyro-bias error over the interval, as before). The Markov states relax
+    over the interval (means are zero in the closed-loop error filter, so only P changes:
+    P_b <- a^2 P_b + (1 - a^2) sigma^2, a = exp(-unseen_s / tau)). The caller restarts the time."""
+    if not (math.isfinite(unseen_s) and unseen_s >= 0.0):
+        raise ValueError(f"unseen_s must be finite and >= 0, got {unseen_s!r}")
+    s_t = min(params.unseen_tilt_rate_sigma_rad_s * unseen_s, params.unseen_tilt_max_sigma_rad)
+    s_h = min(params.unseen_heading_rate_sigma_rad_s * unseen_s, params.unseen_heading_max_sigma_rad)
+    a = np.ones(N)
+    a[3:6] = math.exp(-unseen_s / params.gyro_bias_tau_s)
+    a[6:9] = math.exp(-unseen_s / params.mag_bias_tau_s)
+    P = a[:, None] * state.P * a[None, :]
+    P[3:6, 3:6] += np.eye(3) * (1.0 - a[3] ** 2) * params.gyro_bias_sigma_rad_s ** 2
+    P[6:9, 6:9] += np.eye(3) * (1.0 - a[6] ** 2) * params.mag_bias_sigma ** 2
+    P[0:3, 0:3] += (_gamma_cov_from_euler_sigmas(state.q_nav_from_body, s_t, s_h)
+                    + np.eye(3) * (params.gyro_bias_sigma_rad_s * unseen_s) ** 2)
+    return _upd(state, P=0.5 * (P + P.T))
+
+
 def kf2_predict(state: Kf2State, gyro_body_rad_s: np.ndarray, time_s: float,
                 params: Kf2Params = Kf2Params()) -> tuple[Kf2State, Kf2Diag]:
     """One IMU sample: integrate the attitude (every sample) and P (every cov_period_s)."""
@@ -219,12 +268,12 @@ def kf2_predict(state: Kf2State, gyro_body_rad_s: np.ndarray, time_s: float,
     if dt <= 0.0:
         return state, Kf2Diag(False, f"time not increasing (dt={dt:.6f} s)")
     if dt > params.max_dt_s:
-        st = _propagate_cov(state, params)
-        # a gap: keep the attitude, grow the attitude uncertainty by the gap's bias effect
-        P = st.P.copy()
-        P[0:3, 0:3] += np.eye(3) * (params.gyro_bias_sigma_rad_s * dt) ** 2
-        return (_upd(st, P=P, time_s=time_s, omega_prev_rad_s=w, cov_time_s=time_s),
-                Kf2Diag(False, f"gap of {dt:.3f} s not integrated"))
+        # a gap: keep the attitude (nothing better is known), but the vehicle kept turning. The
+        # interval counted as unseen is the part beyond max_dt_s (what an integrated step may span),
+        # so an interval just over the limit (timestamp jitter) does not widen the attitude.
+        st = kf2_unseen(_propagate_cov(state, params), dt - params.max_dt_s, params)
+        return (_upd(st, time_s=time_s, omega_prev_rad_s=w, cov_time_s=time_s, acc_angle_rad=np.zeros(3),
+                     acc_omega_sq=0.0), Kf2Diag(False, f"gap of {dt:.3f} s not integrated"))
     dtheta = 0.5 * (state.omega_prev_rad_s + w) * dt
     q = quat_mul(state.q_nav_from_body, quat_from_rotvec(dtheta))
     q = q / math.sqrt(float(q @ q))

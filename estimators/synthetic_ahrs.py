@@ -30,6 +30,25 @@ levelled heading-only one (the magnetometer then cannot pull roll/pitch; see
 ahrs_kf2.kf2_update_mag_heading). On the 10-flight check it gave the same RMS with a smaller
 worst case; "vector" (the seed) stays the default.
 
+Heading sigma while the FC is (or was) the reference. KF2 fuses the FC's yaw every
+``ref_update_interval_s`` as if its errors were white; they are not (an FC's heading error is
+correlated over tens of seconds: a compass/declination error, its own filter's lag), so KF2's
+heading variance collapses far below the FC's error that it has copied (measured: 0.17 deg sigma
+for a 1.3 deg RMS error, bench/heading_consistency.py). The FC's yaw error is therefore treated as
+a *consider* parameter eps (Schmidt): not estimated, but its effect on our heading is tracked as a
+sensitivity a = d(heading error)/d(eps). An update with heading gain k (k = 1 - v+/v-, v = KF2's
+heading variance before/after it) maps the error e -> (1 - k) e + k (z's error), so
+    FC reference update: a <- (1 - k) a + k       (z carries eps)
+    other heading update (magnetometer): a <- (1 - k) a
+    reset to the reference: a <- 1;  start from the FC: a = 1;  start from the magnetometer: a = 0,
+and the published heading variance is v + a^2 sigma_eps^2 (the filter's own part plus the FC
+error it inherited; the two overlap by at most k^2 R per update, negligible once v << R), with
+sigma_eps = ``fc_sigma_yaw_rad``: the same FC yaw sigma the service gives the FC's own reading, so
+B aligned to the FC never claims to be better than the FC itself (1.5 deg by default: wider
+than the simulator's 1 deg FC, so the NEES of the FC-aligned heading is ~0.5 there). eps is
+taken as constant (no decay with its correlation time): conservative. After the FC is no longer
+trusted a only shrinks as the magnetometer corrects the heading.
+
 Reference health: reference_health (signalled status + agreement of the FC attitude with our
 gyro-only attitude, which is integrated here with the current bias estimate and never reset).
 
@@ -48,9 +67,9 @@ from estimators.records import fast_replace
 
 from estimators.ahrs_b1 import (B1Params, B1State, b1_air_step, b1_heading_step, b1_imu_step,
                                 b1_init, b1_output, b1_reference_step)
-from estimators.ahrs_kf2 import (Kf2Params, Kf2State, kf2_euler_and_cov, kf2_init, kf2_predict,
-                                 kf2_update_air, kf2_update_mag, kf2_update_mag_heading,
-                                 kf2_update_reference)
+from estimators.ahrs_kf2 import (Kf2Params, Kf2State, kf2_euler_and_cov, kf2_heading_var, kf2_init,
+                                 kf2_predict, kf2_propagate, kf2_update_air, kf2_update_mag,
+                                 kf2_update_mag_heading, kf2_update_reference)
 from estimators.air_data import AirData, AirDataParams, AirDataState, air_data_step
 from estimators.euler_kinematics import euler_rates
 from estimators.geomag import earth_field_ned_gauss
@@ -221,6 +240,10 @@ class SyntheticAhrsState:
     kf1_learning: bool = False
     n_kf1_rejected: int = 0
     first_imu_time_s: float | None = None
+    ref_heading_sens: float = 0.0
+    reacquire_heading: bool = False
+    """b2: a gap left the heading as good as unknown: take it from the magnetometer next."""
+    """b2: sensitivity a of our heading error to the FC's (correlated) yaw error (module docstring)."""
 
 
 @dataclass(frozen=True)
@@ -404,6 +427,10 @@ def _on_imu(state: SyntheticAhrsState, ev: ImuEvent, params: SyntheticAhrsParams
         if dt <= params.kf2.max_dt_s:
             qf = quat_mul(qf, quat_from_rotvec(w * dt))   # rectangular: ample for the test
             qf = qf / math.sqrt(float(qf @ qf))
+        elif state.health.anchors:
+            # a gap: the gyro-only attitude did not see it, so the FC's change across it cannot be
+            # compared with ours (it would read as a silent divergence): re-lay the anchors
+            state = _upd(state, health=_upd(state.health, anchors=()))
     state = _upd(state, q_gyro_free=qf, omega_lp_rad_s=wlp, time_s=t)
     state = _trust(state, t, params)
     if state.b1 is not None:
@@ -411,8 +438,10 @@ def _on_imu(state: SyntheticAhrsState, ev: ImuEvent, params: SyntheticAhrsParams
     if state.kf2 is None:
         state = _upd(state, first_imu_time_s=t if state.first_imu_time_s is None else state.first_imu_time_s)
         return _init_without_reference(state, ev, C_bs, t, params)
-    kf2, _ = kf2_predict(state.kf2, gyro_b, t, params.kf2)
+    kf2, d2 = kf2_predict(state.kf2, gyro_b, t, params.kf2)
     state = _upd(state, kf2=kf2)
+    if d2.reason.startswith("gap") and kf2_heading_var(kf2) > params.init_sigma_heading_rad ** 2:
+        state = _upd(state, reacquire_heading=True)
     if state.trusted and (not state.bias_snapshots or t - state.bias_snapshots[-1][0] >= params.bias_snapshot_period_s):
         keep = tuple(s for s in state.bias_snapshots if t - s[0] <= 3.0 * params.bias_revert_age_s)
         snap = (t, kf2.gyro_bias_rad_s.copy(), kf2.mag_bias.copy(), kf2.q_nav_from_body.copy(),
@@ -438,9 +467,17 @@ def _on_imu(state: SyntheticAhrsState, ev: ImuEvent, params: SyntheticAhrsParams
         m = mag_b
         if state.kf1_applied is not None and state.kf1_applied.field_norm_gauss is not None:
             m = kf1_correct_mag(state.kf1_applied, mag_b)
+        if state.reacquire_heading:
+            return _reacquire_heading(state, m, t, params)
         update = kf2_update_mag if params.mag_mode == "vector" else kf2_update_mag_heading
-        kf2, _ = update(state.kf2, m, Bn, params.kf2)
-        state = _upd(state, kf2=kf2, last_mag_update_s=t)
+        kf2 = kf2_propagate(state.kf2, params.kf2)
+        sens = state.ref_heading_sens
+        if sens > 0.0:
+            v0 = kf2_heading_var(kf2)
+        kf2, d = update(kf2, m, Bn, params.kf2)
+        if sens > 0.0 and d.fused and v0 > 0.0:
+            sens *= min(1.0, kf2_heading_var(kf2) / v0)          # a <- (1 - k) a
+        state = _upd(state, kf2=kf2, last_mag_update_s=t, ref_heading_sens=sens)
     return state
 
 
@@ -463,7 +500,34 @@ def _init_without_reference(state: SyntheticAhrsState, ev: ImuEvent, C_bs: np.nd
     psi = math.atan2(Bn[1], Bn[0]) - math.atan2(m[1], m[0])
     kf2 = kf2_init(quat_from_euler(0.0, 0.0, psi), params.kf2, sigma_tilt_rad=params.init_sigma_tilt_rad,
                    sigma_heading_rad=params.init_sigma_heading_rad)
-    return _upd(state, kf2=kf2)
+    return _upd(state, kf2=kf2, ref_heading_sens=0.0)
+
+
+def _reacquire_heading(state: SyntheticAhrsState, mag_body_gauss: np.ndarray, t: float,
+                       params: SyntheticAhrsParams) -> SyntheticAhrsState:
+    """After a gap long enough that the heading is as good as unknown (its sigma above
+    ``init_sigma_heading_rad``), the linearised magnetometer update cannot pull a heading that
+    may be off by anything up to 180 deg. Take the heading from the magnetometer levelled with
+    our roll/pitch instead (m_lev = C(roll, pitch, 0) (m - beta_hat |B|) = R3(psi) B_n, so
+    psi = atan2(B_E, B_N) - atan2(m_lev_y, m_lev_x)), keep roll/pitch and their sigma, heading
+    sigma ``init_sigma_heading_rad``; the magnetometer updates then refine it."""
+    kf2 = state.kf2
+    Bn = np.array(params.field_nav_gauss)
+    e, cov = kf2_euler_and_cov(kf2)
+    m = np.asarray(mag_body_gauss, dtype=float) - kf2.mag_bias * float(np.linalg.norm(Bn))
+    m_lev = dcm_from_euler(float(e[0]), float(e[1]), 0.0) @ m
+    if not math.hypot(m_lev[0], m_lev[1]) > 0.05 * float(np.linalg.norm(Bn)):
+        return state                                     # no usable horizontal field: wait
+    psi = math.atan2(Bn[1], Bn[0]) - math.atan2(m_lev[1], m_lev[0])
+    q = quat_from_euler(float(e[0]), float(e[1]), psi)
+    sigma_tilt = math.sqrt(max(cov[0, 0], cov[1, 1]))
+    fresh = kf2_init(q, params.kf2, sigma_tilt_rad=sigma_tilt, sigma_heading_rad=params.init_sigma_heading_rad)
+    P = kf2.P.copy()
+    P[0:3, :] = 0.0
+    P[:, 0:3] = 0.0
+    P[0:3, 0:3] = fresh.P[0:3, 0:3]
+    return _upd(state, kf2=_upd(kf2, q_nav_from_body=fresh.q_nav_from_body, P=P, n_resets=kf2.n_resets + 1),
+                reacquire_heading=False, ref_heading_sens=0.0, last_mag_update_s=t)
 
 
 def _on_air(state: SyntheticAhrsState, ev: AirEvent, params: SyntheticAhrsParams) -> SyntheticAhrsState:
@@ -502,7 +566,12 @@ def _on_fc_attitude(state: SyntheticAhrsState, ev: FcAttitudeEvent, params: Synt
         return state
     t = float(ev.time_s)
     prev = state.fc_last
-    if state.q_gyro_free is not None:
+    imu_behind = state.time_s is not None and t - state.time_s > params.kf2.max_dt_s
+    if state.q_gyro_free is not None and imu_behind:
+        # our gyro-only attitude is not current (an IMU gap not yet closed by a sample): no
+        # agreement test across it, the anchors are re-laid
+        state = _upd(state, health=_upd(state.health, fc_time_s=t, anchors=()))
+    elif state.q_gyro_free is not None:
         C_fc = dcm_from_euler(*e)
         h = health_on_attitude(state.health, C_fc, dcm_from_quat(state.q_gyro_free), t, params.health)
         state = _upd(state, health=h)
@@ -519,11 +588,21 @@ def _on_fc_attitude(state: SyntheticAhrsState, ev: FcAttitudeEvent, params: Synt
             return state
         kf2 = kf2_init(quat_from_euler(*e), params.kf2, sigma_tilt_rad=params.fc_sigma_tilt_rad,
                        sigma_heading_rad=params.fc_sigma_yaw_rad)
-        return _upd(state, kf2=kf2, last_ref_update_s=t)
-    if t - state.last_ref_update_s < params.ref_update_interval_s - 1e-6:
-        return state
-    kf2, _ = kf2_update_reference(state.kf2, e, t, params.fc_sigma_tilt_rad, params.fc_sigma_yaw_rad, params.kf2)
-    return _upd(state, kf2=kf2, last_ref_update_s=t)
+        return _upd(state, kf2=kf2, last_ref_update_s=t, ref_heading_sens=1.0)
+    if t - state.last_ref_update_s < params.ref_update_interval_s - 1e-6 or imu_behind:
+        return state        # (behind an IMU gap: KF2 first accounts for the gap at the next sample)
+    kf2 = kf2_propagate(state.kf2, params.kf2)
+    v0 = kf2_heading_var(kf2)
+    kf2, d = kf2_update_reference(kf2, e, t, params.fc_sigma_tilt_rad, params.fc_sigma_yaw_rad, params.kf2)
+    sens = state.ref_heading_sens
+    if d.fused:                                                  # the FC gave the heading back
+        state = _upd(state, reacquire_heading=False)
+    if d.reason == "reset to reference":
+        sens = 1.0
+    elif d.fused and v0 > 0.0:
+        k = max(0.0, 1.0 - kf2_heading_var(kf2) / v0)
+        sens = (1.0 - k) * sens + k                              # a <- (1 - k) a + k
+    return _upd(state, kf2=kf2, last_ref_update_s=t, ref_heading_sens=sens)
 
 
 def synthetic_ahrs_output(state: SyntheticAhrsState, params: SyntheticAhrsParams) -> SyntheticAhrsOutput | None:
@@ -546,9 +625,11 @@ def synthetic_ahrs_output(state: SyntheticAhrsState, params: SyntheticAhrsParams
                                    roll_sigma_rad=nan, pitch_sigma_rad=nan, heading_sigma_rad=nan, **common)
     e, cov = kf2_euler_and_cov(state.kf2)
     k = state.kf2
+    # the filter's heading variance plus the FC yaw error it inherited (module docstring)
+    var_h = cov[2, 2] + (state.ref_heading_sens * params.fc_sigma_yaw_rad) ** 2
     return SyntheticAhrsOutput(valid=True, roll_rad=float(e[0]), pitch_rad=float(e[1]), heading_rad=float(e[2]),
                                roll_sigma_rad=math.sqrt(cov[0, 0]), pitch_sigma_rad=math.sqrt(cov[1, 1]),
-                               heading_sigma_rad=math.sqrt(cov[2, 2]), mag_fused=k.n_mag_fused,
+                               heading_sigma_rad=math.sqrt(var_h), mag_fused=k.n_mag_fused,
                                mag_rejected=k.n_mag_rejected, air_fused=k.n_air_fused,
                                air_rejected=k.n_air_rejected, ref_fused=k.n_ref_fused, **common)
 

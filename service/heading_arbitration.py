@@ -11,11 +11,26 @@ The rule
 2. Reference: the previous fused heading propagated to now with the heading rate (from the
    gyros, when the caller gives it; variance + (rate_sigma dt)^2), else held with the variance
    grown by (max_turn_rate dt)^2. On the first call (or after every source was lost) the
-   reference is the best candidate (smallest sigma, then ``priority``).
+   reference is the best candidate (smallest sigma, then ``priority``). So it is after an
+   interval longer than ``max_age_s`` without a call (an input gap: neither the rate given now
+   nor the old fusion says anything about the turn during the gap): a 'reset' event reports the
+   jump from the held heading, and the jump is not blended (step 6): the heading was unknown.
 3. Gate: a candidate passes if its normalised innovation against the reference,
    wrap(h_i - ref)^2 / (sigma_i^2 + sigma_ref^2), is <= ``gate_chi2`` (chi-square, 1 dof).
-4. Correlated sources: readings that share a ``group`` (e.g. B and C both use the magnetometer)
-   are not independent; per group only the smallest-sigma passing reading is fused.
+4. Correlated sources: readings that share a ``group`` (e.g. B and C both use the magnetometer;
+   B's magnetometer errors and alignment are learnt against the FC's yaw) are not independent, and
+   their correlation is not known. Fusing them as independent (1/var = sum 1/var_i) understates the
+   variance: two readings that both carry the same error e (var s^2) fuse to var s^2/2 while the
+   error is still e. With an unknown correlation the consistent rule is covariance intersection
+   (Julier & Uhlmann 1997): var_CI^-1 = w var_1^-1 + (1 - w) var_2^-1, mean likewise weighted,
+   w in [0, 1] chosen to minimise var_CI. For scalars var_CI(w) = 1 / (w/v1 + (1-w)/v2) is
+   monotonic in w, so its minimum is at an end: w = 1 if v1 < v2 -- CI of scalar readings IS
+   "take the smaller-variance reading". Hence: per shared group only the smallest-sigma passing
+   reading is fused, and the fused sigma of readings that share a group is never below the
+   smallest of their sigmas (the bound the tests check). A reading may be in several groups
+   (``group`` a tuple of names); the selection is greedy in rank order: a reading is fused if it
+   shares no group with a better reading already chosen. Readings in no common group are fused as
+   independent (step 5).
 5. Fusion: inverse-variance weighting in the circular domain about the reference,
        h = ref + sum(w_i wrap(h_i - ref)) / sum(w_i),  w_i = 1/sigma_i^2,  var = 1/sum(w_i).
 6. No silent jumps: when the set of fused sources changes, the jump between the new fusion and
@@ -53,8 +68,15 @@ class SourceReading:
     valid: bool
     time_s: float
     """Time of the reading, same clock as the ``time_s`` given to ``arbitrate``."""
-    group: str = ""
-    """Readings with the same non-empty group share an error source (fully correlated)."""
+    group: str | tuple = ""
+    """Name(s) of the error sources or references this reading shares with others (a str, or a
+    tuple of str for several): readings with a group in common are treated as correlated with an
+    unknown coefficient (covariance intersection: only the better one is fused)."""
+
+    @property
+    def groups(self) -> tuple:
+        g = self.group
+        return tuple(x for x in ((g,) if isinstance(g, str) else tuple(g)) if x)
 
 
 @dataclass(frozen=True)
@@ -143,12 +165,16 @@ def _fuse(readings: list, ref: float) -> tuple[float, float]:
 
 
 def _decorrelate(readings: list, params: ArbitrationParams) -> list:
-    best = {}
-    for r in readings:
-        key = r.group or f"__{r.name}"
-        if key not in best or _rank(r, params) < _rank(best[key], params):
-            best[key] = r
-    return sorted(best.values(), key=lambda r: r.name)
+    """Covariance intersection for scalar readings that share a group (docstring step 4): in rank
+    order, keep a reading only if it shares no group with a reading already kept."""
+    kept, taken = [], set()
+    for r in sorted(readings, key=lambda r: _rank(r, params)):
+        g = set(r.groups)
+        if g & taken:
+            continue
+        kept.append(r)
+        taken |= g
+    return sorted(kept, key=lambda r: r.name)
 
 
 def arbitrate(state: ArbitrationState, readings: list, time_s: float,
@@ -182,7 +208,10 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
         return st, ArbitrationOutput(None, math.inf, "none", False, 0.0, per, tuple(events))
 
     # --- reference -----------------------------------------------------------------------------
-    anchored = state.fused_rad is None
+    # not called for longer than a reading may be old (an input gap): the old fusion says nothing
+    # about the turn during the gap, so start over from the candidates (no blending of that jump)
+    stale = state.fused_rad is not None and dt > params.max_age_s
+    anchored = state.fused_rad is None or stale
     if anchored:
         best = min(cands, key=lambda r: _rank(r, params))
         ref, ref_var = best.heading_rad, best.sigma_rad ** 2
@@ -237,10 +266,17 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
         if r in used:
             per[r.name]["used"] = True
         else:
-            per[r.name]["reason"] = f"correlated with a better source in group {r.group!r}"
+            per[r.name]["reason"] = f"correlated with a better source (group {'+'.join(r.groups)})"
 
     offset = _bleed(state.offset_rad, dt, params)
-    if anchored:
+    if stale:
+        jump = _wrap_pi(fused - state.fused_rad)
+        offset = 0.0
+        events.append(ArbitrationEvent(
+            time_s, "reset", state.sources, names, jump,
+            f"heading re-acquired from {'+'.join(names)} after {dt:.1f} s without output: "
+            f"jump {math.degrees(jump):+.2f} deg (not blended: the heading was unknown meanwhile)"))
+    elif anchored:
         events.append(ArbitrationEvent(time_s, "acquired", (), names, 0.0,
                                        f"heading from {'+'.join(names)}"))
     elif names != state.sources or kind == "reset":

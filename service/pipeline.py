@@ -71,7 +71,9 @@ B1_HEADING_PERIOD_S = 0.1
 """How often variant B1 is handed the heading of the other sources (s)."""
 
 MAG_GROUP = "magnetometer"
-"""Sources that share the magnetometer's errors (B and C): fused as one."""
+"""Sources that share the magnetometer's errors (B, C and the FC's compass yaw): fused as one."""
+FC_REF_GROUP = "fc_reference"
+"""Sources tied to the FC's yaw (the FC itself; B, whose alignment and KF1 are learnt against it)."""
 
 AIR_EVIDENCE_MAX_AGE_S = 1.0
 """Air data older than this (FC time, s) is no evidence for the started-in-flight rule."""
@@ -560,7 +562,8 @@ class Pipeline:
         # distortions with psi_s, and a biased magnetometer heading would drag the fusion.
         mag_sources = not (az is not None and az.valid)
         if mag_sources and b is not None and b.valid and math.isfinite(b.heading_rad):
-            out.append(SourceReading("synthetic_ahrs", b.heading_rad, b.heading_sigma_rad, True, t, MAG_GROUP))
+            out.append(SourceReading("synthetic_ahrs", b.heading_rad, b.heading_sigma_rad, True, t,
+                                     (MAG_GROUP, FC_REF_GROUP)))
         h = polar_heading_estimate(self.polar_hdg)
         if mag_sources and h.initialised and math.isfinite(h.heading_rad):
             out.append(SourceReading("heading_filter", h.heading_rad, math.sqrt(h.variance_rad2), True, t, MAG_GROUP))
@@ -568,7 +571,7 @@ class Pipeline:
         if (self.use_fc_heading and fc is not None and b is not None and b.reference_trusted
                 and abs(t - fc.time_fc_s) < self.arb_params.max_age_s):
             out.append(SourceReading("fc", wrap_2pi(fc.yaw_rad), self.ahrs_params.fc_sigma_yaw_rad, True,
-                                     fc.time_fc_s))
+                                     fc.time_fc_s, (MAG_GROUP, FC_REF_GROUP)))
         return out
 
     def _feed_b1_heading(self, readings: list[SourceReading], t: float) -> None:

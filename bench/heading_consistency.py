@@ -1,0 +1,261 @@
+"""Is the published heading sigma honest? Simulated flights through the daemon's own Pipeline.
+
+    python bench/heading_consistency.py [--quick] [--json PATH]
+
+Cases (sim.offline.simulate, consumer IMU at 100 Hz, fed to ``service.pipeline.Pipeline`` as the
+daemon's link hands it the samples: bench/sitl.py's ``pipeline_inputs`` plus a 1 Hz HEARTBEAT
+(armed; system_status STANDBY before the launch, ACTIVE after, as ArduPlane reports
+is_flying) and a 1 Hz EKF status whose ``horiz_pos_ok`` clears at the simulator's GNSS loss,
+as the simulator sends EKF_STATUS_REPORT on the wire):
+
+- ``inclined_rail``: rail launch, climb, turns; method A solves in flight; no GNSS loss;
+- ``inclined_rail_in_flight``: the same flight, the daemon started 60 s after the launch (no
+  levelling, method A off: the FC's yaw and method B are fused while the FC is trusted; the case of
+  tests/test_pipeline_started_in_flight.py);
+- ``runway_gnss_denied``: runway take-off, GNSS lost (the FC's yaw drifts, its trust ends).
+
+In every flight a 10 s link outage (no IMU, no pressure, no FC message) is injected in flight.
+
+Scored against the simulator's truth yaw, for every NavSolution with a valid heading: error
+(deg), the fraction within 1/2/3 published sigmas and the NEES = mean((err / sigma)^2) (1 for an
+honest Gaussian sigma), overall, per window (before / after the GNSS loss, the 30 s after the
+outage), per ``heading_source``, and for the inputs the arbitration gets (B, C, the FC's yaw).
+Targets (honest heading): >= 95 % within 3 sigma and NEES in [0.5, 2] in every window.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from estimators.polar_heading import polar_heading_estimate  # noqa: E402
+from mavlink_io.samples import FcAttitude, FcEkfStatus, FcHeartbeat, ImuSample, PressureSample  # noqa: E402
+from service.config import validate  # noqa: E402
+from service.pipeline import Pipeline  # noqa: E402
+from service.replay import json_safe  # noqa: E402
+from sim.offline import simulate  # noqa: E402
+from sitl import pipeline_inputs, scenario_site  # noqa: E402
+
+IMU_HZ = 100.0
+GAP_S = 10.0
+"""Length of the injected outage (s)."""
+AFTER_GAP_S = 30.0
+"""The 'after_gap' window: this long after the outage ends (s)."""
+STATUS_PERIOD_S = 1.0
+MAV_STATE_STANDBY = 3
+MAV_STATE_ACTIVE = 4
+WINDOWS = ("overall", "before_gnss_loss", "after_gnss_loss", "after_gap")
+TARGET_WITHIN_3SIGMA = 0.95
+TARGET_NEES = (0.5, 2.0)
+
+
+def cases(quick: bool) -> list[dict]:
+    """Times in s on the simulator clock (0 at sim start)."""
+    rest = 15.0
+    if quick:
+        return [
+            dict(name="inclined_rail", scenario="inclined_rail", duration_s=160.0, feed_from_s=0.0,
+                 gap_start_s=110.0, overrides={"launcher": {"rest_s": rest}}),
+            dict(name="inclined_rail_in_flight", scenario="inclined_rail", duration_s=200.0,
+                 feed_from_s=rest + 60.0, gap_start_s=140.0, overrides={"launcher": {"rest_s": rest}}),
+            dict(name="runway_gnss_denied", scenario="runway_gnss_denied", duration_s=200.0, feed_from_s=0.0,
+                 gap_start_s=140.0, overrides={"launcher": {"rest_s": rest}, "gnss": {"lost_at_s": 100.0}}),
+        ]
+    return [
+        dict(name="inclined_rail", scenario="inclined_rail", duration_s=330.0, feed_from_s=0.0,
+             gap_start_s=110.0, overrides={"launcher": {"rest_s": rest}}),
+        dict(name="inclined_rail_in_flight", scenario="inclined_rail", duration_s=330.0,
+             feed_from_s=rest + 60.0, gap_start_s=140.0, overrides={"launcher": {"rest_s": rest}}),
+        dict(name="runway_gnss_denied", scenario="runway_gnss_denied", duration_s=420.0, feed_from_s=0.0,
+             gap_start_s=260.0, overrides={"launcher": {"rest_s": rest}, "gnss": {"lost_at_s": 180.0}}),
+    ]
+
+
+def items_for(run, case: dict) -> list:
+    """The Pipeline inputs in time order, with HEARTBEAT and EKF status, the outage cut out."""
+    t_end = float(run.time_s[-1])
+    loss = run.gnss_lost_time_s
+    extra = []
+    launch = run.truth.launch_time_s
+    for t in np.arange(case["feed_from_s"], t_end, STATUS_PERIOD_S).tolist():
+        # armed; ArduPlane's system_status is ACTIVE once it flies, STANDBY before
+        status = MAV_STATE_ACTIVE if t >= launch else MAV_STATE_STANDBY
+        extra.append(FcHeartbeat(t, 1, 1, "ardupilot", 1, 129, 0, status, True))
+        extra.append(FcEkfStatus(t, True, loss is None or t < loss, 0, "ekf_status_report", t))
+    items = pipeline_inputs(run)
+    merged = sorted([(it.time_rx_s, 0, i, it) for i, it in enumerate(extra)]
+                    + [(it.time_rx_s, 1, i, it) for i, it in enumerate(items)], key=lambda x: x[:3])
+    g0, g1 = case["gap_start_s"], case["gap_start_s"] + GAP_S
+    return [x[3] for x in merged if x[0] >= case["feed_from_s"] and not g0 <= x[0] < g1]
+
+
+def fly(case: dict, seed: int) -> dict:
+    """One flight through a fresh Pipeline; per-solution arrays for scoring."""
+    run = simulate(scenario=case["scenario"], seed=seed, imu_grade="consumer", imu_rate_hz=IMU_HZ,
+                   duration_s=case["duration_s"], overrides=case["overrides"])
+    cfg = scenario_site(case["scenario"])
+    s = run.site
+    cfg["site"].update(lat_deg=s["lat_deg"], lon_deg=s["lon_deg"], alt_m=s["alt_m"],
+                       decimal_year=s["decimal_year"])
+    p = Pipeline(validate({**cfg, "mavlink": {"imu_rate_hz": IMU_HZ}}))
+    rec = {k: [] for k in ("t", "h", "s", "src", "b_h", "b_s", "c_h", "c_s", "f_h")}
+    nan = math.nan
+    for it in items_for(run, case):
+        c = type(it)
+        if c is ImuSample:
+            sol = p.on_imu(it)
+            p.drain_events()
+            if sol is None:
+                continue
+            rec["t"].append(sol.time_fc_s)
+            ok = sol.heading_valid
+            rec["h"].append(sol.heading_rad if ok else nan)
+            rec["s"].append(sol.heading_sigma_rad if ok else nan)
+            rec["src"].append(sol.heading_source)
+            b = p.ahrs_out
+            bok = b is not None and b.valid
+            rec["b_h"].append(b.heading_rad if bok else nan)
+            rec["b_s"].append(b.heading_sigma_rad if bok else nan)
+            h = polar_heading_estimate(p.polar_hdg)
+            rec["c_h"].append(h.heading_rad if h.initialised else nan)
+            rec["c_s"].append(math.sqrt(h.variance_rad2) if h.initialised else nan)
+            fc = p.fc_attitude
+            trusted = bok and b.reference_trusted and fc is not None
+            rec["f_h"].append(fc.yaw_rad if trusted else nan)
+        elif c is PressureSample:
+            p.on_pressure(it)
+        elif c is FcAttitude:
+            p.on_fc_attitude(it)
+        elif c is FcHeartbeat:
+            p.on_fc_heartbeat(it)
+        elif c is FcEkfStatus:
+            p.on_fc_ekf_status(it)
+    t = np.array(rec["t"])
+    k = np.minimum(np.searchsorted(run.time_s, t - 1e-9), len(run.time_s) - 1)
+    yaw = run.truth.euler_rad[k, 2]
+    out = dict(t=t, src=np.array(rec["src"], dtype=object), yaw=yaw)
+    for key in ("h", "s", "b_h", "b_s", "c_h", "c_s", "f_h"):
+        out[key] = np.array(rec[key], dtype=float)
+    loss = run.gnss_lost_time_s
+    g1 = case["gap_start_s"] + GAP_S
+    after_gap = (t >= g1) & (t < g1 + AFTER_GAP_S)
+    out["win"] = {
+        "overall": np.ones(len(t), bool),
+        "before_gnss_loss": ~after_gap & ((t < loss) if loss is not None else True),
+        "after_gnss_loss": ~after_gap & ((t >= loss) if loss is not None else False),
+        "after_gap": after_gap,
+    }
+    return out
+
+
+def wrap_pi(a):
+    return (np.asarray(a) + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def stats(err_rad: np.ndarray, sigma_rad: np.ndarray) -> dict:
+    ok = np.isfinite(err_rad) & np.isfinite(sigma_rad) & (sigma_rad > 0)
+    e, s = np.abs(err_rad[ok]), sigma_rad[ok]
+    if len(e) == 0:
+        return {"n": 0}
+    r = e / s
+    return {"n": int(len(e)), "rms_error_deg": float(np.degrees(np.sqrt(np.mean(e * e)))),
+            "p95_error_deg": float(np.degrees(np.percentile(e, 95))),
+            "median_sigma_deg": float(np.degrees(np.median(s))),
+            "within_1sigma_fraction": float(np.mean(r <= 1)), "within_2sigma_fraction": float(np.mean(r <= 2)),
+            "within_3sigma_fraction": float(np.mean(r <= 3)), "nees": float(np.mean(r * r))}
+
+
+def meets(st: dict) -> bool | None:
+    if st.get("n", 0) == 0:
+        return None
+    return bool(st["within_3sigma_fraction"] >= TARGET_WITHIN_3SIGMA and TARGET_NEES[0] <= st["nees"] <= TARGET_NEES[1])
+
+
+def score(flights: list[dict]) -> dict:
+    """Pooled over the flights given."""
+    cat = {k: np.concatenate([f[k] for f in flights]) for k in ("t", "h", "s", "yaw", "b_h", "b_s", "c_h", "c_s",
+                                                                "f_h")}
+    src = np.concatenate([f["src"] for f in flights])
+    win = {w: np.concatenate([f["win"][w] for f in flights]) for w in WINDOWS}
+    err = wrap_pi(cat["h"] - cat["yaw"])
+    out = {"windows": {}, "sources": {}, "inputs": {}}
+    for w in WINDOWS:
+        m = win[w]
+        st = stats(err[m], cat["s"][m])
+        st["valid_fraction"] = float(np.mean(np.isfinite(cat["h"][m]))) if m.any() else math.nan
+        st["meets_target"] = meets(st)
+        out["windows"][w] = st
+    for name in sorted(set(src.tolist())):
+        m = src == name
+        out["sources"][name] = stats(err[m], cat["s"][m])
+    fc_sigma = math.radians(1.5)  # what the pipeline hands the arbitration for the FC (fc_sigma_yaw_rad)
+    for name, h, s in (("synthetic_ahrs", cat["b_h"], cat["b_s"]), ("heading_filter", cat["c_h"], cat["c_s"]),
+                       ("fc_trusted", cat["f_h"], np.full(len(cat["f_h"]), fc_sigma))):
+        out["inputs"][name] = stats(wrap_pi(h - cat["yaw"]), s)
+    return out
+
+
+def _row(label: str, st: dict) -> str:
+    if st.get("n", 0) == 0:
+        return f"{label:<42} {'0':>7}"
+    tick = {True: "ok", False: "NO", None: ""}[st.get("meets_target")] if "meets_target" in st else ""
+    return (f"{label:<42} {st['n']:>7d} {st['rms_error_deg']:>7.2f} {st['p95_error_deg']:>7.2f} "
+            f"{st['median_sigma_deg']:>7.2f} {100 * st['within_1sigma_fraction']:>6.1f} "
+            f"{100 * st['within_2sigma_fraction']:>6.1f} {100 * st['within_3sigma_fraction']:>6.1f} "
+            f"{st['nees']:>8.2f} {tick:>3}")
+
+
+HEADER = (f"{'':<42} {'n':>7} {'rms':>7} {'p95':>7} {'sig50':>7} {'<1s%':>6} {'<2s%':>6} {'<3s%':>6} "
+          f"{'NEES':>8}\n{'':<42} {'':>7} {'deg':>7} {'deg':>7} {'deg':>7}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="shorter flights, 2 seeds (~2 min)")
+    ap.add_argument("--json", default=str(ROOT / "bench" / "results" / "heading_consistency.json"))
+    ap.add_argument("--seeds", type=int, default=None, help="seeds per case (default 2 quick, 5 full)")
+    args = ap.parse_args(argv)
+    t0 = time.time()
+    n_seeds = args.seeds if args.seeds is not None else (2 if args.quick else 5)
+    results = {"quick": args.quick, "seeds": n_seeds, "imu_rate_hz": IMU_HZ, "gap_s": GAP_S, "cases": {}}
+    all_flights = []
+    print(HEADER)
+    for case in cases(args.quick):
+        flights = [fly(case, seed) for seed in range(n_seeds)]
+        all_flights += flights
+        sc = score(flights)
+        results["cases"][case["name"]] = {"gap_start_s": case["gap_start_s"], "duration_s": case["duration_s"],
+                                          "feed_from_s": case["feed_from_s"], **sc}
+        for w in WINDOWS:
+            print(_row(f"{case['name']} / {w}", sc["windows"][w]))
+        for name, st in sc["sources"].items():
+            print(_row(f"  source {name}", st))
+        for name, st in sc["inputs"].items():
+            print(_row(f"  input {name}", st))
+    total = score(all_flights)
+    results["all_cases"] = total
+    print("-" * 110)
+    for w in WINDOWS:
+        print(_row(f"all / {w}", total["windows"][w]))
+    for name, st in total["sources"].items():
+        print(_row(f"  source {name}", st))
+    results["run_time_s"] = time.time() - t0
+    print(f"run time {results['run_time_s']:.0f} s")
+    path = pathlib.Path(args.json)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(json_safe(results), indent=1))
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
