@@ -68,7 +68,7 @@ from estimators.records import fast_replace
 from estimators.ahrs_b1 import (B1Params, B1State, b1_air_step, b1_heading_step, b1_imu_step,
                                 b1_init, b1_output, b1_reference_step)
 from estimators.ahrs_kf2 import (Kf2Params, Kf2State, kf2_euler_and_cov, kf2_heading_var, kf2_init,
-                                 kf2_predict, kf2_propagate, kf2_update_air, kf2_update_mag,
+                                 kf2_predict, kf2_propagate, kf2_unseen, kf2_update_air, kf2_update_mag,
                                  kf2_update_mag_heading, kf2_update_reference)
 from estimators.air_data import AirData, AirDataParams, AirDataState, air_data_step
 from estimators.euler_kinematics import euler_rates
@@ -528,6 +528,30 @@ def _reacquire_heading(state: SyntheticAhrsState, mag_body_gauss: np.ndarray, t:
     P[0:3, 0:3] = fresh.P[0:3, 0:3]
     return _upd(state, kf2=_upd(kf2, q_nav_from_body=fresh.q_nav_from_body, P=P, n_resets=kf2.n_resets + 1),
                 reacquire_heading=False, ref_heading_sens=0.0, last_mag_update_s=t)
+
+
+def synthetic_ahrs_unseen(state: SyntheticAhrsState, unseen_s: float,
+                          params: SyntheticAhrsParams) -> SyntheticAhrsState:
+    """The FC clock restarted (the caller measured ``unseen_s`` seconds not seen, on its own
+    clock): every time here belongs to the old clock. KF2's covariance grows as over a gap
+    (``kf2_unseen``; the heading is re-taken from the magnetometer when that leaves it unknown),
+    and the clocks restart at the next event: the integration, the update schedules, the FC
+    attitude and its agreement anchors, the air-data filter, KF1's update schedule and the bias
+    snapshots (taken on the old clock). Variant b1 is left as it is."""
+    if not (math.isfinite(unseen_s) and unseen_s >= 0.0):
+        raise ValueError(f"unseen_s must be finite and >= 0, got {unseen_s!r}")
+    if state.kf2 is None:
+        return state
+    kf2 = kf2_unseen(state.kf2, unseen_s, params.kf2)
+    kf2 = _upd(kf2, time_s=None, omega_prev_rad_s=None, cov_time_s=None, acc_angle_rad=None, acc_omega_sq=0.0)
+    kf1 = state.kf1_learn
+    if kf1 is not None:
+        kf1 = _upd(kf1, time_s=None)
+    return _upd(state, kf2=kf2, time_s=None, fc_last=None, air=AirDataState(), air_last=None,
+                last_mag_update_s=-math.inf, last_air_update_s=-math.inf, last_ref_update_s=-math.inf,
+                health=_upd(state.health, fc_time_s=None, anchors=(), check_time_s=None, good_since_s=None),
+                bias_snapshots=(), kf1_learn=kf1,
+                reacquire_heading=kf2_heading_var(kf2) > params.init_sigma_heading_rad ** 2)
 
 
 def _on_air(state: SyntheticAhrsState, ev: AirEvent, params: SyntheticAhrsParams) -> SyntheticAhrsState:

@@ -51,7 +51,7 @@ from estimators.rotations import (dcm_from_quat, euler_from_quat, quat_conj, qua
 from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init, strapdown_step
 from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent, HeadingEvent, ImuEvent,
                                        SyntheticAhrsOutput, SyntheticAhrsParams, synthetic_ahrs_init,
-                                       synthetic_ahrs_output, synthetic_ahrs_step)
+                                       synthetic_ahrs_output, synthetic_ahrs_step, synthetic_ahrs_unseen)
 from mavlink_io.samples import FcAttitude, FcEkfStatus, FcHeartbeat, ImuSample, PressureSample
 from service.input_checks import ImuInputChecks, InputCheckParams
 from service.heading_arbitration import (ArbitrationParams, ArbitrationState, SourceReading,
@@ -226,6 +226,8 @@ class Pipeline:
         """ArduPlane's own is_flying() from its HEARTBEAT (None: unknown, or another autopilot)."""
         self._last_rx_s: float | None = None
         self._unseen_pending = False
+        self._azimuth_off: str | None = None
+        """Why method A is off for the rest of the flight (an interval it did not integrate)."""
 
     # --- inputs -------------------------------------------------------------------------------
 
@@ -271,6 +273,7 @@ class Pipeline:
             if not diag.integrated and diag.reason != "first sample":
                 self.counters.strapdown_gaps += 1
                 self._event("strapdown", diag.reason)
+                self._disable_azimuth(f"IMU gap in flight ({diag.reason})")
 
         # The filters (B, C, arbitration) run at filter_rate_hz on the mean rate and specific
         # force of the samples since their last step: the mean rate times the interval is the
@@ -434,6 +437,8 @@ class Pipeline:
         unseen = max(0.0, s.time_rx_s - self._last_rx_s)
         self.polar_att = polar_attitude_unseen(self.polar_att, unseen, self.polar_att_params)
         self.polar_hdg = polar_heading_unseen(self.polar_hdg, unseen, self.polar_hdg_params)
+        self.ahrs = synthetic_ahrs_unseen(self.ahrs, unseen, self.ahrs_params)
+        self._disable_azimuth(f"FC clock restarted in flight ({unseen:.1f} s not seen)")
         # the filter slots restart here (the samples accumulated before belong to the old clock)
         self._filter_due_s = -math.inf
         self._acc_gyro, self._acc_accel, self._acc_n, self._acc_mag = np.zeros(3), np.zeros(3), 0, None
@@ -441,8 +446,15 @@ class Pipeline:
             self._event("unseen", f"{unseen:.1f} s not seen (FC clock restarted): attitude and heading "
                         "sigma widened")
 
+    def _disable_azimuth(self, why: str) -> None:
+        """Method A chains the gyros from the launch: an interval it did not integrate breaks it
+        for the rest of the flight (its fit would go on with a wrong attitude and a small sigma)."""
+        if self._azimuth_off is None and self.azimuth.phase != "prelaunch":
+            self._azimuth_off, self.azimuth_out = f"disabled: {why}", None
+            self._event("azimuth", self._azimuth_off)
+
     def _step_azimuth(self, prev_phase: str, gyro_s, accel_s, mag_s, t: float) -> None:
-        if self.phase.started_in_flight:
+        if self.phase.started_in_flight or self._azimuth_off is not None:
             return
         if self.phase.phase == PRE_LAUNCH:
             self.azimuth = azimuth_prelaunch_step(self.azimuth, gyro_s, accel_s, t)
@@ -621,6 +633,8 @@ class Pipeline:
         az = self.azimuth_out
         if az is not None:
             flags["azimuth"] = f"{az.status}: {az.reason}" if az.reason else az.status
+        if self._azimuth_off is not None:
+            flags["azimuth"] = self._azimuth_off
         if self.phase.started_in_flight:
             flags["azimuth"] = "disabled: started in flight"
             flags["started_in_flight"] = self.phase.in_flight_evidence

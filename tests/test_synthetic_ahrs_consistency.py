@@ -8,7 +8,7 @@ import pytest
 from estimators.ahrs_kf2 import Kf2Params, kf2_euler_and_cov, kf2_init, kf2_predict, kf2_unseen
 from estimators.rotations import dcm_from_euler, quat_from_euler
 from estimators.synthetic_ahrs import (FcAttitudeEvent, FcStatusEvent, ImuEvent, SyntheticAhrsParams,
-                                       synthetic_ahrs_init, synthetic_ahrs_output, synthetic_ahrs_step)
+                                       synthetic_ahrs_init, synthetic_ahrs_step, synthetic_ahrs_unseen)
 
 FIELD = np.array([0.23, 0.046, 0.394])
 D = math.radians
@@ -103,3 +103,26 @@ def test_b2_after_a_gap_without_the_fc_reacquires_the_heading_from_the_magnetome
     assert max(abs(o[1]) for o in late) < 3.0     # tilt still wide (no air data here)
     assert all(abs(o[1]) < 3.0 * o[2] for o in outs if o[0] >= 5.0)
     assert st.kf2.n_resets >= 1 and not st.reacquire_heading
+
+
+def test_b2_after_a_restarted_clock_runs_on_the_new_clock_with_a_wide_heading():
+    """The FC rebooted: its clock starts again at 0 after 5 s not seen, during which the vehicle
+    turned 90 deg; GNSS is gone (no reference). B must run on the new clock at once (it used to
+    drop every sample until the new clock passed the old one) and re-take the heading."""
+    st, params, outs = _flight(0.0, 12.0, signal_loss_s=5.0)
+    with pytest.raises(ValueError):
+        synthetic_ahrs_unseen(st, math.nan, params)
+    st = synthetic_ahrs_unseen(st, 5.0, params)
+    assert st.time_s is None and st.reacquire_heading
+    rng = np.random.default_rng(5)
+    yaw = D(130.0)
+    st, _ = synthetic_ahrs_step(st, FcStatusEvent(0.0, system_status=4, attitude_ok=True, horiz_pos_ok=False), params)
+    res = []
+    for k in range(100):                                  # 2 s on the new clock
+        t = 0.02 * k
+        m = dcm_from_euler(0.0, 0.0, yaw).T @ FIELD + rng.normal(0.0, 0.002, 3)
+        st, out = synthetic_ahrs_step(st, ImuEvent(t, rng.normal(0.0, D(0.02), 3), m), params)
+        res.append((out.time_s, wrapd(math.degrees(out.heading_rad - yaw)), math.degrees(out.heading_sigma_rad)))
+    assert res[-1][0] == pytest.approx(1.98)
+    assert all(abs(e) < 3.0 * s for _t, e, s in res)
+    assert abs(res[-1][1]) < 3.0 and not st.reacquire_heading
