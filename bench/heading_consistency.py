@@ -25,6 +25,7 @@ Targets (honest heading): >= 95 % within 3 sigma and NEES in [0.5, 2] in every w
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import pathlib
@@ -55,6 +56,8 @@ MAV_STATE_STANDBY = 3
 MAV_STATE_ACTIVE = 4
 WINDOWS = ("overall", "before_gnss_loss", "after_gnss_loss", "after_gap")
 TARGET_WITHIN_3SIGMA = 0.95
+FC_SIGMA_RAD = [math.radians(1.5)]
+"""The FC yaw sigma in use (SyntheticAhrsParams' default unless --fc-yaw-sigma-deg)."""
 TARGET_NEES = (0.5, 2.0)
 
 
@@ -98,8 +101,10 @@ def items_for(run, case: dict) -> list:
     return [x[3] for x in merged if x[0] >= case["feed_from_s"] and not g0 <= x[0] < g1]
 
 
-def fly(case: dict, seed: int) -> dict:
-    """One flight through a fresh Pipeline; per-solution arrays for scoring."""
+def fly(case: dict, seed: int, fc_yaw_sigma_deg: float | None = None) -> dict:
+    """One flight through a fresh Pipeline; per-solution arrays for scoring. ``fc_yaw_sigma_deg``:
+    the FC's yaw sigma the pipeline assumes (method B's SyntheticAhrsParams.fc_sigma_yaw_rad; no
+    config key yet), for a sensitivity run; None = the default."""
     run = simulate(scenario=case["scenario"], seed=seed, imu_grade="consumer", imu_rate_hz=IMU_HZ,
                    duration_s=case["duration_s"], overrides=case["overrides"])
     cfg = scenario_site(case["scenario"])
@@ -107,6 +112,8 @@ def fly(case: dict, seed: int) -> dict:
     cfg["site"].update(lat_deg=s["lat_deg"], lon_deg=s["lon_deg"], alt_m=s["alt_m"],
                        decimal_year=s["decimal_year"])
     p = Pipeline(validate({**cfg, "mavlink": {"imu_rate_hz": IMU_HZ}}))
+    if fc_yaw_sigma_deg is not None:
+        p.ahrs_params = dataclasses.replace(p.ahrs_params, fc_sigma_yaw_rad=math.radians(fc_yaw_sigma_deg))
     rec = {k: [] for k in ("t", "h", "s", "src", "b_h", "b_s", "c_h", "c_s", "f_h")}
     nan = math.nan
     for it in items_for(run, case):
@@ -197,7 +204,7 @@ def score(flights: list[dict]) -> dict:
     for name in sorted(set(src.tolist())):
         m = src == name
         out["sources"][name] = stats(err[m], cat["s"][m])
-    fc_sigma = math.radians(1.5)  # what the pipeline hands the arbitration for the FC (fc_sigma_yaw_rad)
+    fc_sigma = FC_SIGMA_RAD[0]  # what the pipeline hands the arbitration for the FC (fc_sigma_yaw_rad)
     for name, h, s in (("synthetic_ahrs", cat["b_h"], cat["b_s"]), ("heading_filter", cat["c_h"], cat["c_s"]),
                        ("fc_trusted", cat["f_h"], np.full(len(cat["f_h"]), fc_sigma))):
         out["inputs"][name] = stats(wrap_pi(h - cat["yaw"]), s)
@@ -223,14 +230,20 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="shorter flights, 2 seeds (~2 min)")
     ap.add_argument("--json", default=str(ROOT / "bench" / "results" / "heading_consistency.json"))
     ap.add_argument("--seeds", type=int, default=None, help="seeds per case (default 2 quick, 5 full)")
+    ap.add_argument("--fc-yaw-sigma-deg", type=float, default=None,
+                    help="sensitivity: the FC yaw sigma the pipeline assumes (default: SyntheticAhrsParams')")
     args = ap.parse_args(argv)
+    from estimators.synthetic_ahrs import SyntheticAhrsParams
+    FC_SIGMA_RAD[0] = (math.radians(args.fc_yaw_sigma_deg) if args.fc_yaw_sigma_deg is not None
+                       else SyntheticAhrsParams.fc_sigma_yaw_rad)
     t0 = time.time()
     n_seeds = args.seeds if args.seeds is not None else (2 if args.quick else 5)
-    results = {"quick": args.quick, "seeds": n_seeds, "imu_rate_hz": IMU_HZ, "gap_s": GAP_S, "cases": {}}
+    results = {"quick": args.quick, "seeds": n_seeds, "imu_rate_hz": IMU_HZ, "gap_s": GAP_S,
+               "fc_yaw_sigma_deg": math.degrees(FC_SIGMA_RAD[0]), "cases": {}}
     all_flights = []
     print(HEADER)
     for case in cases(args.quick):
-        flights = [fly(case, seed) for seed in range(n_seeds)]
+        flights = [fly(case, seed, args.fc_yaw_sigma_deg) for seed in range(n_seeds)]
         all_flights += flights
         sc = score(flights)
         results["cases"][case["name"]] = {"gap_start_s": case["gap_start_s"], "duration_s": case["duration_s"],
