@@ -41,6 +41,23 @@ Measurement (METHODS.md C): the specific force residual, averaged over ``update_
     C_BP = (I - [eps x]) C_BP_hat  =>  C_BP g_P = g_B_hat + [g_B_hat x] eps + C_BP_hat[:, 2] dg
     z = f_meas - f_hat = db_a + da_v - [g_B_hat x] eps - C_BP_hat[:, 2] dg + n_a
 
+Gated-out runs (beyond the seed): a sustained vehicle acceleration the a_v prior does not
+allow (the seconds after a rail launch: ~2 m/s^2 lateral) is rejected by the gate update after
+update, and a rejected update changes nothing. When the acceleration falls, the first residual
+under the gate used to be fused with a_v still at its prior, i.e. attributed to the attitude
+(up to sqrt(gate_chi2) = 5 attitude sigmas in one update), and which residual that was
+depended on the sample pattern (a link dropping 10 % of the IMU samples moved roll by 0.7 to
+2.3 deg). Now (1) after a gated-out run an update is fused only when its residual has settled:
+it differs from the previous update's by no more than two consecutive residuals of a steady
+state do, d = z_k - z_(k-1) ~ N(0, (2 r + q_av) I) (the measurement noise of both and one
+interval of a_v process noise; the attitude and bias terms change far less in 50 ms), tested
+at chi-square 3 dof ``reentry_settle_chi2`` (a residual that straddles the transient, being
+a mix of two regimes, fails it); (2) that re-entry update first raises the a_v variance along
+its residual to the residual's size (``_match_gated_accel``), which bounds the attitude change
+of the update by one attitude sigma. After ``reentry_max_wait_updates`` unsettled residuals
+under the gate the next one is fused anyway (with (2)), so a vehicle whose residual never
+settles is not left on the gyros.
+
 The vehicle-acceleration GM state is what keeps manoeuvre accelerations out of the attitude
 (they are absorbed as a_v for ~tau_av); beyond the seed its variance is raised while the gyros
 show a turn (centripetal w x [V, 0, 0], see ``manoeuvre_speed_m_s``), so a sustained banked turn
@@ -126,6 +143,22 @@ class PolarAttitudeParams:
     positive semi-definite). Roll and pitch do not depend on it."""
     gate_chi2: float = 25.0
     """Innovation gate on the 3-dof specific-force residual (NIS); larger is rejected."""
+    reentry_settle_chi2: float = 16.27
+    """Re-entry test after a gated-out run (chi-square, 3 dof; 16.27 = 99.9 %): an update that
+    passes the gate is fused only if its residual differs from the previous update's residual by
+    no more than the model allows between two consecutive updates, d^T D^-1 d <= this, with
+    d = z_k - z_(k-1) and D = (2 r + q_av) I (see ``_reentry``)."""
+    reentry_max_wait_updates: int = 5
+    """After this many consecutive updates that pass the gate but not the re-entry test, the next
+    one that passes the gate is fused anyway (a vehicle whose residual never settles, e.g. strong
+    vibration, is not left on the gyros alone). 0 switches the re-entry test off (with
+    ``reentry_match_gain`` 0 too, the filter before 2026-11-22: the first update that passed the
+    gate after a gated-out run was fused)."""
+    reentry_match_gain: float = 1.0
+    """Covariance matching of the vehicle acceleration at the re-entry update (dimensionless,
+    >= 0): before the first update fused after a gated-out run, the variance of a_v along its
+    residual z is raised by this gain times ``|z|^2 - u^T S u`` (u = z/|z|), so that residual goes
+    to a_v rather than to the attitude (``_match_gated_accel``). 0 switches it off."""
     max_dt_s: float = 0.1
     """Largest IMU sample interval that is integrated; a longer gap is reported, not integrated."""
     unseen_rate_sigma_rad_s: float = math.radians(10.0)
@@ -145,10 +178,16 @@ class PolarAttitudeParams:
                      "transport_rate_tau_s", "accel_bias_sigma_m_s2", "accel_bias_tau_s",
                      "gravity_variation_sigma_m_s2", "gravity_variation_tau_s", "gravity_m_s2",
                      "init_tilt_sigma_rad", "init_yaw_sigma_rad", "max_platform_yaw_sigma_rad",
-                     "gate_chi2", "max_dt_s", "unseen_rate_sigma_rad_s", "unseen_max_sigma_rad"):
+                     "gate_chi2", "reentry_settle_chi2", "max_dt_s", "unseen_rate_sigma_rad_s", "unseen_max_sigma_rad"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+        g = self.reentry_match_gain
+        if not (isinstance(g, (int, float)) and math.isfinite(g) and g >= 0.0):
+            raise ValueError(f"reentry_match_gain must be finite and >= 0, got {g!r}")
+        n = self.reentry_max_wait_updates
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+            raise ValueError(f"reentry_max_wait_updates must be an int >= 0, got {n!r}")
 
 
 @dataclass(frozen=True)
@@ -174,6 +213,12 @@ class PolarAttitudeState:
     n_updates: int = 0
     n_rejected: int = 0
     bias_prior_sigma_rad_s: float | None = None
+    gated_run: int = 0
+    """Consecutive updates not fused since the last fused one (gated out or not yet re-entered)."""
+    reentry_wait: int = 0
+    """Of those, the consecutive ones that passed the gate but not the re-entry test."""
+    z_prev_m_s2: np.ndarray | None = None
+    """Specific-force residual of the previous update (body, m/s^2); None before the first."""
     """Sigma of the gyro-bias prior given at init (None: params.gyro_bias_init_sigma_rad_s)."""
 
     def to_dict(self) -> dict:
@@ -185,7 +230,7 @@ class PolarAttitudeState:
     @classmethod
     def from_dict(cls, d: dict) -> "PolarAttitudeState":
         arrays = {"q_P_from_body", "x_hat", "P", "gyro_prev_rad_s", "acc_f_sum_m_s2",
-                  "acc_down_sum", "acc_q_b0_from_b", "acc_C_BP_start"}
+                  "acc_down_sum", "acc_q_b0_from_b", "acc_C_BP_start", "z_prev_m_s2"}
         kw = {k: (np.array(v, dtype=float) if (k in arrays and v is not None) else v)
               for k, v in d.items()}
         return cls(**kw)
@@ -200,6 +245,12 @@ class PolarAttitudeDiag:
     test_ratio: float = math.nan
     """NIS / gate_chi2; > 1 means rejected."""
     reason: str = ""
+    settle_ratio: float = math.nan
+    """Re-entry test after a gated-out run: d^T D^-1 d / reentry_settle_chi2 (> 1: not settled);
+    NaN when the previous update was fused."""
+    accel_var_raised_m2_s4: float = 0.0
+    """Variance added to the vehicle acceleration along the rejected residual (m^2/s^4; 0 when
+    fused or when nothing was added): the flag "sustained acceleration the model did not expect"."""
 
 
 @dataclass(frozen=True)
@@ -455,9 +506,16 @@ def _update(st: PolarAttitudeState, p: PolarAttitudeParams):
     S_inv = np.linalg.inv(S)
     nis = float(z @ S_inv @ z)
     ratio = nis / p.gate_chi2
-    fused = ratio <= 1.0
+    gate_ok = ratio <= 1.0
+    reentry_ok, settle_ratio = _reentry(st, z, r, s0 * (1.0 - phi_diag[6] ** 2), p)
+    fused = gate_ok and reentry_ok
     q_new = st.q_P_from_body
     x_new = xh
+    raised = 0.0
+    if fused and st.gated_run > 0 and p.reentry_match_gain > 0.0:
+        P, raised = _match_gated_accel(P, z, S, p.reentry_match_gain)
+        S = H @ P @ H.T + np.eye(3) * r
+        S_inv = np.linalg.inv(S)
     if fused:
         K = P @ H.T @ S_inv
         dx = K @ z
@@ -474,9 +532,69 @@ def _update(st: PolarAttitudeState, p: PolarAttitudeParams):
     st2 = replace(st, q_P_from_body=q_new, x_hat=x_new, P=P, acc_n=0, acc_dt_s=0.0,
                   acc_f_sum_m_s2=np.zeros(3), acc_down_sum=np.zeros(3),
                   acc_q_b0_from_b=np.array([1.0, 0.0, 0.0, 0.0]), acc_C_BP_start=C_BP_new,
-                  n_updates=st.n_updates + 1, n_rejected=st.n_rejected + (0 if fused else 1))
+                  n_updates=st.n_updates + 1, n_rejected=st.n_rejected + (0 if fused else 1),
+                  gated_run=0 if fused else st.gated_run + 1,
+                  reentry_wait=st.reentry_wait + 1 if (gate_ok and not fused) else 0,
+                  z_prev_m_s2=z)
+    reason = ("" if fused else "specific-force residual gated out" if not gate_ok
+              else "specific-force residual not settled after a gated-out run")
     return st2, PolarAttitudeDiag(updated=True, fused=fused, innovation_m_s2=z, test_ratio=ratio,
-                                  reason="" if fused else "specific-force residual gated out")
+                                  reason=reason, settle_ratio=settle_ratio, accel_var_raised_m2_s4=raised)
+
+
+def _reentry(st: PolarAttitudeState, z: np.ndarray, r: float, q_av: float,
+             p: PolarAttitudeParams) -> tuple[bool, float]:
+    """(fuse allowed, settle ratio): the re-entry test after a gated-out run."""
+    if st.gated_run == 0 or st.z_prev_m_s2 is None or p.reentry_max_wait_updates == 0:
+        return True, math.nan
+    d = z - st.z_prev_m_s2
+    ratio = float(d @ d) / (2.0 * r + q_av) / p.reentry_settle_chi2
+    if st.reentry_wait >= p.reentry_max_wait_updates:
+        return True, ratio
+    return ratio <= 1.0, ratio
+
+
+def _match_gated_accel(P: np.ndarray, z: np.ndarray, S: np.ndarray, gain: float
+                       ) -> tuple[np.ndarray, float]:
+    """Raise the vehicle-acceleration variance along the re-entry residual (covariance matching).
+
+    Used at the first update fused after a gated-out run (see the module docstring). A run of
+    rejected residuals (NIS > gate_chi2) said the specific force held something the model gave
+    almost no room, E[z z^T] = S = H P H^T + R violated; a rejected update changes nothing, so the
+    a_v states are still at their prior (sigma_av = 0.2 m/s^2) when the updates pass again. Of the
+    terms a residual can come from (a_v, eps, b_a, dg; H_av = I), only the vehicle acceleration
+    changes by m/s^2 within seconds, so the missing variance is given to a_v, along the residual
+    direction u = z/|z| where the surprise is (rank-one covariance matching, Mehra's adaptive
+    process noise with a one-sample estimate):
+
+        e = |z|^2 - u^T S u,      P_av <- P_av + gain * max(e, 0) * u u^T,  then S is recomputed
+
+    so (gain 1) the innovation variance along u is at least |z|^2.
+
+    The bound it buys (1-D along u, h = g, attitude sigma sigma_e, P_e = sigma_e^2): a fused
+    update moves the attitude by d_eps = P_e h z / S, S = h^2 P_e + P_av + r. Without it the gate
+    admits |z| up to sqrt(gate_chi2 S) with S ~ h^2 P_e (P_av at its small prior), so
+    d_eps reaches sqrt(gate_chi2) sigma_e = 5 sigma_e: the first update that passed after the
+    post-launch transient (which one depends on how the dropped samples fall into the update
+    intervals) was attributed to roll/pitch. With it S >= max(|z|^2, h^2 P_e) >= |z| h sigma_e,
+    so |d_eps| <= P_e h |z| / (|z| h sigma_e) = sigma_e: one attitude sigma at most.
+    It is applied only at re-entry, not at every gated-out update: fusing a sustained
+    acceleration into a_v and letting its GM mean decay (tau_av) feeds the residual back update
+    after update, and part of it goes to the attitude (measured: -3.3 deg of roll over 2 s of the
+    inclined_rail climb-out), whereas the gate keeps it out of the state altogether.
+    """
+    if gain == 0.0:
+        return P, 0.0
+    zz = float(z @ z)
+    if not (zz > 0.0):
+        return P, 0.0
+    u = z / math.sqrt(zz)
+    e = gain * (zz - float(u @ S @ u))
+    if e <= 0.0:
+        return P, 0.0
+    P = P.copy()
+    P[I_AV, I_AV] += e * np.outer(u, u)
+    return P, e
 
 
 def _cap_platform_yaw(P: np.ndarray, down_B: np.ndarray, cap_rad: float) -> np.ndarray:
