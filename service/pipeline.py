@@ -185,7 +185,8 @@ class Pipeline:
         # method B
         self.ahrs_params = SyntheticAhrsParams(variant=cfg["ahrs"]["variant"],
                                                C_body_from_sensor=self.C_body_from_sensor,
-                                               field_nav_gauss=self.field.e_ned_gauss)
+                                               field_nav_gauss=self.field.e_ned_gauss,
+                                               fc_sigma_yaw_rad=math.radians(heading["fc_yaw_sigma_deg"]))
         self.ahrs = synthetic_ahrs_init(self.ahrs_params, kf1_learn=kf1_learn, kf1_applied=kf1_applied)
         self.ahrs_out: SyntheticAhrsOutput | None = None
         self._ahrs_trusted: bool | None = None
