@@ -35,7 +35,22 @@ fraction of the running mean of the bracket: a consider floor for errors that ne
 out; the filter's own P, which sets the gain, is never floored).
 The source is declared UNAVAILABLE when the measured horizontal field H is below
 ``min_horizontal_field_gauss``: no update, the heading variance then grows with the process
-noise while roll/pitch (the attitude filter) are unaffected. An innovation gate rejects
+noise while roll/pitch (the attitude filter) are unaffected. Uncalibrated magnetometer (a consider term of the PUBLISHED variance, not of the gain): the
+measurement above assumes a compensated magnetometer; hard and soft iron nobody has calibrated
+(method D's coefficients not applied yet) give a heading error that depends on the heading itself
+(one- and two-cycle deviation) and so is neither white nor visible to the filter: it moves with
+every turn, the filter follows it, and P never contains it. A body-frame field error dm turns the
+magnetic heading by
+    d psi_m = g^T R dm,   g = [m_lev_y, -m_lev_x, 0] / H^2,   R = R_y(theta) R_x(phi) orthonormal,
+so for a hard iron b with iid per-axis sigma s_h (gauss) and a soft iron dm = S m_B with iid
+element sigma s_s (dimensionless), |g^T R| = 1/H and E|S m_B|^2 per axis = s_s^2 |m|^2:
+    r_uncal = (s_h^2 + s_s^2 |m|^2) / H^2                           (rad^2)
+(it grows like |m|/H towards the magnetic pole, as the tilt term). When the caller says how well
+the magnetometer is compensated (``HeadingInputs.mag_residual_sigma_gauss`` = s_r, e.g. method D's
+per-axis residual with its coefficients applied), r_uncal = max(0, s_r^2 - mag_noise^2) / H^2 (the
+white part is already in R). ``polar_heading_estimate`` publishes P_psi (or the consider floor)
++ r_uncal; the state, the gain and the gate are unchanged.
+An innovation gate rejects
 disturbed samples; after ``reset_after_s`` of continuous rejection the heading is re-initialised
 from the source (reported in the diagnostics: ``reset=True`` with the jump).
 
@@ -102,6 +117,15 @@ class PolarHeadingParams:
     heading variance never goes (1 = the full consider bound, very conservative when the vehicle
     turns and tilt errors average out; 0 = off: only the inflated fusion above limits the
     confidence; bench/polar_accuracy.py: heading NEES ~1.3 consumer, ~0.1 tactical with 0)."""
+    uncalibrated_hard_iron_gauss: float = 0.013
+    """Per-axis sigma of the hard iron an uncompensated magnetometer carries (gauss, body axes),
+    for the consider term r_uncal of the published heading variance (module docstring). 0.013 G
+    (~6 % of a mid-latitude horizontal field, ~3.4 deg of heading at 0.22 G) is the mean per-axis
+    RMS of the hard iron in the shipped scenarios (0.008-0.016 G: a small airframe, magnetometer
+    away from the motor); an airframe known to be worse needs a larger value (no config key yet)."""
+    uncalibrated_soft_iron: float = 0.01
+    """Per-element sigma of the soft-iron matrix I + S of an uncompensated magnetometer
+    (dimensionless; 0.01 = 1 % scale/cross-coupling, the RMS element of inclined_rail's)."""
     gate_chi2: float = 11.0
     """Innovation gate (1 dof NIS, 99.9 %)."""
     reset_after_s: float = 10.0
@@ -123,6 +147,9 @@ class PolarHeadingParams:
             if name == "consider_floor_fraction":
                 if not 0.0 <= v <= 1.0:
                     raise ValueError(f"consider_floor_fraction must be in [0, 1], got {v!r}")
+            elif name in ("uncalibrated_hard_iron_gauss", "uncalibrated_soft_iron"):
+                if not (math.isfinite(v) and v >= 0.0):
+                    raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
             elif not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
         if self.max_abs_pitch_rad >= math.pi / 2:
@@ -145,6 +172,9 @@ class PolarHeadingState:
     r_corr_avg_rad2: float | None = None
     """Running mean (time constant mag_error_tau_s) of the correlated measurement variance:
     the consider floor of the reported heading variance."""
+    r_uncal_rad2: float = 0.0
+    """Consider term of the uncalibrated (or residual) magnetometer error at the last measurement
+    (rad^2, module docstring), added to the published heading variance."""
 
     def to_dict(self) -> dict:
         return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()}
@@ -171,6 +201,11 @@ class HeadingInputs:
     declination_rad: float = math.nan
     """Site declination, east positive (field model at the configured site)."""
     declination_sigma_rad: float = 0.0
+    mag_residual_sigma_gauss: float | None = None
+    """Per-axis sigma (gauss) of the magnetometer error its compensation leaves in
+    ``mag_body_gauss`` (e.g. method D's residual when its coefficients are applied; 0 = exactly
+    compensated, as a clean simulation); None = not compensated: the params' uncalibrated
+    hard/soft-iron model sets the consider term."""
 
 
 @dataclass(frozen=True)
@@ -349,6 +384,7 @@ def _measure(st, u, Prp, p):
     R = r_white + r_corr * max(1.0, p.mag_error_tau_s / p.mag_update_period_s)
     R_single = r_white + r_corr          # the error of ONE measurement (initialisation, reset)
     z = wrap_2pi(psi_m + u.declination_rad)
+    st = replace(st, r_uncal_rad2=uncalibrated_heading_var(m, H, u.mag_residual_sigma_gauss, p))
     if not st.initialised:
         st = replace(st, initialised=True, x=np.array([z, 0.0, st.x[2], st.x[3]]), P=_prior_P(R_single, p),
                      source_available=True)
@@ -395,10 +431,28 @@ def _measure(st, u, Prp, p):
     return st, HeadingDiag(**diag_kw, fused=True)
 
 
+def uncalibrated_heading_var(mag_body_gauss: np.ndarray, horizontal_field_gauss: float,
+                             residual_sigma_gauss: float | None,
+                             params: PolarHeadingParams = PolarHeadingParams()) -> float:
+    """Heading variance (rad^2) of the magnetometer error the filter cannot see (module docstring):
+    (s_h^2 + s_s^2 |m|^2) / H^2 uncompensated (``residual_sigma_gauss`` None), else
+    max(0, s_r^2 - mag_noise^2) / H^2."""
+    H2 = horizontal_field_gauss * horizontal_field_gauss
+    if residual_sigma_gauss is None:
+        m2 = float(np.dot(mag_body_gauss, mag_body_gauss))
+        return (params.uncalibrated_hard_iron_gauss ** 2 + params.uncalibrated_soft_iron ** 2 * m2) / H2
+    if not (math.isfinite(residual_sigma_gauss) and residual_sigma_gauss >= 0.0):
+        raise ValueError(f"mag_residual_sigma_gauss must be finite and >= 0 or None, got {residual_sigma_gauss!r}")
+    return max(0.0, residual_sigma_gauss ** 2 - params.mag_noise_gauss ** 2) / H2
+
+
 def polar_heading_estimate(state: PolarHeadingState) -> HeadingEstimate:
+    """Heading and its PUBLISHED variance: the filter's P_psi (or the consider floor, whichever is
+    larger) + the uncalibrated-magnetometer consider term r_uncal (module docstring)."""
     if not state.initialised:
         return HeadingEstimate(math.nan, math.inf, state.source_available, False)
     var = float(state.P[0, 0])
     if state.r_corr_avg_rad2 is not None:
         var = max(var, state.r_corr_avg_rad2)      # consider floor (see _measure)
+    var += state.r_uncal_rad2
     return HeadingEstimate(float(state.x[0]), var, state.source_available, True)

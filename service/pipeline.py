@@ -38,7 +38,7 @@ from estimators.declination import (DeclinationParams, RestState, estimate_decli
 from estimators.geomag import EarthField, earth_field, field_from_vector
 from estimators.levelling import LevellingParams
 from estimators.mag_deviation import (DeviationParams, DeviationState, corrected_mag, deviation_coverage,
-                                      deviation_init, deviation_step)
+                                      deviation_init, deviation_step, residual_sigma_gauss)
 from estimators.mag_error_kf import Kf1State
 from estimators.polar_attitude import (PolarAttitudeParams, polar_attitude_estimate,
                                        polar_attitude_init, polar_attitude_init_at, polar_attitude_step,
@@ -308,7 +308,10 @@ class Pipeline:
         if att is not None:
             self.polar_hdg, hdiag = polar_heading_step(
                 self.polar_hdg, HeadingInputs(t, gyro_b, att.roll_rad, att.pitch_rad, att.cov_roll_pitch_rad2,
-                                              mag_b, self.declination_rad, self.declination_sigma_rad),
+                                              mag_b, self.declination_rad, self.declination_sigma_rad,
+                                              # D applied: its residual; else C's uncalibrated model
+                                              float(np.max(residual_sigma_gauss(self.deviation)))
+                                              if mag_b is not mag_b_raw else None),
                 self.polar_hdg_params)
             if hdiag.measured and hdiag.source_available != self._hdg_available:
                 self._hdg_available = hdiag.source_available

@@ -172,7 +172,8 @@ def _run_cascade(lat_deg, field_ned, decl, duration_s, init=None, ph=PolarHeadin
         if est is None:
             continue
         sh, dh = polar_heading_step(sh, HeadingInputs(t[k], gyro[k], est.roll_rad, est.pitch_rad,
-                                                      est.cov_roll_pitch_rad2, mag[k], decl, 0.0), ph)
+                                                      est.cov_roll_pitch_rad2, mag[k], decl, 0.0,
+                                                      mag_residual_sigma_gauss=0.0), ph)  # no iron
         he = polar_heading_estimate(sh)
         rows.append((k, he.heading_rad, he.variance_rad2, he.source_available, est.roll_rad))
     r = np.array(rows)
@@ -221,6 +222,8 @@ def test_heading_save_restore_equals_unbroken_run():
         b, _ = polar_heading_step(b, u)
     np.testing.assert_array_equal(a.x, b.x)
     np.testing.assert_array_equal(a.P, b.P)
+    assert a.r_uncal_rad2 == b.r_uncal_rad2 > 0.0      # the uncalibrated consider term survives
+    assert polar_heading_estimate(a) == polar_heading_estimate(b)
 
 
 def test_horizontal_field_threshold_is_configurable():
@@ -276,7 +279,7 @@ def test_consider_floor_bounds_the_reported_variance():
         st = polar_heading_init()
         for k in range(len(t)):
             st, _ = polar_heading_step(st, HeadingInputs(t[k], gyro[k], truth[k, 0], truth[k, 1],
-                                                         np.eye(2) * 1e-5, mag[k], 0.0, 0.0), ph)
+                                                         np.eye(2) * 1e-5, mag[k], 0.0, 0.0, 0.0), ph)
         out[frac] = (polar_heading_estimate(st).variance_rad2, st)
     var0, st0 = out[0.0]
     var1, st1 = out[1.0]
