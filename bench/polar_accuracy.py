@@ -122,8 +122,11 @@ def run_flight(lat_deg: float, seed: int, grade: str, duration_s: float | None) 
         if est is None:
             continue
         m = mag[i] if np.all(np.isfinite(mag[i])) else None
+        # the flights' hard iron and site anomaly are zeroed (a compensated magnetometer): no
+        # uncalibrated-magnetometer term in C's sigma (polar_heading's consider term)
         sh, dh = polar_heading_step(sh, HeadingInputs(t[i], gyro[i], est.roll_rad, est.pitch_rad,
-                                                      est.cov_roll_pitch_rad2, m, decl, decl_sig), ph)
+                                                      est.cov_roll_pitch_rad2, m, decl, decl_sig,
+                                                      mag_residual_sigma_gauss=0.0), ph)
         if not sh.source_available and i > 0:
             unavailable_s += t[i] - t[i - 1]
         if i % SCORE_EVERY == 0:
