@@ -145,6 +145,7 @@ SPEC: dict[str, dict[str, Key]] = {
         "min_horizontal_field_gauss": Key(_F, 0.03, "below this horizontal field the magnetometer heading is declared unavailable (method C)", _range(0.0, 0.5)),
         "cruise_speed_m_s": Key(_F, 25.0, "typical ground speed, for the transport-rate allowance of the heading filter near the poles", _range(0, 400)),
         "filter_rate_hz": Key(_F, 50.0, "rate of the attitude/heading filters and of the NavSolution (the IMU is integrated at its full rate)", _range(5, 1000)),
+        "uncalibrated_hard_iron_gauss": Key(_F, 0.013, "per-axis 1-sigma of the magnetometer hard iron nobody has compensated yet (before method D's coefficients apply): widens the heading filter's sigma", _range(0.0, 0.5)),
         "fc_yaw_sigma_deg": Key(_F, 1.5, "1-sigma error of the FC's own yaw while trusted (its reading in the fusion and what method B copies from it)", _range(0.1, 20)),
         "use_fc_when_trusted": Key(bool, True, "fuse the FC's own yaw while its estimator is trusted (GNSS healthy, agrees with our gyros)", None),
     },
