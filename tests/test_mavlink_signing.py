@@ -14,7 +14,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from mavlink_io import signing
 from mavlink_io.link import LINK_EVENT_KINDS, LinkConfig, LinkEvent, MavlinkLink
 from mavlink_io.samples import FcHeartbeat, ImuSample, IncomingCommand
-from mavlink_io.transport import Transport
+from mem_transport import MemTransport
 
 KEY = hashlib.sha256(b"azimuthd test key").digest()
 OTHER_KEY = hashlib.sha256(b"not our key").digest()
@@ -23,44 +23,6 @@ EPOCH_2015 = 1_420_070_400
 TS_NOW = int((NOW_UNIX_S - EPOCH_2015) * 100_000)
 FC, GCS = (1, 1), (255, 190)
 US = 191
-
-
-class MemTransport(Transport):
-    """In-memory transport: ``inbox`` of datagrams to read, ``sent`` frames written."""
-
-    def __init__(self, datagram: bool = True):
-        super().__init__(None)
-        self.datagram = datagram
-        self.inbox: list[bytes] = []
-        self.sent: list[bytes] = []
-
-    def open(self):
-        pass
-
-    def close(self):
-        pass
-
-    def fileno(self):
-        return None
-
-    def read(self):
-        out, self.inbox = [(d, ("fc", 0)) for d in self.inbox], []
-        return out
-
-    def write(self, buf):
-        self.sent.append(bytes(buf))
-        return True
-
-    def wait(self, timeout_s):
-        pass
-
-    @property
-    def connected(self):
-        return True
-
-    @property
-    def has_peer(self):
-        return True
 
 
 class Clocks:
