@@ -624,13 +624,17 @@ class MavlinkLink:
         if self._next_heartbeat_s <= now:
             self._next_heartbeat_s = now + period
 
+    def heartbeat_message(self):
+        """Our HEARTBEAT (onboard controller, no autopilot, active): for this link and for any other
+        port that announces the same component (extra outputs, MAV_CMD_REQUEST_MESSAGE)."""
+        return self.mav.heartbeat_encode(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID,
+                                         0, 0, mavlink2.MAV_STATE_ACTIVE)
+
     def _send_heartbeat(self) -> None:
         if not self._open_ok:
             return
-        msg = self.mav.heartbeat_encode(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID,
-                                        0, 0, mavlink2.MAV_STATE_ACTIVE)
         before = self.stats.messages_sent
-        self.send(msg)
+        self.send(self.heartbeat_message())
         if self.stats.messages_sent > before:
             self.stats.heartbeats_sent += 1
 

@@ -317,9 +317,7 @@ class Daemon:
             self.notifier.notify("WATCHDOG=1")
         if self.extra_ports and self._due("extra_hb", now, 1.0 / self.cfg["mavlink"]["heartbeat_hz"]):
             # ground stations and MAVLink clients discover a component by its HEARTBEAT
-            self._send_extra(self.link.mav.heartbeat_encode(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
-                                                            mavlink2.MAV_AUTOPILOT_INVALID, 0, 0,
-                                                            mavlink2.MAV_STATE_ACTIVE))
+            self._send_extra(self.link.heartbeat_message())
         line = None
         if self.status_interval_s > 0 and self._due("status", now, self.status_interval_s):
             line = status_line(self.last_solution, self.link.stats.rates_hz(), self.link.connected)
@@ -413,8 +411,7 @@ class Daemon:
 
     def _requested_message(self, message_id: int):
         if message_id == MSG_HEARTBEAT:
-            return self.link.mav.heartbeat_encode(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID,
-                                                  0, 0, mavlink2.MAV_STATE_ACTIVE)
+            return self.link.heartbeat_message()
         sol = self.last_solution
         if message_id == MSG_ATTITUDE:
             return encode_attitude(sol)
