@@ -304,22 +304,40 @@ def _update(state: Kf2State, z: np.ndarray, H: np.ndarray, R: np.ndarray, n_gate
     return new, Kf2Diag(True, "", z.copy(), s_diag, ratio)
 
 
-def kf2_update_mag(state: Kf2State, mag_body_gauss: np.ndarray, field_nav_gauss: np.ndarray,
-                   params: Kf2Params = Kf2Params()) -> tuple[Kf2State, Kf2Diag]:
-    """Magnetometer update (eq. 21, 34). ``mag_body_gauss``: KF1-corrected field, body axes."""
+def _mag_inputs(mag_body_gauss, field_nav_gauss):
+    """(m, B_nav, |B_nav|) as float arrays, or (None, None, None) for a non-finite sample; a zero
+    reference field is a caller's bug (ValueError)."""
     m = np.asarray(mag_body_gauss, dtype=float)
     Bn = np.asarray(field_nav_gauss, dtype=float)
     if m.shape != (3,) or not np.all(np.isfinite(m)) or not np.all(np.isfinite(Bn)):
-        return state, Kf2Diag(False, "non-finite magnetometer sample")
+        return None, None, None
     norm = float(np.linalg.norm(Bn))
     if not norm > 0.0:
         raise ValueError("field_nav_gauss must be non-zero")
-    m_n = m / norm
+    return m, Bn, norm
+
+
+def _mag_gates(state: Kf2State, m_n: np.ndarray, params: Kf2Params) -> tuple[Kf2State, Kf2Diag] | None:
+    """The gates both magnetometer updates share: a field magnitude off the reference's (a magnetic
+    disturbance) and a turn rate too high for the sample; the rejection (counted), or None."""
     if abs(float(np.linalg.norm(m_n)) - 1.0) > params.mag_norm_tolerance:
         return (_upd(state, n_mag_rejected=state.n_mag_rejected + 1),
                 Kf2Diag(False, "magnetic disturbance (field magnitude)"))
     if state.omega_prev_rad_s is not None and float(np.linalg.norm(state.omega_prev_rad_s)) > params.max_mag_rate_rad_s:
-        return (_upd(state, n_mag_rejected=state.n_mag_rejected + 1), Kf2Diag(False, "rate gate"))
+        return _upd(state, n_mag_rejected=state.n_mag_rejected + 1), Kf2Diag(False, "rate gate")
+    return None
+
+
+def kf2_update_mag(state: Kf2State, mag_body_gauss: np.ndarray, field_nav_gauss: np.ndarray,
+                   params: Kf2Params = Kf2Params()) -> tuple[Kf2State, Kf2Diag]:
+    """Magnetometer update (eq. 21, 34). ``mag_body_gauss``: KF1-corrected field, body axes."""
+    m, Bn, norm = _mag_inputs(mag_body_gauss, field_nav_gauss)
+    if m is None:
+        return state, Kf2Diag(False, "non-finite magnetometer sample")
+    m_n = m / norm
+    rejected = _mag_gates(state, m_n, params)
+    if rejected is not None:
+        return rejected
     C = dcm_from_quat(state.q_nav_from_body)
     b0 = C.T @ (Bn / norm)
     z = m_n - b0 - state.mag_bias
@@ -344,20 +362,16 @@ def kf2_update_mag_heading(state: Kf2State, mag_body_gauss: np.ndarray, field_na
     The magnetometer then cannot pull roll/pitch: with a residual calibration error its tilt
     information is biased, and roll/pitch come from the air data and the gyros alone.
     R: mag_sigma / (|B_h| / |B|) (rad)."""
-    m = np.asarray(mag_body_gauss, dtype=float)
-    Bn = np.asarray(field_nav_gauss, dtype=float)
-    if m.shape != (3,) or not np.all(np.isfinite(m)) or not np.all(np.isfinite(Bn)):
+    m, Bn, norm = _mag_inputs(mag_body_gauss, field_nav_gauss)
+    if m is None:
         return state, Kf2Diag(False, "non-finite magnetometer sample")
-    norm = float(np.linalg.norm(Bn))
     bh = math.hypot(Bn[0], Bn[1]) / norm
     if not bh > 0.05:
         return state, Kf2Diag(False, "horizontal field too weak for a heading")
     m_n = m / norm
-    if abs(float(np.linalg.norm(m_n)) - 1.0) > params.mag_norm_tolerance:
-        return (replace(state, n_mag_rejected=state.n_mag_rejected + 1),
-                Kf2Diag(False, "magnetic disturbance (field magnitude)"))
-    if state.omega_prev_rad_s is not None and float(np.linalg.norm(state.omega_prev_rad_s)) > params.max_mag_rate_rad_s:
-        return (replace(state, n_mag_rejected=state.n_mag_rejected + 1), Kf2Diag(False, "rate gate"))
+    rejected = _mag_gates(state, m_n, params)
+    if rejected is not None:
+        return rejected
     C = dcm_from_quat(state.q_nav_from_body)
     roll, pitch, _ = euler_from_dcm(C)
     mh = C @ (m_n - state.mag_bias)
