@@ -65,6 +65,19 @@ class FcHeartbeat:
 
 
 @dataclass(frozen=True, slots=True)
+class FcFlightState:
+    """The FC's own armed / landed state where it says so: MAVLink EXTENDED_SYS_STATE.landed_state,
+    a PX4 log's vehicle_status / vehicle_land_detected, an ArduPilot log's ARM/EV records. Evidence
+    for the phases (take-off, started in flight); never a truth label. None = not said."""
+    time_fc_s: float | None
+    time_rx_s: float
+    armed: bool | None
+    landed: bool | None
+    """True on the ground, False in the air (taking off and landing count as in the air)."""
+    source: str
+
+
+@dataclass(frozen=True, slots=True)
 class FcEkfStatus:
     """Health of the FC's estimator (EKF_STATUS_REPORT on ArduPilot, ESTIMATOR_STATUS on PX4)."""
     time_rx_s: float

@@ -23,7 +23,7 @@ from mavlink_io.commands import CommandProtocol, CommandProtocolParams, statuste
 from mavlink_io.link import LinkConfig, LinkEvent, MavlinkLink
 from mavlink_io.outputs import OutputScheduler, odometry_profile_for_autopilot
 from mavlink_io.outputs import encode_attitude, encode_attitude_quaternion
-from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcHeartbeat, FcSysStatus,
+from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, FcSysStatus,
                                 ImuSample, IncomingCommand, PressureSample)
 from service import state_file
 from service.calibration_keeper import CalibrationKeeper
@@ -376,6 +376,8 @@ class Daemon:
                 self.notifier.notify("READY=1\nSTATUS=flight controller link up")
                 log.info("flight controller link up", extra={"fields": {"autopilot": item.autopilot,
                                                                         "system_id": item.system_id}})
+        elif isinstance(item, FcFlightState):
+            self.pipeline.on_fc_flight_state(item)
         elif isinstance(item, FcEkfStatus):
             self.pipeline.on_fc_ekf_status(item)
             self.gnss["ekf"] = item.horiz_pos_ok

@@ -97,6 +97,9 @@ class FlightEvidence:
     """The FC's own flying estimate, where its HEARTBEAT carries one: ArduPlane sends
     MAV_STATE_ACTIVE only while its is_flying() says so (STANDBY when armed on the ground; CRITICAL
     and EMERGENCY say nothing either way: None). None for autopilots whose ACTIVE means armed."""
+    fc_landed: bool | None = None
+    """The FC's own landed state (EXTENDED_SYS_STATE, a log's land detector): True on the ground,
+    False in the air; None where the FC does not say (mavlink_io.samples.FcFlightState)."""
 
 
 @dataclass(frozen=True)

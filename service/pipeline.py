@@ -52,7 +52,7 @@ from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init
 from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent, HeadingEvent, ImuEvent,
                                        SyntheticAhrsOutput, SyntheticAhrsParams, synthetic_ahrs_init,
                                        synthetic_ahrs_output, synthetic_ahrs_step, synthetic_ahrs_unseen)
-from mavlink_io.samples import FcAttitude, FcEkfStatus, FcHeartbeat, ImuSample, PressureSample
+from mavlink_io.samples import FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, ImuSample, PressureSample
 from service.input_checks import ImuInputChecks, InputCheckParams
 from service.heading_arbitration import (ArbitrationParams, ArbitrationState, SourceReading,
                                          arbitrate)
@@ -226,6 +226,8 @@ class Pipeline:
         """The FC's last HEARTBEAT: armed (None before the first)."""
         self.fc_reports_flying: bool | None = None
         """ArduPlane's own is_flying() from its HEARTBEAT (None: unknown, or another autopilot)."""
+        self.fc_landed: bool | None = None
+        """The FC's own landed state (FcFlightState; None: it does not say)."""
         self._last_rx_s: float | None = None
         self._unseen_pending = False
         self._azimuth_off: str | None = None
@@ -346,6 +348,12 @@ class Pipeline:
         if self.last_time_fc_s is not None:
             self._step_ahrs(FcStatusEvent(self.last_time_fc_s, system_status=hb.system_status))
 
+    def on_fc_flight_state(self, st: FcFlightState) -> None:
+        """The FC's armed/landed state (EXTENDED_SYS_STATE, or a log's own records): phase evidence."""
+        if st.armed is not None:
+            self.fc_armed = bool(st.armed)
+        self.fc_landed = st.landed
+
     def on_fc_ekf_status(self, st: FcEkfStatus) -> None:
         if self.last_time_fc_s is not None:
             self._step_ahrs(FcStatusEvent(self.last_time_fc_s, attitude_ok=st.attitude_ok,
@@ -397,7 +405,7 @@ class Pipeline:
         air = self.ahrs.air_last
         fresh = air is not None and abs(t - air.time_s) <= AIR_EVIDENCE_MAX_AGE_S
         has_pitot = self.pressure is not None and self.pressure.press_diff_pa is not None
-        return FlightEvidence(armed=self.fc_armed, fc_reports_flying=self.fc_reports_flying,
+        return FlightEvidence(armed=self.fc_armed, fc_reports_flying=self.fc_reports_flying, fc_landed=self.fc_landed,
                               airspeed_m_s=air.tas_m_s if fresh and has_pitot and not air.pitot_noisy else None,
                               alt_rate_m_s=air.alt_rate_m_s if fresh and air.rate_valid else None)
 

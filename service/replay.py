@@ -191,18 +191,15 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
                out_period_s: float = 0.0, progress: bool = False) -> ReplayResult:
     """Feed every item of ``reader`` to a fresh Pipeline; write the CSV; return the rows."""
     from mavlink_io.link import LinkEvent
-    from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcHeartbeat, FcSysStatus,
-                                    ImuSample, PressureSample)
+    from mavlink_io.samples import (FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, ImuSample,
+                                    PressureSample)
     from service.pipeline import Pipeline
 
     pipe = Pipeline(cfg)
-    # what the daemon's dispatch does, plus any on_* the Pipeline has grown
-    handlers = {ImuSample: pipe.on_imu, PressureSample: pipe.on_pressure, FcAttitude: pipe.on_fc_attitude}
-    for cls, name in ((FcHeartbeat, "on_heartbeat"), (FcEkfStatus, "on_ekf_status"),
-                      (FcSysStatus, "on_sys_status"), (CommandAck, "on_command_ack")):
-        fn = getattr(pipe, name, None)
-        if callable(fn):
-            handlers[cls] = fn
+    # what the daemon's dispatch hands the Pipeline (service/daemon.py Daemon.dispatch)
+    handlers = {ImuSample: pipe.on_imu, PressureSample: pipe.on_pressure, FcAttitude: pipe.on_fc_attitude,
+                FcHeartbeat: pipe.on_fc_heartbeat, FcEkfStatus: pipe.on_fc_ekf_status,
+                FcFlightState: pipe.on_fc_flight_state}
     res = ReplayResult()
     cnt = {"imu": 0, "imu_with_mag": 0, "pressure": 0, "pressure_with_diff": 0, "pressure_diff_nonzero": 0,
            "attitude": 0, "imu_time_span_s": [math.inf, -math.inf]}
