@@ -26,6 +26,7 @@ already computed.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -245,3 +246,84 @@ def decode_command_ack(msg, time_rx_s: float) -> CommandAck:
     return CommandAck(time_rx_s, int(msg.command), int(msg.result), int(getattr(msg, "progress", 0) or 0),
                       int(getattr(msg, "result_param2", 0) or 0), int(getattr(msg, "target_system", 0) or 0),
                       int(getattr(msg, "target_component", 0) or 0))
+
+
+# --- STATUSTEXT and PARAM_VALUE ----------------------------------------------------------------
+
+STATUSTEXT_CHUNK_CHARS = 50
+"""STATUSTEXT.text is 50 characters; a longer text comes in chunks sharing a nonzero ``id``, numbered
+by ``chunk_seq``; the last chunk is shorter than 50 (ArduPilot splits "Requested rate for message ID
+27 too fast. Increase SCHED_LOOP_RATE" in two)."""
+STATUSTEXT_MAX_CHUNKS = 8
+
+
+@dataclass(frozen=True, slots=True)
+class FcStatusText:
+    """A whole STATUSTEXT from the FC (chunks joined). severity: MAV_SEVERITY (0 emergency .. 7 debug)."""
+    time_rx_s: float
+    severity: int
+    text: str
+
+
+@dataclass(frozen=True, slots=True)
+class FcParam:
+    """One PARAM_VALUE from the FC: the name and its value as a number (PX4's bytewise integers
+    already reinterpreted)."""
+    time_rx_s: float
+    name: str
+    value: float
+
+
+class StatusTextAssembler:
+    """Joins STATUSTEXT chunks. ``feed`` returns the whole text once its last chunk arrived (a
+    message with id 0 is whole); a chunk of another id, or out of order, drops the one in progress."""
+
+    def __init__(self):
+        self._id = 0
+        self._parts: list[str] = []
+
+    def feed(self, text: str, msg_id: int, chunk_seq: int) -> str | None:
+        if msg_id == 0:
+            return text
+        if msg_id != self._id or chunk_seq != len(self._parts):
+            self._id, self._parts = msg_id, []
+            if chunk_seq != 0:
+                return None
+        self._parts.append(text)
+        if len(text) < STATUSTEXT_CHUNK_CHARS or len(self._parts) >= STATUSTEXT_MAX_CHUNKS:
+            whole, self._id, self._parts = "".join(self._parts), 0, []
+            return whole
+        return None
+
+
+def _text(v) -> str:
+    if isinstance(v, (bytes, bytearray)):
+        v = bytes(v).decode("utf-8", "replace")
+    return str(v).split("\x00", 1)[0]
+
+
+def decode_statustext(msg, asm: StatusTextAssembler, time_rx_s: float) -> FcStatusText | None:
+    """STATUSTEXT -> FcStatusText once whole (None while chunks are missing)."""
+    text = asm.feed(_text(msg.text), int(getattr(msg, "id", 0) or 0), int(getattr(msg, "chunk_seq", 0) or 0))
+    return None if text is None else FcStatusText(time_rx_s, int(msg.severity), text)
+
+
+MAV_PARAM_TYPE_INT_MAX = 8
+"""MAV_PARAM_TYPE 1..8 are integers (UINT8 .. INT64), 9 REAL32."""
+
+
+def decode_param_value(msg, time_rx_s: float, bytewise: bool) -> FcParam:
+    """PARAM_VALUE -> FcParam. ``bytewise`` (PX4): an integer parameter's bits are carried in the
+    float field (MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE) and are reinterpreted here;
+    ArduPilot casts integers to float. A non-finite REAL32 raises NonFiniteField."""
+    import struct
+    value = float(msg.param_value)
+    ptype = int(msg.param_type)
+    if bytewise and 1 <= ptype <= MAV_PARAM_TYPE_INT_MAX:
+        raw = struct.pack("<f", value)
+        value = float(struct.unpack("<i", raw)[0] if ptype in (6, 8) else struct.unpack("<I", raw)[0])
+        if ptype in (1, 2):  # UINT8 / INT8 in the low byte
+            value = float(raw[0] if ptype == 1 else struct.unpack("<b", raw[:1])[0])
+        elif ptype in (3, 4):  # UINT16 / INT16 in the low two bytes
+            value = float(struct.unpack("<H" if ptype == 3 else "<h", raw[:2])[0])
+    return FcParam(time_rx_s, _text(msg.param_id), _req("PARAM_VALUE", "param_value", value))

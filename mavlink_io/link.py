@@ -60,6 +60,7 @@ from typing import Callable
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from mavlink_io import decode as dec
+from mavlink_io.params import ParamReader
 from mavlink_io.rates import DATA_STREAM_OF, Finished, RateRequester, SendInterval, data_stream_requests
 from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcHeartbeat, FcSysStatus,
                                 ImuSample, IncomingCommand, PressureSample)
@@ -69,9 +70,9 @@ from mavlink_io.timebase import FcTimebase, TimebaseParams
 from mavlink_io.transport import UDP_RCVBUF_BYTES_DEFAULT, Transport, TransportDead, make_transport
 from mavlink_io.url import Endpoint, parse_url
 
-LINK_EVENT_KINDS = ("autopilot_detected", "rates_requested", "rates_acked", "fc_reboot", "time_gap",
-                    "time_wrap", "link_lost", "link_restored", "reconnect", "transport_error",
-                    "signature_rejected", "unsigned_command_rejected", "udp_split_frames")
+LINK_EVENT_KINDS = ("autopilot_detected", "rates_requested", "rates_acked", "rates_limited", "fc_reboot",
+                    "time_gap", "time_wrap", "link_lost", "link_restored", "reconnect", "transport_error",
+                    "signature_rejected", "unsigned_command_rejected", "udp_split_frames", "params_read")
 
 REQUIRE_SIGNED = ("commands", "all", "none")
 COMMAND_TYPES = ("COMMAND_LONG", "COMMAND_INT")
@@ -96,6 +97,18 @@ _NOT_SENT_BY = {"ardupilot": {"ESTIMATOR_STATUS"},
                 "px4": {"RAW_IMU", "EKF_STATUS_REPORT"}}
 
 _MAX_SILENT_REQUESTS = 3
+RATE_CHECK_DELAY_S = 5.0
+"""After a rate round, the achieved rates are measured over the link's rate window this much later."""
+RATE_HONOURED_FRACTION = 0.5
+"""An accepted stream measured below this fraction of its granted rate is not honoured: the legacy
+REQUEST_DATA_STREAM is sent for its group."""
+ARDUPILOT_RATE_PER_LOOP = 0.8
+"""ArduPilot's SET_MESSAGE_INTERVAL refuses an interval below 1/(0.8 x SCHED_LOOP_RATE) (SITL,
+SCHED_LOOP_RATE 50: RAW_IMU 50 Hz denied, 25 Hz accepted): the loop rate to advise."""
+SCHED_LOOP_RATES_HZ = (50, 100, 200, 300, 400)
+ARDUPILOT_STREAM_PARAM = {1: "RAW_SENS", 2: "EXT_STAT", 6: "POSITION", 10: "EXTRA1", 12: "EXTRA3"}
+"""REQUEST_DATA_STREAM group -> the suffix of ArduPilot's stream-rate parameter (MAVn_ since 4.7,
+SRn_ before)."""
 _PLACEHOLDER_SYSID = 1
 """Our system id before the vehicle's is known (the ArduPilot/PX4 default SYSID)."""
 _NOT_VEHICLE_TYPES = {mavlink2.MAV_TYPE_GCS, mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_TYPE_GIMBAL,
@@ -145,6 +158,9 @@ class LinkConfig:
     reconnect_backoff_s: float = 0.5
     reconnect_backoff_max_s: float = 5.0
     rate_window_s: float = 2.0
+    rate_floor_hz: float | None = 1.0
+    """A refused stream rate is asked again at half the rate while that is >= this (Hz); None = a
+    refusal is final."""
     signing_key: bytes | None = field(default=None, repr=False, compare=False)
     """MAVLink 2 signing secret key, exactly 32 bytes; None = no signing (everything accepted as
     unsigned, nothing signed). Never shown in repr/str or in any error message."""
@@ -179,6 +195,9 @@ class LinkConfig:
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not lo < v <= hi:
                 raise ValueError(f"LinkConfig.{name} must be in ({lo:g}, {hi:g}], got {v!r}")
+        if self.rate_floor_hz is not None and (not isinstance(self.rate_floor_hz, (int, float))
+                                               or not 0 < self.rate_floor_hz <= 1000):
+            raise ValueError(f"LinkConfig.rate_floor_hz must be None or in (0, 1000] Hz, got {self.rate_floor_hz!r}")
         if not isinstance(self.stream_recheck_s, (int, float)) or not 0 <= self.stream_recheck_s <= 3600:
             raise ValueError(f"LinkConfig.stream_recheck_s must be in [0, 3600], got {self.stream_recheck_s!r}")
         if self.reconnect_backoff_max_s < self.reconnect_backoff_s:
@@ -226,7 +245,7 @@ class _Writer:
 
 
 Item = (ImuSample | PressureSample | FcAttitude | FcHeartbeat | FcEkfStatus | FcSysStatus | CommandAck
-        | IncomingCommand | LinkEvent)
+        | IncomingCommand | LinkEvent | dec.FcStatusText | dec.FcParam)
 
 
 class _ReportLimiter:
@@ -306,7 +325,17 @@ class MavlinkLink:
         self._ever_connected = False
         self._last_fc_rx_s: float | None = None
         self._timebase = FcTimebase(TimebaseParams(reboot_jump_s=cfg.reboot_jump_s))
-        self._rates = RateRequester(ack_timeout_s=cfg.ack_timeout_s, max_tries=cfg.request_tries)
+        self._rates = RateRequester(ack_timeout_s=cfg.ack_timeout_s, max_tries=cfg.request_tries,
+                                    floor_hz=cfg.rate_floor_hz)
+        self._rate_check_at_s: float | None = None
+        self._data_stream_sent: set[int] = set()
+        self.rate_refusal_text: str | None = None
+        """The FC's last STATUSTEXT refusing a rate (ArduPilot: "... too fast. Increase SCHED_LOOP_RATE")."""
+        self.rate_advice: str | None = None
+        """The last rates_limited advice (which FC parameter to change), None while every rate is met."""
+        self._statustext = dec.StatusTextAssembler()
+        self._params = ParamReader(timeout_s=max(cfg.ack_timeout_s, 1.0), max_tries=cfg.request_tries)
+        self._params_reported = False
         self._wanted: list[tuple[str, int, float]] = []
         self._last_request_s: dict[str, float] = {}
         self._silent_requests: dict[str, int] = {}
@@ -352,6 +381,35 @@ class MavlinkLink:
         """Our current outgoing signing timestamp (10 us units since 2015-01-01 UTC), None without
         a key. Persist it and pass it back as ``signing_timestamp_floor`` after a restart."""
         return self.mav.signing.timestamp if self._verifier is not None else None
+
+    def read_params(self, names) -> None:
+        """Ask the FC for these parameters (PARAM_REQUEST_READ, resent for the unanswered); every
+        PARAM_VALUE comes out of poll() as an FcParam, and a ``params_read`` LinkEvent says when all
+        were answered or which never were. ``fc_params`` holds the values."""
+        self._params_reported = False
+        self._send_param_requests(self._params.start(names, self.clock()))
+
+    @property
+    def fc_params(self) -> dict:
+        """Watched FC parameter name -> value (the ones read so far)."""
+        return dict(self._params.values)
+
+    @property
+    def fc_params_missing(self) -> set:
+        """Watched parameters the FC never answered (unknown to this firmware, or the link lost them)."""
+        return set(self._params.missing)
+
+    def stream_report(self) -> dict[str, dict]:
+        """Per requested stream: ``asked_hz`` (what we wanted), ``granted_hz`` (what the FC accepted
+        after any retries lower; None if nothing was), ``achieved_hz`` (measured over the rate
+        window), ``result`` (accepted, denied, data_stream, no_ack...)."""
+        rates = self.stats.rates_hz()
+        out = {}
+        for name, _mid, rate in self._wanted:
+            out[name] = {"asked_hz": rate, "granted_hz": self._rates.granted_hz.get(name),
+                         "achieved_hz": float(rates.get(name, 0.0)),
+                         "result": self.stats.rate_results.get(name, "requested")}
+        return out
 
     def subscribe(self, callback: Callable) -> None:
         """Call ``callback(msg)`` with every accepted raw pymavlink message from the autopilot
@@ -594,9 +652,9 @@ class MavlinkLink:
 
     def _next_due_s(self) -> float | None:
         dues = [self._next_heartbeat_s]
-        d = self._rates.next_due_s()
-        if d is not None:
-            dues.append(d)
+        for d in (self._rates.next_due_s(), self._params.next_due_s(), self._rate_check_at_s):
+            if d is not None:
+                dues.append(d)
         if self.connected and self._last_fc_rx_s is not None:
             dues.append(self._last_fc_rx_s + self.cfg.link_timeout_s)
         return min(dues)
@@ -612,6 +670,11 @@ class MavlinkLink:
         if now >= self._next_heartbeat_s:
             self._send_heartbeat_due(now)
         self._run_rate_actions(self._rates.poll(now), now, items)
+        self._send_param_requests(self._params.poll(now))
+        self._report_params(now, items)
+        if self._rate_check_at_s is not None and now >= self._rate_check_at_s:
+            self._rate_check_at_s = None
+            self._check_achieved_rates(now, items)
         if self.connected and now - self._last_fc_rx_s > self.cfg.link_timeout_s:
             self._lose_link(now, f"no message from the autopilot for {now - self._last_fc_rx_s:.2f} s "
                                  f"(> {self.cfg.link_timeout_s:g} s)", items)
@@ -663,6 +726,8 @@ class MavlinkLink:
         if only is None:
             self._wanted = self._wanted_rates()
             self._silent_requests.clear()
+            self._data_stream_sent.clear()
+            self._rate_check_at_s = None
         batch = self._wanted if only is None else only
         if not batch:
             return
@@ -685,7 +750,11 @@ class MavlinkLink:
 
     def _rates_finished(self, results: dict, now: float, items: list) -> None:
         self.stats.rate_results.update(results)
-        summary = ", ".join(f"{n}={r}" for n, r in results.items())
+        if self._rate_check_at_s is None:  # a re-request of a silent stream does not postpone it
+            self._rate_check_at_s = now + max(RATE_CHECK_DELAY_S, self.cfg.rate_window_s)
+        summary = ", ".join(f"{n}={r}" + (f" at {self._rates.granted_hz[n]:g} Hz" if n in self._rates.granted_hz
+                                          and self._rates.granted_hz[n] != self._rates.asked_hz.get(n) else "")
+                            for n, r in results.items())
         if any(r == "accepted" for r in results.values()):
             self._event("rates_acked", summary, now, items)
             return
@@ -702,6 +771,71 @@ class MavlinkLink:
                                        "REQUEST_DATA_STREAM " + ", ".join(f"stream {s} at {hz} Hz"
                                                                          for s, hz in streams.items()),
                     now, items)
+
+    def _send_param_requests(self, names: list[str]) -> None:
+        if self.target_system is None or self.target_component is None:
+            return
+        for name in names:
+            self.send(self.mav.param_request_read_encode(self.target_system, self.target_component,
+                                                         name.encode("ascii"), -1))
+
+    def _report_params(self, now: float, items: list) -> None:
+        if self._params.done and not self._params_reported:
+            self._params_reported = True
+            vals = ", ".join(f"{n} {v:g}" for n, v in sorted(self._params.values.items()))
+            miss = sorted(self._params.missing)
+            self._event("params_read", vals + (f"; no answer for {', '.join(miss)}" if miss else ""), now, items)
+
+    def _check_achieved_rates(self, now: float, items: list) -> None:
+        """After a rate round: what each stream gives, measured. A stream the FC accepted but does not
+        deliver at half its granted rate gets the legacy REQUEST_DATA_STREAM for its group (once per
+        round); every shortfall is told in one ``rates_limited`` event that names the FC parameter to
+        change (SCHED_LOOP_RATE for a refused rate, the stream-rate parameter for one not honoured)."""
+        report = self.stream_report()
+        short, groups = [], {}
+        for name, r in report.items():
+            granted, asked, got = r["granted_hz"], r["asked_hz"], r["achieved_hz"]
+            expected = granted if granted is not None else asked
+            honoured = got >= RATE_HONOURED_FRACTION * expected
+            if granted is not None and granted >= asked and honoured:
+                continue
+            sid = DATA_STREAM_OF.get(name)
+            if not honoured and sid is not None and sid not in self._data_stream_sent:
+                groups[sid] = max(groups.get(sid, 0), max(1, int(round(expected))))
+            short.append(f"{name} asked {asked:g} Hz, " + (f"granted {granted:g} Hz, " if granted is not None
+                                                           else f"{r['result']}, ") + f"measured {got:.1f} Hz")
+        for sid, hz in groups.items():
+            self._data_stream_sent.add(sid)
+            self.send(self.mav.request_data_stream_encode(self.target_system, self.target_component, sid, hz, 1))
+            self.stats.rate_requests_sent += 1
+        if not short:
+            self.rate_advice = None
+            return
+        self.rate_advice = self._rate_advice(report, groups)
+        self._event("rates_limited", "; ".join(short) + (f" (FC said: \"{self.rate_refusal_text}\")"
+                                                         if self.rate_refusal_text else "") + ". " + self.rate_advice,
+                    now, items)
+
+    def _rate_advice(self, report: dict, groups: dict) -> str:
+        """Which FC parameter to change, in one sentence."""
+        refused = [n for n, r in report.items() if (r["granted_hz"] is not None and r["granted_hz"] < r["asked_hz"])
+                   or r["result"] in ("denied", "failed")]
+        parts = []
+        if refused and self.fc_autopilot == "ardupilot":
+            need = max(report[n]["asked_hz"] for n in refused) / ARDUPILOT_RATE_PER_LOOP
+            loop = next((r for r in SCHED_LOOP_RATES_HZ if r >= need), SCHED_LOOP_RATES_HZ[-1])
+            parts.append(f"set SCHED_LOOP_RATE >= {loop} on the FC (it refuses a stream faster than about "
+                         f"{ARDUPILOT_RATE_PER_LOOP:g} x its loop rate), or lower [mavlink] imu_rate_hz/"
+                         "attitude_rate_hz/pressure_rate_hz to what it grants")
+        elif refused:
+            parts.append("the FC refused the rate: raise its stream limits or lower the [mavlink] rates")
+        if groups and self.fc_autopilot == "ardupilot":
+            names = sorted({ARDUPILOT_STREAM_PARAM[s] for s in groups if s in ARDUPILOT_STREAM_PARAM})
+            parts.append("streams not delivered at the accepted rate: REQUEST_DATA_STREAM sent; set the port's "
+                         + ", ".join(f"MAVn_{p}" for p in names) + " (SRn_ before ArduPilot 4.7) to the rate")
+        elif groups:
+            parts.append("streams not delivered at the accepted rate: REQUEST_DATA_STREAM sent")
+        return "; ".join(parts) if parts else "the FC gives less than asked"
 
     def _check_silent_streams(self, now: float, items: list) -> None:
         """Re-request a requested stream that has gone silent (the FC dropped our interval, e.g.
@@ -1027,6 +1161,17 @@ class MavlinkLink:
                 items.append(dataclasses.replace(st, time_fc_s=t))
         elif mtype == "SYS_STATUS":
             items.append(dec.decode_sys_status(msg, rx_s))
+        elif mtype == "STATUSTEXT":
+            st = dec.decode_statustext(msg, self._statustext, rx_s)
+            if st is not None:
+                if "too fast" in st.text and "SCHED_LOOP_RATE" in st.text:
+                    self.rate_refusal_text = st.text
+                items.append(st)
+        elif mtype == "PARAM_VALUE":
+            prm = dec.decode_param_value(msg, rx_s, bytewise=self.fc_autopilot == "px4")
+            self._params.on_value(prm.name, prm.value)
+            items.append(prm)
+            self._report_params(rx_s, items)
         elif mtype == "COMMAND_ACK":
             ack = dec.decode_command_ack(msg, rx_s)
             if ack.target_system in (0, self.mav.srcSystem) and ack.target_component in (0, self.mav.srcComponent):

@@ -5,6 +5,11 @@ ArduPilot COMMAND_ACK for SET_MESSAGE_INTERVAL does not say which message it is 
 requests go out strictly one after the other: send, wait for the COMMAND_ACK (or ``ack_timeout_s``),
 resend up to ``max_tries`` times with ``confirmation`` incremented, then move on.
 
+A refused rate (ACK DENIED or FAILED: ArduPilot denies an interval shorter than its main loop allows,
+"Requested rate for message ID 27 too fast. Increase SCHED_LOOP_RATE") is asked again at half the
+rate, down to ``floor_hz`` (None: no retry lower); ``granted_hz`` keeps the rate the FC accepted and
+``asked_hz`` the first one asked for, so the user can be told what was refused and why.
+
 When no request at all was accepted (no ACK, or every ACK UNSUPPORTED: old firmware), the link falls
 back to the legacy REQUEST_DATA_STREAM (which has no ACK), one request per stream group.
 
@@ -19,6 +24,8 @@ MAV_RESULT_NAMES = {0: "accepted", 1: "temporarily_rejected", 2: "denied", 3: "u
                     4: "failed", 5: "in_progress", 6: "cancelled"}
 MAV_RESULT_IN_PROGRESS = 5
 MAV_RESULT_TEMPORARILY_REJECTED = 1
+MAV_RESULT_DENIED = 2
+MAV_RESULT_FAILED = 4
 
 # ArduPilot's legacy stream groups (GCS_MAVLink stream lists) for the REQUEST_DATA_STREAM fallback
 DATA_STREAM_OF = {
@@ -65,8 +72,15 @@ class RateRequester:
     """End the round early when this many messages in a row got no ACK at all and none was
     accepted yet: the FC does not speak SET_MESSAGE_INTERVAL, go to the fallback without waiting
     for every message's timeouts (the rest are marked "not_tried")."""
+    floor_hz: float | None = None
+    """A DENIED/FAILED rate is asked again at half the rate while that stays >= this (Hz);
+    None: a refusal is final."""
     active: bool = False
     no_ack_streak: int = 0
+    asked_hz: dict = field(default_factory=dict)
+    """Message name -> the rate first asked for in this round (Hz)."""
+    granted_hz: dict = field(default_factory=dict)
+    """Message name -> the rate the FC accepted (Hz), after any retries lower."""
     queue: list = field(default_factory=list)
     current: _Pending | None = None
     results: dict = field(default_factory=dict)
@@ -76,6 +90,9 @@ class RateRequester:
         """wanted: [(message name, message id, rate Hz)]. Restarts any round in progress."""
         self.queue = list(wanted)
         self.results = {}
+        for name, _msg_id, rate_hz in wanted:
+            self.asked_hz[name] = float(rate_hz)
+            self.granted_hz.pop(name, None)
         self.current = None
         self.active = True
         self.no_ack_streak = 0
@@ -96,8 +113,17 @@ class RateRequester:
             return []
         if result in (MAV_RESULT_IN_PROGRESS, MAV_RESULT_TEMPORARILY_REJECTED):
             return []  # keep waiting; the timeout resends
-        self.results[self.current.name] = MAV_RESULT_NAMES.get(result, f"result_{result}")
+        cur = self.current
         self.no_ack_streak = 0
+        rate_hz = 1e6 / cur.interval_us
+        if result in (MAV_RESULT_DENIED, MAV_RESULT_FAILED) and self.floor_hz is not None \
+                and rate_hz / 2.0 >= self.floor_hz:
+            # refused as too fast: ask for half (ArduPilot grants up to a fraction of its loop rate)
+            self.current = _Pending(cur.name, cur.msg_id, cur.interval_us * 2.0, 1, now_s)
+            return [SendInterval(cur.name, cur.msg_id, self.current.interval_us, 0)]
+        self.results[cur.name] = MAV_RESULT_NAMES.get(result, f"result_{result}")
+        if result == 0:
+            self.granted_hz[cur.name] = rate_hz
         return self._next(now_s)
 
     def next_due_s(self) -> float | None:

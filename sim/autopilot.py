@@ -122,9 +122,12 @@ class Autopilot:
         self.rx_count = 0
         self.params = {"SYSID_THISMAV": float(self.sysid), "SIM_SPEEDUP": self.speed,
                        "AHRS_ORIENTATION": 0.0, "COMPASS_USE": 1.0, "ARSPD_TYPE": 1.0,
-                       "EK3_SRC1_YAW": 1.0, "EK3_SRC1_POSXY": 3.0}
+                       "EK3_SRC1_YAW": 1.0, "EK3_SRC1_POSXY": 3.0, "SCHED_LOOP_RATE": 0.0}
         """A small parameter table so that ground stations finish their parameter download; PARAM_SET
-        stores and echoes (the simulated flight does not depend on these)."""
+        stores and echoes (the simulated flight does not depend on these, except SCHED_LOOP_RATE: with
+        the ardupilot personality and a value > 0, rates are refused as ArduPilot does; 0 = no limit,
+        the simulator's own default, not an ArduPilot value)."""
+        self._statustext_id = 0
         self._reset_streams()
 
     # ---- streams -------------------------------------------------------------------------
@@ -140,9 +143,27 @@ class Autopilot:
         if self.ap["simstate_rate_hz"] > 0:
             self.streams[SIMSTATE] = Stream(1.0 / self.ap["simstate_rate_hz"], self.t)
 
+    def too_fast(self, interval_us: float) -> bool:
+        """ArduPilot's rule (measured in ArduPlane SITL at SCHED_LOOP_RATE 50: 40 Hz accepted, 41 Hz
+        denied): an interval in whole ms below 1 / (0.8 x SCHED_LOOP_RATE) is refused."""
+        loop_hz = self.params.get("SCHED_LOOP_RATE", 0.0)
+        if self.px4 or loop_hz <= 0 or interval_us <= 0:
+            return False
+        return int(interval_us // 1000) * 800 < 1e6 / loop_hz
+
+    def _refuse_rate(self, msg_id: int) -> None:
+        """ArduPilot's STATUSTEXT for a refused rate, in its two 50-character chunks (one id)."""
+        text = f"Requested rate for message ID {msg_id} too fast. Increase SCHED_LOOP_RATE"
+        self._statustext_id = self._statustext_id % 65535 + 1
+        for seq, i in enumerate(range(0, len(text), 50)):
+            self._send(self.conn.mav.statustext_encode(6, text[i:i + 50].encode(), self._statustext_id, seq))
+
     def set_interval(self, msg_id: int, interval_us: float) -> int:
         if not self.supported(msg_id):
             return FAILED
+        if self.too_fast(interval_us):
+            self._refuse_rate(msg_id)
+            return DENIED
         if interval_us < 0:
             self.streams.pop(msg_id, None)
         elif interval_us == 0:  # default rate
@@ -362,7 +383,10 @@ class Autopilot:
                     if mid == EKF_STATUS_REPORT and self.px4:
                         mid = ESTIMATOR_STATUS
                     if msg.start_stop and msg.req_message_rate > 0:
-                        self.set_interval(mid, 1e6 / msg.req_message_rate)
+                        iv_us = 1e6 / msg.req_message_rate
+                        while self.too_fast(iv_us):  # the legacy streams are capped, not refused
+                            iv_us = (iv_us // 1000 + 1) * 1000
+                        self.set_interval(mid, iv_us)
                     else:
                         self.set_interval(mid, -1)
         elif typ == "ODOMETRY":
