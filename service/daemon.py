@@ -39,6 +39,13 @@ log = logging.getLogger("azimuthd.daemon")
 
 ZENOH_RETRY_S = 30.0
 HEALTH_PERIOD_S = 1.0
+AIR_DATA_PERIOD_S = 0.5
+FENCE_GEOMETRY_PERIOD_S = 5.0
+"""The fence polygons ride on every geofence message this often (a dashboard that joins late
+draws the fence within this time; they are too large to send at the state's 2 Hz)."""
+_CALIBRATION_EVENTS = {"levelled": ("levelling", "done"), "declination": ("declination", "done"),
+                       "deviation": ("mag_deviation", "converging")}
+"""Pipeline events that are calibration steps: also published on the ``calibration`` topic."""
 CALIBRATION_SAVE_S = 30.0
 DEVIATION_FILE = "deviation.json"
 DEVIATION_FORMAT = "azimuthd-magnetometer-deviation"
@@ -111,6 +118,7 @@ class Daemon:
                                    signing_timestamp_floor=floor, udp_rcvbuf_bytes=m["udp_rcvbuf_bytes"])
         self.calibration = CalibrationKeeper(state_dir(cfg), clock=time.time)
         kf1_learn, kf1_applied = self.calibration.start()
+        self.kf1_loaded = kf1_applied is not None
         from service.solver import make_solver
         solver = make_solver(cfg["azimuth"]["solve_in_background"])
         self.deviation_path = state_dir(cfg) / DEVIATION_FILE
@@ -144,7 +152,9 @@ class Daemon:
             site = cfg["site"]
             self.geofence = GeofenceMonitor(self.geofence_cfg, site["lat_deg"], site["lon_deg"], site["alt_m"])
         self._next = {"status": 0.0, "extra_hb": 0.0, "health": 0.0, "sd_status": 0.0, "zenoh_retry": 0.0,
-                      "geofence_state": 0.0, "calibration": clock() + CALIBRATION_SAVE_S}
+                      "geofence_state": 0.0, "calibration": clock() + CALIBRATION_SAVE_S,
+                      "air_data": 0.0, "fence_geometry": 0.0}
+        self._air_time_s: float | None = None
 
     # --- lifecycle ----------------------------------------------------------------------------
 
@@ -189,6 +199,26 @@ class Daemon:
             self.rl.log(logging.ERROR, "zenoh_open", "zenoh unavailable; MAVLink outputs continue, retrying",
                         error=str(exc), retry_s=ZENOH_RETRY_S)
             self._next["zenoh_retry"] = self.clock() + ZENOH_RETRY_S
+            return
+        self._publish_calibration_loaded()
+
+    def _publish_calibration(self, kind: str, status: str, detail: str, **values) -> None:
+        if self.bus is not None:
+            from service.zenoh_bus import calibration_payload
+            sol = self.last_solution
+            self.bus.publish("calibration", calibration_payload(
+                kind, status, detail, self.clock(), sol.time_fc_s if sol else None, **values))
+
+    def _publish_calibration_loaded(self) -> None:
+        """What the store handed this run: method B's magnetometer errors and method D's coefficients."""
+        if self.kf1_loaded:
+            self._publish_calibration("mag_error_kf1", "loaded", f"flight {self.calibration.flight_id}: "
+                                      "magnetometer errors learnt on an earlier flight applied")
+        else:
+            self._publish_calibration("mag_error_kf1", "started", f"flight {self.calibration.flight_id}: "
+                                      "no estimate from an earlier flight; learning on this one")
+        if self.pipeline.deviation is not None and self.deviation_path.exists():
+            self._publish_calibration("mag_deviation", "loaded", f"coefficients from {self.deviation_path}")
 
     def _log_security(self) -> None:
         m = self.cfg["mavlink"]
@@ -330,7 +360,9 @@ class Daemon:
         if self.bus is not None and self._due("health", now, HEALTH_PERIOD_S):
             self._publish_health(now)
         if self._due("calibration", now, CALIBRATION_SAVE_S):
-            self.calibration.save(self.pipeline.kf1_estimate())
+            if self.calibration.save(self.pipeline.kf1_estimate()):
+                self._publish_calibration("mag_error_kf1", "saved", f"flight {self.calibration.flight_id}: "
+                                          f"this flight's estimate saved to {self.calibration.store.path}")
             self._save_deviation()
             self._save_signing_timestamp()
         ls = self.link.stats
@@ -344,7 +376,13 @@ class Daemon:
                                                            getattr(ls, "kernel_rx_drops", None)):
             self._event(kind, detail)
         if self.bus is not None and self.geofence is not None and self._due("geofence_state", now, 0.5):
-            self.bus.publish("geofence", self.geofence.state())
+            payload = self.geofence.state()
+            if self._due("fence_geometry", now, FENCE_GEOMETRY_PERIOD_S):
+                from service.zenoh_bus import fence_geometry
+                payload.update(fence_geometry(self.geofence_cfg, *self.geofence.home[:2]))
+            self.bus.publish("geofence", payload)
+        if self.bus is not None and self._due("air_data", now, AIR_DATA_PERIOD_S):
+            self._publish_air_data(now)
 
     def dispatch(self, item) -> None:
         if isinstance(item, ImuSample):
@@ -356,6 +394,8 @@ class Daemon:
                     self._geofence_step(sol)
             for kind, detail in self.pipeline.drain_events():
                 self._event(kind, detail)
+                if kind in _CALIBRATION_EVENTS:
+                    self._calibration_event(kind, detail)
         elif isinstance(item, PressureSample):
             self.pipeline.on_pressure(item)
         elif isinstance(item, FcAttitude):
@@ -456,8 +496,23 @@ class Daemon:
                 else logging.INFO
             log.log(level, ev.text, extra={"fields": {"event": ev.kind}})
             self._send(statustext_message(ev.severity, ev.text))
-            if self.bus is not None:
-                self.bus.publish("events", ev.to_dict())
+            if self.bus is not None:  # the events schema: kind, severity (syslog names), detail
+                from service.zenoh_bus import event_payload
+                sev = "critical" if ev.severity in ("alert", "emergency") else ev.severity
+                self.bus.publish("events", event_payload(ev.kind, sev, ev.text, time_rx_s=self.clock(),
+                                                         time_fc_s=ev.time_fc_s))
+
+    def _calibration_event(self, kind: str, detail: str) -> None:
+        cal_kind, status = _CALIBRATION_EVENTS[kind]
+        values = {}
+        level = self.pipeline.phase.level
+        if kind == "levelled" and level is not None:
+            values = {"roll_deg": math.degrees(level.roll_rad), "pitch_deg": math.degrees(level.pitch_rad)}
+            if level.gyro_bias_rad_s is not None:
+                values["gyro_bias_rad_s"] = [float(v) for v in level.gyro_bias_rad_s]
+        elif kind == "declination" and getattr(self.pipeline, "declination_rad", None) is not None:
+            values = {"declination_deg": math.degrees(self.pipeline.declination_rad)}
+        self._publish_calibration(cal_kind, status, detail, **values)
 
     def _event(self, kind: str, detail: str) -> None:
         severity = _EVENT_SEVERITY.get(kind, "info")
@@ -488,7 +543,8 @@ class Daemon:
         for msg in self.scheduler.messages(sol, now):
             self._send(msg)
         if self.bus is not None:
-            self.bus.publish_solution(sol, now)
+            arb = getattr(self.pipeline, "arb_out", None)
+            self.bus.publish_solution(sol, now, arb.per_source if arb is not None else None)
 
     _LINK_COUNTERS = ("seq_lost", "crc_errors", "framing_errors", "kernel_rx_drops", "signed_accepted",
                       "signature_bad", "signature_replay", "unsigned_rejected", "unsigned_commands_rejected")
@@ -496,6 +552,17 @@ class Daemon:
     def _link_counters(self) -> dict[str, int]:
         ls = self.link.stats
         return {f"link_{k}": int(getattr(ls, k) or 0) for k in self._LINK_COUNTERS if hasattr(ls, k)}
+
+    def _publish_air_data(self, now: float) -> None:
+        """Method B's air data (ISA altitude, density, TAS) when it has a new sample."""
+        air = self.pipeline.air_data()
+        if air is None or air.time_s == self._air_time_s:
+            return
+        from service.zenoh_bus import air_data_payload
+        self._air_time_s = air.time_s
+        p = self.pipeline.pressure
+        self.bus.publish("air_data", air_data_payload(air, now, p.press_abs_pa if p else None,
+                                                      p.press_diff_pa if p else None))
 
     def _publish_health(self, now: float) -> None:
         from service.zenoh_bus import health_payload

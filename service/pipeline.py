@@ -206,6 +206,8 @@ class Pipeline:
         # arbitration
         self.arb_params = ArbitrationParams()
         self.arb = ArbitrationState()
+        self.arb_out = None
+        """The last ArbitrationOutput: its per_source verdicts (used, or why not) go to dashboards."""
         self.use_fc_heading = heading["use_fc_when_trusted"]
         self._b1_heading_s = -math.inf
 
@@ -637,6 +639,7 @@ class Pipeline:
             heading_rate = (rates_body[1] * math.sin(roll) + rates_body[2] * math.cos(roll)) / math.cos(pitch)
         readings = self._readings(t)
         self.arb, arb_out = arbitrate(self.arb, readings, t, self.arb_params, heading_rate)
+        self.arb_out = arb_out
         if self.ahrs_params.variant == "b1":
             self._feed_b1_heading(readings, t)
         for ev in arb_out.events:

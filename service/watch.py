@@ -10,7 +10,13 @@ link, geofence, last event) plus the most recent events. Uses ``rich`` for the l
     azimuthd watch --duration 5 --json              # 5 s, then the collected state as JSON
     azimuthd watch --once                           # first complete picture, print it, exit
 
-Exit status: 0, or 1 when --once/--duration ends without having received anything.
+A daemon is shown GONE when its liveliness token is withdrawn (it closed, or its process died
+and the Zenoh transport lease expired), or when nothing has arrived from it for ``GONE_AFTER_S``
+(a hung loop, a broken link); with no daemon heard at all the view says so and names the
+endpoints it listens to.
+
+Exit status: 0, 1 when --once/--duration ends without having received anything, 2 when the
+Zenoh session cannot be opened (a malformed endpoint).
 """
 from __future__ import annotations
 
@@ -29,6 +35,24 @@ from service.zenoh_bus import DEFAULT_LISTEN, KEY_PREFIX
 MAX_EVENTS = 8
 STALE_S = 3.0
 """A topic not heard from for this long is shown as stale."""
+GONE_AFTER_S = 5.0
+"""A vehicle that sent nothing for this long is GONE even with its token present (health is 1 Hz)."""
+
+
+class WatchError(RuntimeError):
+    """The Zenoh session could not be opened; one line for the user."""
+
+
+def vehicle_status(alive: bool | None, last_rx_age_s: float | None) -> tuple[str, str]:
+    """(status, why): "alive", "GONE" or "starting" from the liveliness token and the time since
+    anything arrived from that vehicle."""
+    if alive is False:
+        return "GONE", "liveliness token withdrawn (daemon stopped or its process died)"
+    if last_rx_age_s is not None and last_rx_age_s > GONE_AFTER_S:
+        return "GONE", f"nothing received for {last_rx_age_s:.0f} s"
+    if last_rx_age_s is None:
+        return "starting", "liveliness token seen, no data yet" if alive else "no data yet"
+    return "alive", ""
 
 
 @dataclass
@@ -96,6 +120,11 @@ class WatchState:
         with self.lock:
             self._vehicle(parts[1]).alive = alive
 
+    def no_daemon(self) -> bool:
+        """Nothing at all heard yet: no token, no sample."""
+        with self.lock:
+            return not self.vehicles
+
     def complete(self) -> bool:
         """Every known vehicle has shown its liveliness, attitude, heading and azimuth."""
         with self.lock:
@@ -107,13 +136,17 @@ class WatchState:
         """JSON-able picture: per vehicle alive, counts, schema errors, latest payload per topic."""
         now = self.clock()
         with self.lock:
-            return {"vehicles": {
-                name: {"alive": v.alive, "counts": dict(v.counts),
-                       "schema_errors": v.schema_errors, "last_schema_error": v.last_schema_error,
-                       "age_s": {t: round(now - ts, 3) for t, ts in v.rx_time_s.items()},
-                       "latest": dict(v.latest)}
-                for name, v in sorted(self.vehicles.items())},
-                "events": [{"vehicle": n, **e} for n, e in self.events]}
+            out = {}
+            for name, v in sorted(self.vehicles.items()):
+                age = now - max(v.rx_time_s.values()) if v.rx_time_s else None
+                status, why = vehicle_status(v.alive, age)
+                out[name] = {"alive": v.alive, "status": status, "status_reason": why,
+                             "last_rx_age_s": None if age is None else round(age, 3),
+                             "counts": dict(v.counts), "schema_errors": v.schema_errors,
+                             "last_schema_error": v.last_schema_error,
+                             "age_s": {t: round(now - ts, 3) for t, ts in v.rx_time_s.items()},
+                             "latest": dict(v.latest)}
+            return {"vehicles": out, "events": [{"vehicle": n, **e} for n, e in self.events]}
 
 
 def _fmt(value: Any, fmt: str = "{:.1f}", none: str = "-") -> str:
@@ -129,13 +162,15 @@ def _angle_sigma(value: Any, sigma: Any) -> str:
     return s + (f" ±{sigma:.1f}" if sigma is not None else "")
 
 
-def render(state: WatchState):
+def render(state: WatchState, endpoints: list[str] | None = None):
     """A rich renderable of the current state."""
     from rich.console import Group
     from rich.table import Table
     from rich.text import Text
 
     snap = state.snapshot()
+    if not snap["vehicles"]:
+        return Text(no_daemon_message(endpoints or list(DEFAULT_LISTEN)), "bold yellow")
     table = Table(title="azimuthd watch", expand=False)
     for col in ("vehicle", "alive", "phase", "roll°", "pitch°", "heading° (true)", "source",
                 "azimuth°", "link", "geofence", "schema"):
@@ -145,10 +180,12 @@ def render(state: WatchState):
         att, hdg, az = lat.get("attitude", {}), lat.get("heading", {}), lat.get("azimuth", {})
         health, fence = lat.get("health", {}), lat.get("geofence", {})
         stale = any(age > STALE_S for t, age in v["age_s"].items() if t in ("attitude", "heading"))
-        alive = {True: Text("yes", "green"), False: Text("GONE", "bold red"),
-                 None: Text("?", "yellow")}[v["alive"]]
+        gone = v["status"] == "GONE"
+        alive = {"alive": Text("yes", "green"), "GONE": Text("GONE: " + v["status_reason"][:28], "bold red"),
+                 "starting": Text("starting", "yellow")}[v["status"]]
         heading = _angle_sigma(hdg.get("heading_true_deg"), hdg.get("heading_sigma_deg"))
-        link = "-" if not health else ("up" if health.get("link_up") else "DOWN")
+        # what a GONE daemon last said is history, not its state now
+        link = "-" if not health or gone else ("up" if health.get("link_up") else "DOWN")
         table.add_row(name, alive, att.get("phase") or hdg.get("phase") or "-",
                       _fmt(att.get("roll_deg"), "{:+.1f}"), _fmt(att.get("pitch_deg"), "{:+.1f}"),
                       Text(heading + (" (stale)" if stale else ""),
@@ -166,14 +203,47 @@ def render(state: WatchState):
     return Group(table, events)
 
 
+def no_daemon_message(endpoints: list[str]) -> str:
+    return (f"no azimuthd found on {', '.join(endpoints)}: no liveliness token, no data. Is the daemon "
+            f"running with [zenoh] enabled, and is this its listen endpoint ([zenoh] listen, "
+            f"default {DEFAULT_LISTEN[0]})?")
+
+
 def open_session(connect: list[str], mode: str):
+    """A Zenoh session connected to ``connect``; WatchError with one line when it cannot open
+    (a malformed endpoint). An endpoint with nobody behind it opens: Zenoh keeps retrying."""
     import zenoh
 
     conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps(mode))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("connect/endpoints", json.dumps(connect))
-    return zenoh.open(conf)
+    try:
+        conf.insert_json5("mode", json.dumps(mode))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+        return zenoh.open(conf)
+    except zenoh.ZError as exc:
+        raise WatchError(f"cannot open a Zenoh {mode} session to {', '.join(connect)}: "
+                         f"{str(exc).split(' at /')[0].strip()}") from None
+
+
+def subscribe(session, state: WatchState, on_sample=None, on_liveliness=None) -> list:
+    """Subscribe ``state`` to every azimuthd key and liveliness token; the optional callbacks
+    get (key, payload_text) and (key, alive) after the state has taken them."""
+    import zenoh
+
+    def sample(s):
+        key, text = str(s.key_expr), s.payload.to_string()
+        state.on_sample(key, text)
+        if on_sample is not None:
+            on_sample(key, text)
+
+    def live(s):
+        key, alive = str(s.key_expr), s.kind == zenoh.SampleKind.PUT
+        state.on_liveliness(key, alive)
+        if on_liveliness is not None:
+            on_liveliness(key, alive)
+
+    return [session.declare_subscriber(f"{KEY_PREFIX}/*/**", sample),
+            session.liveliness().declare_subscriber(f"{KEY_PREFIX}/*/alive", live, history=True)]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -196,19 +266,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.json and not (args.once or args.duration):
         ap.error("--json needs --once or --duration")
 
-    import zenoh
-
+    endpoints = args.connect or list(DEFAULT_LISTEN)
     state = WatchState(args.vehicle)
-    session = open_session(args.connect or list(DEFAULT_LISTEN), args.mode)
-    subs = [
-        session.declare_subscriber(f"{KEY_PREFIX}/*/**",
-                                   lambda s: state.on_sample(str(s.key_expr),
-                                                             s.payload.to_string())),
-        session.liveliness().declare_subscriber(
-            f"{KEY_PREFIX}/*/alive",
-            lambda s: state.on_liveliness(str(s.key_expr), s.kind == zenoh.SampleKind.PUT),
-            history=True),
-    ]
+    try:
+        session = open_session(endpoints, args.mode)
+    except WatchError as exc:
+        print(f"azimuthd watch: {exc}", file=sys.stderr)
+        return 2
+    subs = subscribe(session, state)
     duration = args.duration if args.duration is not None else (10.0 if args.once else None)
     t_end = None if duration is None else time.monotonic() + duration
     try:
@@ -221,22 +286,24 @@ def main(argv: list[str] | None = None) -> int:
         else:
             from rich.live import Live
 
-            with Live(render(state), refresh_per_second=4, screen=False) as live:
+            with Live(render(state, endpoints), refresh_per_second=4, screen=False) as live:
                 while t_end is None or time.monotonic() < t_end:
                     time.sleep(0.25)
-                    live.update(render(state))
+                    live.update(render(state, endpoints))
     except KeyboardInterrupt:
         pass
     finally:
         for sub in subs:
             sub.undeclare()
         session.close()
+    if state.no_daemon():
+        print(f"azimuthd watch: {no_daemon_message(endpoints)}", file=sys.stderr)
     if args.json:
         print(json.dumps(state.snapshot(), indent=1))
     elif args.once or not sys.stdout.isatty():
         from rich.console import Console
 
-        Console(width=160).print(render(state))
+        Console(width=160).print(render(state, endpoints))
     return 0 if state.received else 1
 
 

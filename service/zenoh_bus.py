@@ -2,8 +2,9 @@
 
 Topics (service/schema/azimuthd.schema.json has every field): attitude, heading, azimuth,
 air_data, calibration, geofence, health, events. Payloads are JSON objects (UTF-8, encoding
-application/json) with ``schema`` = "azimuthd/1", ``vehicle``, and units in the field names;
-non-finite numbers become null. A liveliness token ``azimuthd/<vehicle>/alive`` exists while the
+application/json) with ``schema`` = "azimuthd/1", ``vehicle``, ``time_unix_s`` (wall clock at
+publication: the only clock two machines share) and units in the field names; non-finite
+numbers become null. A liveliness token ``azimuthd/<vehicle>/alive`` exists while the
 bus is open: subscribers see it appear, and disappear on ``close()`` or when the process dies
 (the transport lease expires).
 
@@ -22,6 +23,8 @@ The daemon calls:
     bus.publish_solution(sol, now_s)           # every NavSolution; rate-limited per topic
     bus.publish("health", health_payload(...)) # ~1 Hz
     bus.publish("events", event_payload("launch_detected", "info", "..."))
+    bus.publish("air_data", air_data_payload(air, time_rx_s))   # ~2 Hz
+    bus.publish("calibration", calibration_payload("levelling", "done", "...", time_rx_s, ...))
     bus.close()
 """
 from __future__ import annotations
@@ -118,6 +121,43 @@ def heading_payload(sol: NavSolution) -> dict:
             "heading_source": sol.heading_source, "flags": dict(sol.flags)}
 
 
+def sources_payload(per_source: Mapping[str, Mapping[str, Any]]) -> dict:
+    """The arbitration's verdict per heading source (ArbitrationOutput.per_source) for the
+    ``heading`` topic: name -> {used, candidate, reason, nis_ratio}. ``reason`` says why a source
+    is not used ("" when used); ``nis_ratio`` is its normalised innovation squared against the
+    reference (null when not gated)."""
+    out = {}
+    for name, v in per_source.items():
+        nis = v.get("nis")
+        out[str(name)] = {"used": bool(v.get("used")), "candidate": bool(v.get("candidate")),
+                          "reason": str(v.get("reason") or ""),
+                          "nis_ratio": float(nis) if nis is not None and math.isfinite(nis) else None}
+    return out
+
+
+def air_data_payload(air: Any, time_rx_s: float, press_abs_pa: float | None = None,
+                     press_diff_pa: float | None = None) -> dict:
+    """``air_data`` topic from an estimators.air_data.AirData (ISA altitude, density, TAS, rate,
+    pitot flags) and the raw SCALED_PRESSURE readings it came from."""
+    reason = "" if air.usable else air.unusable_reason
+    return {"time_fc_s": air.time_s, "time_rx_s": time_rx_s, "press_abs_pa": press_abs_pa,
+            "press_diff_pa": press_diff_pa, "temperature_k": air.temperature_used_k,
+            "airspeed_tas_m_s": air.tas_m_s, "air_density_kg_m3": air.density_kg_m3,
+            "pressure_altitude_m": air.pressure_altitude_m,
+            "alt_rate_m_s": air.alt_rate_m_s if air.rate_valid else None,
+            "tas_noise_std_m_s": air.tas_noise_std_m_s,
+            "usable": bool(air.usable), "unusable_reason": reason}
+
+
+def calibration_payload(kind: str, status: str, detail: str, time_rx_s: float,
+                        time_fc_s: float | None = None, **values: Any) -> dict:
+    """``calibration`` topic: what (kind), how far (status), one line, values with units in names."""
+    out = {"time_rx_s": time_rx_s, "kind": kind, "status": status, "detail": detail, **values}
+    if time_fc_s is not None:
+        out["time_fc_s"] = time_fc_s
+    return out
+
+
 def azimuth_payload(sol: NavSolution) -> dict:
     """``azimuth`` topic: the flight azimuth of method A (null until determined)."""
     return {"time_fc_s": sol.time_fc_s, "time_rx_s": sol.time_rx_s, "phase": sol.phase,
@@ -146,6 +186,21 @@ def health_payload(link_up: bool, phase: str, uptime_s: float, rates_hz: Mapping
             "status": status}
 
 
+def fence_geometry(cfg: Any, home_lat_deg: float, home_lon_deg: float) -> dict:
+    """The fence of a service.geofence_config.GeofenceConfig as ``geofence`` fields: the launch
+    site and the inclusion (the azimuth corridor included) and exclusion polygons, [lat, lon] deg."""
+    from service.geofence import corridor_polygon
+
+    incl = [[list(map(float, v)) for v in poly] for poly in cfg.inclusion]
+    if cfg.corridor_azimuth_deg is not None:
+        incl.append([list(v) for v in corridor_polygon(
+            home_lat_deg, home_lon_deg, cfg.corridor_azimuth_deg, cfg.corridor_half_width_deg,
+            cfg.corridor_range_m, cfg.corridor_home_radius_m)])
+    return {"home_lat_deg": float(home_lat_deg), "home_lon_deg": float(home_lon_deg),
+            "inclusion_polygons_deg": incl,
+            "exclusion_polygons_deg": [[list(map(float, v)) for v in poly] for poly in cfg.exclusion]}
+
+
 class ZenohBusError(RuntimeError):
     """The Zenoh session could not be opened (e.g. the listen port is taken); names the endpoints."""
 
@@ -162,7 +217,7 @@ class ZenohBus:
 
     def __init__(self, vehicle: str, mode: str = "peer", listen: Sequence[str] | None = None,
                  connect: Sequence[str] | None = None, tls: Mapping[str, str] | None = None,
-                 solution_rates_hz: Mapping[str, float] | None = None):
+                 solution_rates_hz: Mapping[str, float] | None = None, wall_clock=time.time):
         import zenoh  # imported here: the estimators and tests that never publish skip its start-up
 
         if not vehicle or not all(c.isalnum() or c in "_-" for c in vehicle) or len(vehicle) > 32:
@@ -176,6 +231,7 @@ class ZenohBus:
         if mode == "peer" and not listen and not connect:
             listen = list(DEFAULT_LISTEN)
         self.vehicle = vehicle
+        self.wall_clock = wall_clock
         self.listen, self.connect = listen, connect
         self.stats = BusStats(published={t: 0 for t in TOPICS})
         rates = dict(DEFAULT_SOLUTION_RATES_HZ)
@@ -218,7 +274,8 @@ class ZenohBus:
         return f"{KEY_PREFIX}/{self.vehicle}/{topic}"
 
     def publish(self, topic: str, payload: Mapping[str, Any]) -> bool:
-        """Publish one payload (``schema`` and ``vehicle`` added). True when handed to Zenoh.
+        """Publish one payload (``schema``, ``vehicle`` and ``time_unix_s`` set here: the bus owns
+        the wire format, a payload's own ``schema`` is replaced). True when handed to Zenoh.
         Unknown topic or a non-dict payload: ValueError (a programming error)."""
         if topic not in self._publishers:
             raise ValueError(f"unknown topic {topic!r}, expected one of {list(TOPICS)}")
@@ -226,8 +283,8 @@ class ZenohBus:
             raise ValueError(f"payload for {topic} must be a dict, got {type(payload).__name__}")
         if self.closed:
             return False
-        body = {"schema": SCHEMA_VERSION, "vehicle": self.vehicle}
-        body.update(json_safe(payload))
+        body = json_safe(payload)
+        body.update(schema=SCHEMA_VERSION, vehicle=self.vehicle, time_unix_s=self.wall_clock())
         try:
             self._publishers[topic].put(json.dumps(body, separators=(",", ":")))
         except self._zenoh.ZError as exc:  # the daemon must not die because a put failed
@@ -244,13 +301,21 @@ class ZenohBus:
         self._next_s[topic] = nxt if nxt > now_s else now_s + self._period_s[topic]
         return True
 
-    def publish_solution(self, sol: NavSolution, now_s: float) -> list[str]:
+    def publish_solution(self, sol: NavSolution, now_s: float,
+                         per_source: Mapping[str, Mapping[str, Any]] | None = None) -> list[str]:
         """Publish attitude / heading / azimuth from one NavSolution when each is due at local
-        monotonic time ``now_s`` (rates ``DEFAULT_SOLUTION_RATES_HZ``). Returns the topics sent."""
+        monotonic time ``now_s`` (rates ``DEFAULT_SOLUTION_RATES_HZ``); ``per_source`` (the
+        arbitration's verdict per source) goes into ``heading`` as ``sources``. Returns the topics
+        sent."""
         sent = []
         for topic, build in (("attitude", attitude_payload), ("heading", heading_payload),
                              ("azimuth", azimuth_payload)):
-            if self._due(topic, now_s) and self.publish(topic, build(sol)):
+            if not self._due(topic, now_s):
+                continue
+            payload = build(sol)
+            if topic == "heading" and per_source is not None:
+                payload["sources"] = sources_payload(per_source)
+            if self.publish(topic, payload):
                 sent.append(topic)
         return sent
 

@@ -20,9 +20,12 @@ import pytest
 from estimators.rotations import quat_from_euler
 from service import schema
 from service.solution import NavSolution
-from service.zenoh_bus import (ZenohBus, attitude_payload, azimuth_payload, event_payload,
-                               heading_payload, health_payload, json_safe,
-                               ZenohBusError)
+from service.zenoh_bus import (ZenohBus, air_data_payload, attitude_payload, azimuth_payload,
+                               calibration_payload, event_payload, fence_geometry, heading_payload,
+                               health_payload, json_safe, sources_payload, ZenohBusError)
+
+WALL_S = 1_800_000_000.25
+"""The wall clock the test buses publish with (``time_unix_s``)."""
 
 SUBSCRIBER = r"""
 import json, sys, time, zenoh
@@ -141,7 +144,7 @@ def test_subscriber_process_receives_every_topic_and_liveliness():
     try:
         lines = Lines(sub)
         assert lines.wait_for(lambda o: o["kind"] == "ready", 15.0), "subscriber did not start"
-        bus = ZenohBus("uav7", "peer", [endpoint], [])
+        bus = ZenohBus("uav7", "peer", [endpoint], [], wall_clock=lambda: WALL_S)
         try:
             alive = lines.wait_for(lambda o: o["kind"] == "live", 10.0)
             assert alive == {"kind": "live", "key": "azimuthd/uav7/alive", "op": "PUT"}
@@ -169,6 +172,7 @@ def test_subscriber_process_receives_every_topic_and_liveliness():
         assert obj["encoding"].startswith("application/json")
         payload = obj["payload"]
         assert payload["schema"] == "azimuthd/1" and payload["vehicle"] == "uav7"
+        assert payload["time_unix_s"] == WALL_S  # every topic carries the wall clock
         assert schema.validate(topic, payload) == [], (topic, payload)
         check_with_jsonschema(topic, payload)
     att = received["attitude"]["payload"]
@@ -249,7 +253,10 @@ def test_payload_helpers_without_heading():
 BAD = [
     ("attitude", {"roll_deg": 200.0}),                    # out of range
     ("attitude", {"yaw_deg": 360.0}),                     # [0, 360)
-    ("heading", {"heading_source": "gps"}),               # not in the enum
+    ("heading", {"heading_source": "gps"}),               # not a source name
+    ("heading", {"heading_source": "azimuth+"}),          # a dangling '+'
+    ("heading", {"sources": {"fc": {"used": "yes", "reason": ""}}}),  # used must be a boolean
+    ("air_data", {"usable": 1.0}),                        # a flag, not a number
     ("heading", {"heading_valid": "yes"}),                # wrong type
     ("attitude", {"q_nav_from_body": [1.0, 0.0, 0.0]}),   # 3 items
     ("air_data", {"airspeed": 3.0}),                      # extra field without a unit
@@ -279,3 +286,55 @@ def test_schema_file_is_valid_json_schema():
     assert set(schema.load_schema()["$defs"]) >= set(schema.TOPICS)
     with pytest.raises(ValueError, match="unknown topic"):
         schema.validate("gps", {})
+
+
+def test_published_forms_of_the_heading_source_are_valid():
+    """GIVEN the arbitration's source strings (fused sources joined by '+', 'coast', 'none')
+    WHEN they are published in a heading payload THEN the schema (and jsonschema) accept them."""
+    for source in ("azimuth", "azimuth+fc", "heading_filter+synthetic_ahrs", "coast", "none"):
+        payload = json_safe({"schema": "azimuthd/1", "vehicle": "uav1",
+                             **heading_payload(solution(heading_source=source))})
+        assert schema.validate("heading", payload) == [], source
+        check_with_jsonschema("heading", payload)
+
+
+def test_sources_air_data_calibration_and_fence_payloads_match_the_schema():
+    """GIVEN the daemon's real producers (an arbitration verdict, an AirData, a GeofenceMonitor)
+    WHEN they are turned into payloads as the daemon does THEN each validates against the schema."""
+    import dataclasses
+
+    from estimators.air_data import AirData
+    from service.geofence import GeofenceMonitor
+    from service.geofence_config import validate_geofence
+
+    per_source = {"azimuth": {"candidate": True, "nis": 0.4, "used": True, "reason": ""},
+                  "fc": {"candidate": True, "nis": 31.0, "used": False, "reason": "gated out (NIS 31.0)"},
+                  "heading_filter": {"candidate": False, "nis": math.nan, "used": False,
+                                     "reason": "not valid"}}
+    heading = heading_payload(solution())
+    heading["sources"] = sources_payload(per_source)
+    assert heading["sources"]["fc"] == {"used": False, "candidate": True,
+                                        "reason": "gated out (NIS 31.0)", "nis_ratio": 31.0}
+    assert heading["sources"]["heading_filter"]["nis_ratio"] is None
+    air = AirData(time_s=42.5, pressure_altitude_m=412.0, density_kg_m3=1.18, temperature_used_k=285.0,
+                  tas_m_s=23.5, alt_rate_m_s=1.5, tas_noise_std_m_s=0.2, airspeed_low=False,
+                  pitot_blocked=False, pitot_noisy=False, rate_valid=True)
+    blocked = dataclasses.replace(air, pitot_blocked=True, rate_valid=False)
+    cfg = validate_geofence({"enabled": True, "inclusion": [[[47.27, 8.46], [47.27, 8.53], [47.32, 8.53]]],
+                             "corridor_azimuth_deg": 40.0, "actions": ["rtl"]})
+    mon = GeofenceMonitor(cfg, 47.29, 8.49, 400.0)
+    fence = {**mon.state(), **fence_geometry(cfg, 47.29, 8.49)}
+    payloads = [("heading", heading), ("air_data", air_data_payload(air, 1234.0, 96000.0, 330.0)),
+                ("air_data", air_data_payload(blocked, 1234.5, 96000.0, 330.0)),
+                ("calibration", calibration_payload("levelling", "done", "roll 1.0 pitch 2.0", 12.0, 3.0,
+                                                    roll_deg=1.0, gyro_bias_rad_s=[1e-4, 0.0, -1e-4])),
+                ("geofence", fence)]
+    for topic, payload in payloads:
+        body = json_safe(payload)
+        body.update(schema="azimuthd/1", vehicle="uav1", time_unix_s=WALL_S)  # as ZenohBus.publish
+        assert schema.validate(topic, body) == [], (topic, schema.validate(topic, body))
+        check_with_jsonschema(topic, body)
+    assert air_data_payload(blocked, 0.0)["unusable_reason"] == "pitot blocked"
+    assert air_data_payload(blocked, 0.0)["alt_rate_m_s"] is None  # not settled: unknown, not 0
+    assert len(fence["inclusion_polygons_deg"]) == 2  # the configured polygon and the corridor
+    assert fence["inclusion_polygons_deg"][0][1] == [47.27, 8.53]

@@ -14,7 +14,7 @@ import pytest
 
 from estimators.rotations import quat_from_euler
 from service.solution import NavSolution
-from service.watch import WatchState, main
+from service.watch import GONE_AFTER_S, WatchState, main, open_session, render, subscribe
 from service.zenoh_bus import ZenohBus, event_payload, health_payload
 
 
@@ -93,6 +93,84 @@ def test_watch_state_flags_schema_errors_and_liveliness():
     assert not st.complete()
 
 
-def test_watch_exits_1_when_nothing_arrives():
-    assert main(["--connect", f"tcp/127.0.0.1:{free_port()}", "--duration", "0.5",
-                 "--json"]) == 1
+def test_watch_exits_1_and_says_so_when_no_daemon_is_found(capsys):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    assert main(["--connect", endpoint, "--duration", "0.5", "--json"]) == 1
+    err = capsys.readouterr().err
+    assert f"no azimuthd found on {endpoint}" in err and "[zenoh] listen" in err
+    assert "Traceback" not in err
+
+
+def test_watch_refuses_a_malformed_endpoint_in_one_line(capsys):
+    assert main(["--connect", "127.0.0.1:7447", "--duration", "0.5"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("azimuthd watch: cannot open a Zenoh peer session to 127.0.0.1:7447")
+    assert "\n" not in err and "Traceback" not in err
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now_s = 100.0
+
+    def __call__(self) -> float:
+        return self.now_s
+
+
+def test_a_silent_vehicle_is_gone_after_the_timeout():
+    """GIVEN a vehicle whose token is present WHEN nothing arrives for GONE_AFTER_S THEN GONE
+    (a hung daemon keeps its token: the Zenoh session threads outlive the loop)."""
+    clock = FakeClock()
+    st = WatchState(clock=clock)
+    st.on_liveliness("azimuthd/uav1/alive", True)
+    assert st.snapshot()["vehicles"]["uav1"]["status"] == "starting"
+    st.on_sample("azimuthd/uav1/health", json.dumps(
+        {"schema": "azimuthd/1", "vehicle": "uav1", **health_payload(True, "boot", 1.0, {})}))
+    clock.now_s += GONE_AFTER_S - 0.1
+    assert st.snapshot()["vehicles"]["uav1"]["status"] == "alive"
+    clock.now_s += 0.2
+    v = st.snapshot()["vehicles"]["uav1"]
+    assert (v["status"], v["status_reason"]) == ("GONE", f"nothing received for {GONE_AFTER_S:.0f} s")
+    st.on_sample("azimuthd/uav1/health", json.dumps(
+        {"schema": "azimuthd/1", "vehicle": "uav1", **health_payload(True, "boot", 7.0, {})}))
+    assert st.snapshot()["vehicles"]["uav1"]["status"] == "alive"  # heard again: back
+
+
+def wait_until(cond, timeout_s: float) -> bool:
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        if cond():
+            return True
+        time.sleep(0.05)
+    return cond()
+
+
+def test_a_daemon_that_closes_is_shown_gone_not_link_up():
+    """GIVEN watch's subscriptions on a live bus reporting link up WHEN the bus closes (the
+    daemon stops) THEN the vehicle is GONE because its token was withdrawn, and the table shows
+    GONE and no longer 'up'."""
+    from rich.console import Console
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    bus = ZenohBus("uav5", "peer", [endpoint], [])
+    state = WatchState()
+    session = open_session([endpoint], "peer")
+    subs = subscribe(session, state)
+    try:
+        def heard() -> bool:
+            bus.publish("health", health_payload(True, "in-flight", 5.0, {"RAW_IMU": 200.0}))
+            v = state.snapshot()["vehicles"].get("uav5")
+            return v is not None and v["status"] == "alive" and "health" in v["latest"]
+        assert wait_until(heard, 15.0), state.snapshot()
+        bus.close()
+        assert wait_until(lambda: state.snapshot()["vehicles"]["uav5"]["alive"] is False, 15.0)
+        v = state.snapshot()["vehicles"]["uav5"]
+        assert v["status"] == "GONE" and "token withdrawn" in v["status_reason"]
+        console = Console(width=200, record=True)
+        console.print(render(state, [endpoint]))
+        row = next(line for line in console.export_text().splitlines() if "uav5" in line)
+        assert "GONE" in row and " up " not in row
+    finally:
+        bus.close()
+        for sub in subs:
+            sub.undeclare()
+        session.close()
