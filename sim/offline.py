@@ -39,8 +39,8 @@ class SimTruth:
     alt_m: np.ndarray
     vel_ned_m_s: np.ndarray           # (N, 3)
     airspeed_m_s: np.ndarray          # true airspeed |v - wind|
-    field_ned_gauss: np.ndarray       # (N, 3) total field at the vehicle (WMM + site + anomalies)
-    wmm_ned_gauss: np.ndarray         # (N, 3) WMM main field only
+    field_ned_gauss: np.ndarray       # (N, 3) total field at the vehicle (sim.earth + site + anomalies)
+    main_field_ned_gauss: np.ndarray  # (N, 3) IGRF-14 main field only (not the estimators' WMM)
     gravity_m_s2: np.ndarray          # (N,) normal gravity magnitude
     launch_time_s: float | None
     phase: np.ndarray                 # (N,) str: rest, boost, ground_roll, climb, level, turn, ...
@@ -101,7 +101,7 @@ def simulate(scenario="inclined_rail", seed: int = 0, imu_grade: str = "consumer
         q_nav_from_sensor=d["q_nav_from_sensor"], omega_body_rad_s=d["omega_body_rad_s"],
         omega_nb_body_rad_s=d["omega_nb_body_rad_s"], f_body_m_s2=d["f_body_m_s2"], lat_rad=d["lat_rad"],
         lon_rad=d["lon_rad"], alt_m=d["alt_m"], vel_ned_m_s=d["vel_ned_m_s"], airspeed_m_s=d["airspeed_m_s"],
-        field_ned_gauss=d["field_ned_gauss"], wmm_ned_gauss=d["wmm_ned_gauss"], gravity_m_s2=d["gravity_m_s2"],
+        field_ned_gauss=d["field_ned_gauss"], main_field_ned_gauss=d["main_field_ned_gauss"], gravity_m_s2=d["gravity_m_s2"],
         launch_time_s=eng.flight.launch_time_s, phase=np.array(PHASES, dtype=object)[d["phase"]].astype(str),
         gyro_bias_end_rad_s=eng.sensors.gyro.bias_now(), accel_bias_end_m_s2=eng.sensors.accel.bias_now())
     return SimRun(time_s=time_fc, gyro_rad_s=gyro, accel_m_s2=accel, mag_gauss=mag,

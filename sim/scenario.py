@@ -1,7 +1,7 @@
 """Scenario files: TOML, deep-merged over the defaults below, validated at the boundary.
 
 A scenario is a nested dict with the sections ``scenario, site, launcher, flight, legs, wind,
-gnss, imu, mag, baro, airspeed, fc, faults, autopilot``; docs/SIMULATOR.md documents every key.
+gnss, imu, mag, earth, atmosphere, baro, airspeed, fc, faults, autopilot``; docs/SIMULATOR.md documents every key.
 ``load_scenario(name_or_path_or_dict, overrides)`` returns the merged, validated dict.
 """
 from __future__ import annotations
@@ -56,6 +56,16 @@ DEFAULTS: dict[str, Any] = {
         "site_distortion_ned_gauss": [0.0, 0.0, 0.0],
         "site_distortion_fade_m": 15.0,
         "anomalies": [],
+    },
+    "earth": {                       # the simulator's Earth is not the estimators' WMM (sim/earth.py)
+        "model_error": True,         # draw the WMM-2025 error budget per seed (IGRF-14 + the draw)
+        "crustal_sigma_nt": 50.0,    # crustal anomaly field, 1 sigma of its vertical component
+        "crustal_correlation_m": 2000.0,
+    },
+    "atmosphere": {                  # None: drawn per seed (sim/earth.py: draw_atmosphere)
+        "qnh_hpa": None,             # sea-level pressure
+        "isa_deviation_k": None,     # sea-level temperature minus ISA's 288.15 K
+        "lapse_rate_k_km": None,     # temperature lapse rate (ISA: 6.5)
     },
     "baro": {"noise_pa": 2.0, "bias_pa": 0.0, "temperature_offset_k": 5.0, "temperature_noise_k": 0.05,
              "rate_hz": 50.0},
@@ -186,6 +196,13 @@ def validate(s: dict) -> dict:
         for k in ("north_m", "east_m", "radius_m", "field_ned_gauss"):
             if k not in a:
                 raise ValueError(f"mag.anomalies[{i}] needs key {k!r}")
+    if not isinstance(s["earth"]["model_error"], bool):
+        raise ValueError(f"earth.model_error must be true or false, got {s['earth']['model_error']!r}")
+    _num(s, "earth", "crustal_sigma_nt", 0.0, 5000.0)
+    _num(s, "earth", "crustal_correlation_m", 10.0, 1e6)
+    _num(s, "atmosphere", "qnh_hpa", 850.0, 1100.0, allow_none=True)
+    _num(s, "atmosphere", "isa_deviation_k", -60.0, 60.0, allow_none=True)
+    _num(s, "atmosphere", "lapse_rate_k_km", 0.5, 9.8, allow_none=True)
     for k in ("noise_pa", "bias_pa", "temperature_offset_k", "temperature_noise_k"):
         _num(s, "baro", k, -1e5, 1e5)
     _num(s, "baro", "rate_hz", 0.0, 1000.0, lo_open=True)

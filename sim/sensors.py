@@ -6,11 +6,12 @@ IMU error model per triad (sensor frame, x = C_sensor_from_body x_body):
   s: scale-factor errors, M: cross-axis misalignment (off-diagonal), b0: turn-on bias,
   b_rw: in-run bias random walk (sigma_rw * sqrt(dt) per step), n: white noise with density N
   (sample sigma = N / sqrt(dt)). Quantisation is the link's (sim.wire).
-Magnetometer: m = W (C_sensor_from_nav B_nav) + h + n, B_nav = WMM + launch-site distortion
+Magnetometer: m = W (C_sensor_from_nav B_nav) + h + n, B_nav = sim.earth's field (IGRF + model error
+  + crustal field, not the estimators' WMM) + launch-site distortion
   (B_site exp(-d/d0), d = distance from the launcher) + anomalies (B_a exp(-(d_a/r_a)^2));
   W soft iron (3x3), h hard iron (gauss), both in the sensor frame.
-Barometer: p = ISA(h) + bias + n; T = ISA_T(h) + offset + n.
-Differential pressure: q = 1/2 rho(h) max(u, 0)^2 + offset + n, u = air-relative velocity along
+Barometer: p = p_atm(h) + bias + n; T = T_atm(h) + offset + n (sim.earth.Atmosphere, not ISA).
+Differential pressure: q = 1/2 rho_atm(h) max(u, 0)^2 + offset + n, u = air-relative velocity along
   the body x axis.
 """
 from __future__ import annotations
@@ -163,6 +164,7 @@ class SensorSuite:
         self.accel = Triad(self.p, "accel", rng[3], rng[4], rng[5], dt_s)
         self.rng_mag, self.rng_baro, self.rng_air, self.rng_fc = rng[6], rng[7], rng[8], rng[9]
         self.rng_temp = rng[10]
+        self.earth = earth.SimEarth(scenario, rng[11])
         M = scenario["mag"]
         self.W = np.asarray(M["soft_iron"], float)
         self.hard_iron = np.asarray(M["hard_iron_gauss"], float)
@@ -182,9 +184,9 @@ class SensorSuite:
 
     # -- magnetic field ------------------------------------------------------------------
     def field_ned_gauss(self, st: dict) -> tuple[np.ndarray, np.ndarray]:
-        """(WMM main field, total field incl. site distortion and anomalies), NED gauss, (n, 3)."""
-        wmm = earth.wmm_along_track(st["lat_rad"], st["lon_rad"], st["alt_m"], st["time_s"], self.year)
-        total = wmm.copy()
+        """(IGRF main field, total field incl. model error, crustal field, site distortion and
+        anomalies), NED gauss, (n, 3)."""
+        main, total = self.earth.field_ned_gauss(st["lat_rad"], st["lon_rad"], st["alt_m"])
         if np.any(self.site_field) or self.anomalies:
             ned = earth.ned_offset_m(self.lat0, self.lon0, self.h0, st["lat_rad"], st["lon_rad"], st["alt_m"])
             if np.any(self.site_field):
@@ -194,7 +196,7 @@ class SensorSuite:
                 c = np.array([a["north_m"], a["east_m"], a.get("down_m", 0.0)])
                 d2 = np.sum((ned - c) ** 2, axis=1) / float(a["radius_m"]) ** 2
                 total += np.exp(-d2)[:, None] * np.asarray(a["field_ned_gauss"], float)
-        return wmm, total
+        return main, total
 
     def _dropout_mask(self, sensor: str, t: np.ndarray) -> np.ndarray:
         m = np.zeros(len(t), bool)
@@ -211,7 +213,7 @@ class SensorSuite:
         C_sb = self.C_body_from_sensor.T
         w_s = tr["omega_body_rad_s"] @ C_sb.T
         f_s = tr["f_body_m_s2"] @ C_sb.T
-        wmm, total = self.field_ned_gauss(st)
+        main, total = self.field_ned_gauss(st)
         b_s = np.einsum("nji,nj->ni", C_ns, total)
         n = len(w_s)
         gyro = self.gyro.measure(w_s)
@@ -219,12 +221,13 @@ class SensorSuite:
         mag = b_s @ self.W.T + self.hard_iron + self.rng_mag.standard_normal((n, 3)) * self.mag_sigma
         t = st["time_s"]
         B = self.sc["baro"]
-        press = earth.isa_pressure_pa(st["alt_m"]) + B["bias_pa"] + self.rng_baro.standard_normal(n) * B["noise_pa"]
-        temp = earth.isa_temperature_k(st["alt_m"]) + B["temperature_offset_k"] + \
+        atm = self.earth.atmosphere
+        press = atm.pressure_pa(st["alt_m"]) + B["bias_pa"] + self.rng_baro.standard_normal(n) * B["noise_pa"]
+        temp = atm.temperature_k(st["alt_m"]) + B["temperature_offset_k"] + \
             self.rng_temp.standard_normal(n) * B["temperature_noise_k"]
         A = self.sc["airspeed"]
         u = np.maximum(tr["air_body_m_s"][:, 0], 0.0)
-        diff = 0.5 * earth.isa_density_kg_m3(st["alt_m"]) * u * u + A["offset_pa"] + \
+        diff = 0.5 * atm.density_kg_m3(st["alt_m"]) * u * u + A["offset_pa"] + \
             self.rng_air.standard_normal(n) * A["noise_pa"]
         for arr, name in ((gyro, "imu"), (accel, "imu"), (mag, "imu"), (mag, "mag")):
             arr[self._dropout_mask(name, t)] = np.nan
@@ -233,7 +236,7 @@ class SensorSuite:
         diff[self._dropout_mask("airspeed", t)] = np.nan
         return {"gyro_rad_s": gyro, "accel_m_s2": accel, "mag_gauss": mag, "press_abs_pa": press,
                 "temperature_k": temp, "press_diff_pa": diff, "q_nav_from_sensor": q_ns,
-                "field_ned_gauss": total, "wmm_ned_gauss": wmm, "fc_euler_rad": self.fc_attitude(t, tr)}
+                "field_ned_gauss": total, "main_field_ned_gauss": main, "fc_euler_rad": self.fc_attitude(t, tr)}
 
     def fc_attitude(self, t: np.ndarray, tr: dict) -> np.ndarray:
         """The FC's own estimate: truth Euler + Gauss-Markov errors; after GNSS loss the tilt error

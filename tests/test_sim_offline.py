@@ -57,7 +57,8 @@ def ideal_run():
                     overrides={"imu": dict(ZERO_IMU, mount_euler_deg=[2.0, -3.0, 30.0]), "mag": ZERO_MAG,
                                "autopilot": {"personality": "px4"},
                                "baro": {"noise_pa": 0.0, "temperature_noise_k": 0.0},
-                               "airspeed": {"noise_pa": 0.0}})
+                               "airspeed": {"noise_pa": 0.0},
+                               "earth": {"model_error": False, "crustal_sigma_nt": 0.0}})
 
 
 def _strapdown_worst_deg(r, t0_s: float, t1_s: float) -> float:
@@ -122,17 +123,21 @@ def test_specific_force_integrates_to_the_true_velocity(ideal_run):
     assert err < 0.05
 
 
-def test_error_free_magnetometer_is_wmm_rotated_by_true_attitude(ideal_run):
-    """With every error zero, mag = C_sensor_from_nav * WMM (pygeomag called here directly)."""
-    from pygeomag import GeoMag
+def test_error_free_magnetometer_is_igrf_rotated_by_true_attitude(ideal_run):
+    """With every error zero (no WMM error draw, no crustal field), mag = C_sensor_from_nav * IGRF-14
+    (ppigrf called here directly; the estimators' WMM is not the simulator's field)."""
+    import datetime as dt
+
+    import ppigrf
     r, tr = ideal_run, ideal_run.truth
-    gm = GeoMag()
+    yr = r.site["decimal_year"]
+    y0, y1 = dt.datetime(int(yr), 1, 1), dt.datetime(int(yr) + 1, 1, 1)
     for k in (0, 15000, 30000, 39999):
-        res = gm.calculate(glat=math.degrees(tr.lat_rad[k]), glon=math.degrees(tr.lon_rad[k]),
-                           alt=tr.alt_m[k] / 1000.0, time=r.site["decimal_year"])
-        b_ned = np.array([res.x, res.y, res.z]) / 1e5
+        be, bn, bu = ppigrf.igrf(math.degrees(tr.lon_rad[k]), math.degrees(tr.lat_rad[k]), tr.alt_m[k] / 1000.0,
+                                 y0 + (y1 - y0) * (yr - int(yr)))
+        b_ned = np.array([bn[0], be[0], -bu[0]]).ravel() / 1e5
         expect = _dcm(tr.q_nav_from_sensor[k]).T @ b_ned
-        assert np.max(np.abs(r.mag_gauss[k] - expect)) < 2e-6  # float32 + 1 s field interpolation
+        assert np.max(np.abs(r.mag_gauss[k] - expect)) < 2e-6  # float32 + field lattice interpolation
 
 
 def test_at_rest_on_the_rail_accel_and_gyro_see_gravity_and_earth_rate(ideal_run):
