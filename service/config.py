@@ -48,10 +48,10 @@ def _choice(*options: str):
     return check
 
 
-def _mavlink_url(v: str):
+def _mavlink_url(v: str, role: str = "fc"):
     from mavlink_io.url import parse_url
     try:
-        parse_url(v)
+        parse_url(v, role)
     except ValueError as exc:
         return str(exc)
     return None
@@ -61,7 +61,7 @@ def _url_list(v: list):
     for i, item in enumerate(v):
         if not isinstance(item, str):
             return f"item {i} must be a string, got {type(item).__name__}"
-        err = _mavlink_url(item)
+        err = _mavlink_url(item, "out")
         if err:
             return f"item {i}: {err}"
     return None
@@ -231,7 +231,8 @@ def validate(raw: dict[str, Any]) -> dict[str, dict[str, Any]]:
     if (site["lat_deg"] is None) != (site["lon_deg"] is None):
         raise ConfigError("site.lon_deg: lat_deg and lon_deg go together")
     if site["earth_field_ned_gauss"] is None and site["lat_deg"] is None:
-        raise ConfigError("site.lat_deg: required (with site.lon_deg) unless site.earth_field_ned_gauss is given")
+        raise ConfigError("site.lat_deg: required: the launch site is not set; set [site] lat_deg and lon_deg "
+                          "(or earth_field_ned_gauss) in the config (no default: a wrong site gives a wrong heading)")
     return out
 
 

@@ -6,8 +6,12 @@ loop may raise out of it because of bad input: the link counts bad bytes, the pi
 bad samples with a reason, the outputs count send failures, a Zenoh session that cannot open is
 retried while MAVLink carries on.
 
-systemd (Type=notify): READY=1 once the FC link is up (the autopilot's HEARTBEAT seen),
-WATCHDOG=1 from this loop, STATUS= with the phase and heading every few seconds.
+systemd (Type=notify): READY=1 once the daemon is up (its link opened, before any FC answers: a
+bench without an FC must not fail the unit's start), with STATUS="waiting for the flight controller
+on URL" (also logged every WAITING_LOG_S) until the autopilot's HEARTBEAT; WATCHDOG=1 from this
+loop, STATUS= with the phase and heading every few seconds. SIGHUP (systemctl reload) saves the
+calibrations and checks the config file: a changed file is reported with the keys that differ and
+applied by a restart; the daemon runs on with the config it started with (never stops on SIGHUP).
 """
 from __future__ import annotations
 
@@ -56,6 +60,9 @@ SIGNING_RESTART_MARGIN = 6_000_000
 CALIBRATION_SAVE_S, and our timestamps may have advanced that much (plus 10 us per message sent)
 since; a receiver rejects a timestamp that goes back."""
 SD_STATUS_PERIOD_S = 5.0
+WAITING_LOG_S = 10.0
+"""Period of the "waiting for heartbeat" message until the FC's first HEARTBEAT."""
+IMU_SILENCE_SHOWN_S = 1.0
 _SHOWN_RATES = ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU", "SCALED_PRESSURE", "ATTITUDE")
 _EVENT_SEVERITY = {"link_lost": "warning", "fc_reboot": "warning", "time_gap": "warning",
                    "transport_error": "error", "not_still": "info", "strapdown": "warning",
@@ -75,8 +82,11 @@ def _fmt_angle(rad: float | None, sigma: float | None, width: int = 6) -> str:
     return s
 
 
-def status_line(sol: NavSolution | None, rates: dict[str, float], link_up: bool) -> str:
-    """The one-line live status: phase, roll/pitch/heading with sigma, link rates."""
+def status_line(sol: NavSolution | None, rates: dict[str, float], link_up: bool,
+                imu_silent_s: float | None = None) -> str:
+    """The one-line live status: phase, roll/pitch/heading with sigma, link rates (wall-clock Hz over
+    the last 2 s). imu_silent_s: time since the last IMU sample; from IMU_SILENCE_SHOWN_S on, the line
+    says so (the FC still answers but its sensor streams stopped, or the sender stalled)."""
     if sol is None:
         head = "phase=boot"
     else:
@@ -88,7 +98,23 @@ def status_line(sol: NavSolution | None, rates: dict[str, float], link_up: bool)
         head = (f"phase={sol.phase:<9} roll={_fmt_angle(sol.roll_rad, sol.roll_sigma_rad)} "
                 f"pitch={_fmt_angle(sol.pitch_rad, sol.pitch_sigma_rad)} hdg={hdg} src={sol.heading_source}")
     r = " ".join(f"{k.lower()}={v:.0f}Hz" for k, v in sorted(rates.items()) if k in _SHOWN_RATES)
-    return f"{head} | link={'up' if link_up else 'DOWN'} {r}"
+    silent = ""
+    if link_up and imu_silent_s is not None and imu_silent_s >= IMU_SILENCE_SHOWN_S:
+        silent = f" (no IMU for {imu_silent_s:.1f} s)"
+    return f"{head} | link={'up' if link_up else 'DOWN'} {r}{silent}"
+
+
+def changed_keys(old: dict, new: dict) -> list[str]:
+    """'section.key' of every value that differs between two validated configs ('section' for a
+    section that is not a table, e.g. geofence)."""
+    out = []
+    for sec in sorted(set(old) | set(new)):
+        a, b = old.get(sec), new.get(sec)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += [f"{sec}.{k}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+        elif a != b:
+            out.append(sec)
+    return out
 
 
 class Daemon:
@@ -139,6 +165,12 @@ class Daemon:
         self.sent: dict[str, int] = {}
         self.fc_heartbeat: FcHeartbeat | None = None
         self.ready_sent = False
+        """True once the FC's first HEARTBEAT arrived (READY=1 itself is sent by open())."""
+        self.config_file: tuple[str, dict] | None = None
+        """(path, the config as that file said at start, before command-line overrides): SIGHUP
+        re-reads the path and compares (service/cli.py sets it)."""
+        self.reload_requested = False
+        self._last_imu_rx_s: float | None = None
         self.started_s = clock()
         self.geofence = None
         self.commands: CommandProtocol | None = None
@@ -152,7 +184,7 @@ class Daemon:
             site = cfg["site"]
             self.geofence = GeofenceMonitor(self.geofence_cfg, site["lat_deg"], site["lon_deg"], site["alt_m"])
         self._next = {"status": 0.0, "extra_hb": 0.0, "health": 0.0, "sd_status": 0.0, "zenoh_retry": 0.0,
-                      "geofence_state": 0.0, "calibration": clock() + CALIBRATION_SAVE_S,
+                      "geofence_state": 0.0, "calibration": clock() + CALIBRATION_SAVE_S, "waiting": 0.0,
                       "air_data": 0.0, "fence_geometry": 0.0}
         self._air_time_s: float | None = None
 
@@ -162,12 +194,39 @@ class Daemon:
         log.info("signal received, shutting down", extra={"fields": {"signal": signal.Signals(signum).name}})
         self.stop_requested = True
 
+    def _on_sighup(self, _signum, _frame) -> None:
+        self.reload_requested = True  # handled in the loop (a signal handler must not do file I/O)
+
+    def _reload(self) -> None:
+        """SIGHUP: save what was learnt, then check the config file; never stop, never apply."""
+        self.reload_requested = False
+        kf1_saved = self.calibration.save(self.pipeline.kf1_estimate())
+        self._save_deviation()
+        self._save_signing_timestamp()
+        log.info("SIGHUP: state saved", extra={"fields": {"mag_error_estimate_saved": kf1_saved}})
+        if self.config_file is None:
+            return
+        from service.config import ConfigError, load
+        path, started_with = self.config_file
+        try:
+            changed = changed_keys(started_with, load(path))
+        except ConfigError as exc:
+            log.error("SIGHUP: the config file is not valid; the daemon runs on with the config it started with",
+                      extra={"fields": {"error": str(exc)}})
+            return
+        if changed:
+            log.warning("SIGHUP: the config file changed: restart to apply (systemctl restart azimuthd); the "
+                        "daemon runs on with the config it started with",
+                        extra={"fields": {"changed": ",".join(changed), "config": path}})
+        else:
+            log.info("SIGHUP: the config file is unchanged", extra={"fields": {"config": path}})
+
     def open(self) -> None:
         self.link = MavlinkLink(self.link_cfg, clock=self.clock)
         from pymavlink import mavutil
         for url in self.cfg["outputs"]["extra_mavlink_urls"]:
             from mavlink_io.url import parse_url
-            conn = mavutil.mavlink_connection(parse_url(url).pymavlink_url, source_system=1,
+            conn = mavutil.mavlink_connection(parse_url(url, "out").pymavlink_url, source_system=1,
                                               source_component=self.link_cfg.component_id, dialect="ardupilotmega")
             if self.signing_key is not None and self.link_cfg.sign_outgoing:
                 # each output link its own signing link id (a receiver keeps one timestamp per link id)
@@ -184,7 +243,7 @@ class Daemon:
         self._log_security()
         log.info("started", extra={"fields": {"mavlink": self.link_cfg.url, "extra_outputs": len(self.extra_ports),
                                               "zenoh": self.bus is not None}})
-        self.notifier.notify("STATUS=waiting for the flight controller")
+        self.notifier.notify(f"READY=1\nSTATUS=waiting for the flight controller on {self.link_cfg.url}")
 
     def _open_zenoh(self) -> None:
         z = self.cfg["zenoh"]
@@ -310,6 +369,7 @@ class Daemon:
     def run(self, duration_s: float | None = None) -> int:
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, self._on_signal)
+        signal.signal(signal.SIGHUP, self._on_sighup)
         self.open()
         t_end = None if duration_s is None else self.clock() + duration_s
         try:
@@ -342,15 +402,25 @@ class Daemon:
         self._next[name] = now + period_s
         return True
 
+    def _imu_silent_s(self, now: float) -> float | None:
+        return None if self._last_imu_rx_s is None else now - self._last_imu_rx_s
+
     def _periodic(self, now: float) -> None:
         if self.notifier.watchdog_due(now):
             self.notifier.notify("WATCHDOG=1")
+        if self.reload_requested:
+            self._reload()
+        if not self.ready_sent and now - self.started_s >= 2.0 and self._due("waiting", now, WAITING_LOG_S):
+            log.warning("waiting for heartbeat on %s (no flight controller has answered yet)", self.link_cfg.url,
+                        extra={"fields": {"mavlink": self.link_cfg.url, "waited_s": round(now - self.started_s),
+                                          "link_error": self.link.last_error or ""}})
         if self.extra_ports and self._due("extra_hb", now, 1.0 / self.cfg["mavlink"]["heartbeat_hz"]):
             # ground stations and MAVLink clients discover a component by its HEARTBEAT
             self._send_extra(self.link.heartbeat_message())
         line = None
         if self.status_interval_s > 0 and self._due("status", now, self.status_interval_s):
-            line = status_line(self.last_solution, self.link.stats.rates_hz(), self.link.connected)
+            line = status_line(self.last_solution, self.link.stats.rates_hz(), self.link.connected,
+                               self._imu_silent_s(now))
             print(line, flush=True)
         if self.notifier.enabled and self._due("sd_status", now, SD_STATUS_PERIOD_S):
             line = line or status_line(self.last_solution, self.link.stats.rates_hz(), self.link.connected)
@@ -386,6 +456,7 @@ class Daemon:
 
     def dispatch(self, item) -> None:
         if isinstance(item, ImuSample):
+            self._last_imu_rx_s = item.time_rx_s
             sol = self.pipeline.on_imu(item)
             if sol is not None:
                 self.last_solution = sol
@@ -413,7 +484,7 @@ class Daemon:
                 self.geofence.on_heartbeat(item)
             if not self.ready_sent:
                 self.ready_sent = True
-                self.notifier.notify("READY=1\nSTATUS=flight controller link up")
+                self.notifier.notify("STATUS=flight controller link up")
                 log.info("flight controller link up", extra={"fields": {"autopilot": item.autopilot,
                                                                         "system_id": item.system_id}})
         elif isinstance(item, FcFlightState):

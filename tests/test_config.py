@@ -13,8 +13,23 @@ EXAMPLE = ROOT / "systemd" / "azimuthd.toml"
 MINIMAL = {"site": {"lat_deg": 45.0, "lon_deg": 7.0}}
 
 
-def test_example_config_loads_and_documents_every_key():
-    cfg = load(EXAMPLE)
+def test_example_config_ships_no_site_and_the_start_says_so(tmp_path):
+    """GIVEN the example config as shipped (no [site]: a wrong one gives a wrong heading) WHEN the
+    daemon starts on it THEN it stops with exit 2 and one line naming the key and the fix."""
+    out = subprocess.run([sys.executable, "-m", "service.cli", "run", "--config", str(EXAMPLE)],
+                         capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert out.returncode == 2
+    assert out.stderr.strip() == ("azimuthd: config error: site.lat_deg: required: the launch site is not set; "
+                                  "set [site] lat_deg and lon_deg (or earth_field_ned_gauss) in the config "
+                                  "(no default: a wrong site gives a wrong heading)")
+    assert "Traceback" not in out.stderr + out.stdout
+
+
+def test_example_config_loads_and_documents_every_key(tmp_path):
+    with_site = tmp_path / "azimuthd.toml"
+    with_site.write_text(EXAMPLE.read_text().replace("# lat_deg = 47.3769", "lat_deg = 47.3769")
+                         .replace("# lon_deg = 8.5417", "lon_deg = 8.5417"))
+    cfg = load(with_site)
     assert cfg["mavlink"]["component_id"] == 191
     text = EXAMPLE.read_text()
     for section, keys in SPEC.items():
