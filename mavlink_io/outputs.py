@@ -79,6 +79,11 @@ Finite on purpose (ArduPilot drops the whole sample, yaw included, on a NaN posi
 QUALITY_ZERO_SIGMA_DEG = 30.0
 """ODOMETRY.quality = 100 * (1 - sigma/30 deg), clipped to [1, 100] (0 would mean 'unknown')."""
 
+RESET_JUMP_SIGMAS = 3.0
+RESET_JUMP_MIN_RAD = math.radians(2.0)
+"""ODOMETRY.reset_counter steps on a heading step above max(3 sigma, 2 deg) beyond the body rates'
+prediction between consecutive solutions (OutputScheduler)."""
+
 MIN_ODOMETRY_RATE_HZ = 5.0
 """The EKFs time out an ExtNav/EV yaw source after a few hundred ms; 5 Hz is the floor."""
 
@@ -269,9 +274,12 @@ class OutputScheduler:
     Rates in Hz (``DEFAULT_RATES_HZ`` keys); 0 disables a message, ODOMETRY must be >= 5 Hz.
     A message is due when ``now_s`` reaches its next slot; slots advance by one period so the
     mean rate is exact under IMU-sample jitter, and re-synchronise after a gap. ODOMETRY is
-    only produced while the heading is usable; ``reset_counter`` counts heading discontinuities
-    (source change, or the heading becoming usable again), which the EKFs use to reset their
-    yaw to ours instead of rejecting the jump.
+    only produced while the heading is usable and ``odometry_allowed`` (the daemon clears it while
+    the FC's parameters say the placeholder position could be fused, mavlink_io.fc_yaw_feed);
+    ``reset_counter`` counts real heading discontinuities: the heading usable again after a gap, or a
+    step between consecutive solutions larger than RESET_JUMP_SIGMAS sigma (and RESET_JUMP_MIN_RAD)
+    beyond what the body rates explain. A change of the source *name* is not one: the arbitration
+    blends source changes (service/heading_arbitration), so the published heading is continuous.
     """
 
     def __init__(self, rates_hz: Mapping[str, float] | None = None,
@@ -292,7 +300,10 @@ class OutputScheduler:
         self.profile: OdometryProfile = profile or ODOMETRY_PROFILES["mavlink"]
         self._next_due_s: dict[str, float | None] = {name: None for name in rates}
         self.reset_counter = 0
-        self._last_heading_source: str | None = None
+        self.odometry_allowed = True
+        self._last_heading: tuple[float, float] | None = None
+        """(FC time s, heading rad) of the last usable heading."""
+        self._ever_usable = False
         self._heading_was_usable = False
 
     def set_profile(self, profile: OdometryProfile) -> None:
@@ -313,15 +324,32 @@ class OutputScheduler:
             return True
         return False
 
+    def next_due_s(self) -> float:
+        """Local time at which the next message is due (-inf before the first call)."""
+        dues = [d if d is not None else -math.inf for n, d in self._next_due_s.items() if self.rates_hz[n] > 0]
+        return min(dues) if dues else math.inf
+
+    def _heading_jumped(self, sol: NavSolution) -> bool:
+        if self._last_heading is None:
+            return False
+        t0, h0 = self._last_heading
+        dt = sol.time_fc_s - t0
+        predicted = 0.0
+        if sol.rates_body_rad_s is not None and _finite(sol.roll_rad) and _finite(sol.pitch_rad) \
+                and abs(math.cos(sol.pitch_rad)) > 1e-3 and 0.0 < dt < 1.0:
+            _p, q, r = _rates(sol)  # psi_dot = (q sin(phi) + r cos(phi)) / cos(theta)
+            rate = (q * math.sin(sol.roll_rad) + r * math.cos(sol.roll_rad)) / math.cos(sol.pitch_rad)
+            predicted = rate * dt if math.isfinite(rate) else 0.0
+        step = abs(_wrap_pi(float(sol.heading_rad) - h0 - predicted))
+        return step > max(RESET_JUMP_MIN_RAD, RESET_JUMP_SIGMAS * float(sol.heading_sigma_rad))
+
     def _track_resets(self, sol: NavSolution) -> None:
         usable = heading_usable(sol)
-        if usable and (not self._heading_was_usable
-                       or (self._last_heading_source is not None
-                           and sol.heading_source != self._last_heading_source)):
-            if self._last_heading_source is not None:  # the very first start is not a reset
-                self.reset_counter = (self.reset_counter + 1) % 256
+        if usable and self._ever_usable and (not self._heading_was_usable or self._heading_jumped(sol)):
+            self.reset_counter = (self.reset_counter + 1) % 256  # the very first start is not a reset
         if usable:
-            self._last_heading_source = sol.heading_source
+            self._ever_usable = True
+            self._last_heading = (sol.time_fc_s, float(sol.heading_rad))
         self._heading_was_usable = usable
 
     def messages(self, sol: NavSolution, now_s: float) -> list:
@@ -336,7 +364,7 @@ class OutputScheduler:
             msg = encode_attitude_quaternion(sol)
             if msg is not None:
                 out.append(msg)
-        if heading_usable(sol) and self.due("ODOMETRY", now_s):
+        if self.odometry_allowed and heading_usable(sol) and self.due("ODOMETRY", now_s):
             out.append(encode_odometry(sol, self.profile, self.reset_counter))
         if self.due("NAMED_VALUE_FLOAT", now_s):
             out.extend(encode_named_values(sol))

@@ -196,19 +196,30 @@ def test_scheduler_validation():
         outputs.OutputScheduler({"ATTITUDE": -1.0})
 
 
-def test_reset_counter_counts_heading_discontinuities():
+def test_reset_counter_counts_heading_discontinuities_only():
+    """A blended source change is no reset (the ODOMETRY reset_counter stepped 15-17 times in 150 s
+    against ArduPlane when it counted source names); a gap or a step beyond the rates is."""
     sched = outputs.OutputScheduler()
     t = [0.0]
+    hdg = math.radians(231.25)
+    still = np.zeros(3)
 
-    def step(**kw):
-        t[0] += 1.0
-        return [m for m in sched.messages(make_solution(**kw), t[0]) if m.get_msgId() == 331]
+    def step(dt=0.1, **kw):
+        t[0] += dt
+        kw.setdefault("rates_body_rad_s", still)
+        sol = make_solution(time_fc_s=100.0 + t[0], **kw)
+        return [m for m in sched.messages(sol, t[0]) if m.get_msgId() == 331]
 
     assert step()[0].reset_counter == 0  # first valid heading: not a reset
     assert step()[0].reset_counter == 0
-    assert step(heading_source="synthetic_ahrs")[0].reset_counter == 1  # source change
-    assert step(heading_source="synthetic_ahrs", heading_valid=False) == []
-    assert step(heading_source="synthetic_ahrs")[0].reset_counter == 2  # regained
+    assert step(heading_source="synthetic_ahrs")[0].reset_counter == 0  # the name changed, the heading did not
+    assert step(heading_rad=hdg + math.radians(1.9))[0].reset_counter == 0  # < max(3 sigma = 6 deg, 2 deg)
+    assert step(heading_rad=hdg + math.radians(9.0))[0].reset_counter == 1  # a 7.1 deg step: a reset
+    # a 30 deg/s turn explains 3 deg per 0.1 s: no reset
+    yaw_rate = np.array([0.0, 0.0, math.radians(30.0)])
+    assert step(heading_rad=hdg + math.radians(12.0), rates_body_rad_s=yaw_rate)[0].reset_counter == 1
+    assert step(heading_valid=False) == []
+    assert step(heading_rad=hdg + math.radians(12.0))[0].reset_counter == 2  # regained after a gap
 
 
 def test_profile_for_autopilot():
