@@ -20,6 +20,7 @@ import csv
 import json
 import math
 import os
+import re
 import sys
 import time
 from dataclasses import dataclass, field
@@ -71,20 +72,41 @@ def _field_for_year(lat: float, lon: float, alt_m: float, year: float) -> tuple[
     return None
 
 
+def _read_config(path: str) -> dict:
+    """The config file's tables as written (validated once, after the site is merged in: a config
+    without [site] is valid here when --site or the log gives it). ConfigError as the daemon's."""
+    import tomllib
+    from service.config import ConfigError
+    p = Path(path)
+    try:
+        raw = tomllib.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: config file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{p}: is a directory, not a config file") from None
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    for section, keys in raw.items():
+        if not isinstance(keys, dict):
+            raise ConfigError(f"{section}: must be a table [{section}]")
+    return raw
+
+
 def build_config(args, reader) -> tuple[dict, list[str]]:
     """The Pipeline config: --config if given, else the defaults; the site from --site, else the
     config, else the log's GNSS. Returns (validated config, notes for the user)."""
-    from service.config import ConfigError, load, validate
+    from service.config import SPEC, ConfigError, validate
     notes: list[str] = []
     try:
-        if args.config:
-            cfg = load(args.config)
-            raw = {s: dict(v) for s, v in cfg.items()}
-            notes.append(f"config: {args.config}")
-        else:
-            raw = {}
+        raw = _read_config(args.config) if args.config else {}
     except ConfigError as exc:
         raise ReplayError(f"config error: {exc}") from None
+    if args.config:
+        notes.append(f"config: {args.config}")
     site_cfg = raw.setdefault("site", {})
     have_site = site_cfg.get("lat_deg") is not None or site_cfg.get("earth_field_ned_gauss") is not None
     year = reader.decimal_year()
@@ -123,9 +145,14 @@ def build_config(args, reader) -> tuple[dict, list[str]]:
         else:
             notes.append("the log carries no date: the field model's date is today")
     try:
-        cfg = validate({s: {k: v for k, v in keys.items() if v is not None} for s, keys in raw.items()})
+        cfg = validate({s: {k: v for k, v in keys.items() if v is not None} if s in SPEC else keys
+                        for s, keys in raw.items()})
     except ConfigError as exc:
         raise ReplayError(f"config error: {exc}") from None
+    if getattr(args, "exclude_fc_yaw", False):
+        # set after validation: the key may be newer than this config's schema
+        cfg["heading"]["use_fc_yaw"] = False
+        notes.append("the FC's yaw excluded (--exclude-fc-yaw): heading.use_fc_yaw = false")
     return cfg, notes
 
 
@@ -161,10 +188,14 @@ def _fmt(v: float, spec: str = ".12g") -> str:
 
 
 class _Progress:
-    def __init__(self, enabled: bool, stream=None):
-        self.enabled = enabled
+    """A progress bar with the ETA on stderr: on a terminal by default, or when asked (lines then)."""
+
+    WIDTH = 24
+
+    def __init__(self, enabled: bool | None, stream=None):
         self.stream = stream = stream if stream is not None else sys.stderr
-        self.tty = enabled and stream.isatty()
+        self.tty = bool(getattr(stream, "isatty", lambda: False)())
+        self.enabled = self.tty if enabled is None else enabled
         self.t0 = time.monotonic()
         self.next_s = self.t0 + 1.0
         self.shown = False
@@ -174,10 +205,13 @@ class _Progress:
         if not self.enabled or now < self.next_s:
             return
         self.next_s = now + (0.5 if self.tty else 5.0)
-        rate = n_imu / max(now - self.t0, 1e-9)
-        msg = (f"replay: {100 * frac:5.1f}%  log t={t_fc if t_fc is not None else float('nan'):9.1f} s  "
-               f"{n_imu} IMU samples  {rate:,.0f} samples/s")
-        self.stream.write(("\r" + msg) if self.tty else (msg + "\n"))
+        frac = min(max(frac, 0.0), 1.0)
+        elapsed = now - self.t0
+        eta = f"ETA {_clock(elapsed * (1.0 - frac) / frac)}" if frac > 0.01 else "ETA --:--"
+        bar = "#" * int(round(self.WIDTH * frac))
+        msg = (f"replay [{bar:<{self.WIDTH}}] {100 * frac:5.1f}%  {eta}  elapsed {_clock(elapsed)}  "
+               f"log t={t_fc if t_fc is not None else float('nan'):.1f} s  {n_imu / max(elapsed, 1e-9):,.0f} IMU/s")
+        self.stream.write(("\r" + msg + " " * 4) if self.tty else (msg + "\n"))
         self.stream.flush()
         self.shown = True
 
@@ -187,8 +221,31 @@ class _Progress:
             self.stream.flush()
 
 
+def _clock(seconds: float) -> str:
+    m, sec = divmod(int(round(seconds)), 60)
+    return f"{m // 60:d}:{m % 60:02d}:{sec:02d}" if m >= 60 else f"{m:d}:{sec:02d}"
+
+
+def _guarded(reader):
+    """The reader's items; a parser's exception on a damaged log becomes LogError (one line, exit 2)."""
+    from service.logreaders import LogError, one_line
+    it = iter(reader.items())
+    while True:
+        try:
+            item = next(it)
+        except StopIteration:
+            return
+        except LogError:
+            raise
+        except (ValueError, KeyError, IndexError, TypeError, AttributeError, OverflowError, EOFError,
+                UnicodeDecodeError, MemoryError, RecursionError, OSError) as exc:
+            raise LogError(f"{reader.path}: unreadable at {100 * reader.progress():.0f}% of the log "
+                           f"({one_line(exc)})") from None
+        yield item
+
+
 def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = REF_MAX_AGE_S,
-               out_period_s: float = 0.0, progress: bool = False) -> ReplayResult:
+               out_period_s: float = 0.0, progress: bool | None = False) -> ReplayResult:
     """Feed every item of ``reader`` to a fresh Pipeline; write the CSV; return the rows."""
     from mavlink_io.link import LinkEvent
     from mavlink_io.samples import (FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, ImuSample,
@@ -202,7 +259,7 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
                 FcFlightState: pipe.on_fc_flight_state}
     res = ReplayResult()
     cnt = {"imu": 0, "imu_with_mag": 0, "pressure": 0, "pressure_with_diff": 0, "pressure_diff_nonzero": 0,
-           "attitude": 0, "imu_time_span_s": [math.inf, -math.inf]}
+           "attitude": 0, "flight_state": 0, "imu_time_span_s": [math.inf, -math.inf]}
     imu_sources: dict[str, int] = {}
     ref: FcAttitude | None = None
     prog = _Progress(progress)
@@ -221,7 +278,7 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
     last_phase = None
     cols = res.cols
     try:
-        for item in reader.items():
+        for item in _guarded(reader):
             cls = type(item)
             if cls is ImuSample:
                 cnt["imu"] += 1
@@ -287,6 +344,7 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
                     pipe.on_fc_reboot()
                     ref = None
             else:
+                cnt["flight_state"] += cls is FcFlightState
                 fn = handlers.get(cls)
                 if fn is not None:
                     fn(item)
@@ -353,6 +411,7 @@ def summary(res: ReplayResult) -> dict:
         "imu_sources": res.counts.get("imu_sources", {}),
         "pressure_samples": res.counts.get("pressure", 0),
         "fc_attitude_samples": res.counts.get("attitude", 0),
+        "fc_flight_state_records": res.counts.get("flight_state", 0),
         "log_duration_s": dur,
         "phases": [{"phase": p, "from_time_s": tt} for p, tt in res.phases],
         "roll_rms_diff_deg": _rms(d_roll), "pitch_rms_diff_deg": _rms(d_pitch),
@@ -367,6 +426,7 @@ def summary(res: ReplayResult) -> dict:
         "missing_streams": res.missing,
         "notes": res.notes,
         "events": len(res.events),
+        "event_reasons": event_reasons(res.events),
         "imu_rejected": getattr(res.counters, "imu_rejected", 0),
         "imu_rejected_reasons": dict(getattr(res.counters, "reasons", {})),
         "wall_time_s": res.wall_s,
@@ -389,6 +449,30 @@ def summary(res: ReplayResult) -> dict:
     return out
 
 
+MAX_REASON_LINES = 25
+_NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?(?:e[-+]?\d+)?")
+
+
+def event_reasons(events: list) -> list[dict]:
+    """The events grouped by kind and reason (numbers aside), in order of first appearance: one
+    entry per reason with its count, the first occurrence's text and time, and how many differ."""
+    groups: dict[tuple, dict] = {}
+    for t, kind, detail in events:
+        detail = " ".join(str(detail).split())
+        key = (kind, _NUMBER.sub("#", detail))
+        g = groups.get(key)
+        if g is None:
+            groups[key] = g = {"kind": kind, "reason": detail, "first_time_s": t, "count": 0, "_texts": set()}
+        g["count"] += 1
+        if len(g["_texts"]) < 2:
+            g["_texts"].add(detail)
+    out = []
+    for g in groups.values():
+        g["variants"] = len(g.pop("_texts"))
+        out.append(g)
+    return out
+
+
 def print_summary(s: dict, res: ReplayResult, notes: list[str], log: Path, out=None) -> None:
     out = out if out is not None else sys.stdout
     p = lambda *a: print(*a, file=out)  # noqa: E731
@@ -397,20 +481,24 @@ def print_summary(s: dict, res: ReplayResult, notes: list[str], log: Path, out=N
         p(f"  note: {n}")
     src = ", ".join(f"{k} {v}" for k, v in s["imu_sources"].items()) or "none"
     p(f"  streams: IMU {s['imu_samples']} samples ({src}) at {s['imu_rate_hz']:.1f} Hz over "
-      f"{s['log_duration_s']:.1f} s; pressure {s['pressure_samples']}; FC attitude {s['fc_attitude_samples']}")
+      f"{s['log_duration_s']:.1f} s; pressure {s['pressure_samples']}; FC attitude {s['fc_attitude_samples']}; "
+      f"FC armed/landed state {s['fc_flight_state_records']}")
     for m in s["missing_streams"]:
         p(f"  missing: {m}")
     ph = ", ".join(f"{x['phase']} at {x['from_time_s']:.2f} s" for x in s["phases"]) or "none"
     p(f"  phases: {ph}")
-    kinds: dict[str, int] = {}
-    for _, kind, _detail in res.events:
-        kinds[kind] = kinds.get(kind, 0) + 1
-    if kinds:
-        p("  events: " + ", ".join(f"{k} x{v}" for k, v in sorted(kinds.items())))
-        shown = [e for e in res.events if e[1] in ("not_still", "levelled", "launch_ignored",
-                                                   "link.fc_reboot")][:3]
-        for t, kind, detail in shown:
-            p(f"    {kind} at {'' if t is None else f'{t:.2f} s'}: {detail}")
+    ph_log = ", ".join(f"{t:.2f} s" for t in s.get("log_takeoff_times_s", []))
+    if ph_log:
+        p(f"  the log's own take-off (its landed -> in air, not used by the estimators): {ph_log}")
+    groups = event_reasons(res.events)
+    if groups:
+        p(f"  events ({len(res.events)}), each reason once (first time; count):")
+        for g in groups[:MAX_REASON_LINES]:
+            t = "" if g["first_time_s"] is None else f" at {g['first_time_s']:.2f} s"
+            vary = ", values vary: the first shown" if g["variants"] > 1 else ""
+            p(f"    {g['kind']}: {g['reason']}{t} x{g['count']}{vary}")
+        if len(groups) > MAX_REASON_LINES:
+            p(f"    ... {len(groups) - MAX_REASON_LINES} more reasons (--json lists them all)")
     if s["imu_rejected"]:
         p(f"  IMU samples rejected by the pipeline: {s['imu_rejected']} {s['imu_rejected_reasons']}")
     for w in s["warnings"]:
@@ -514,20 +602,28 @@ def main(argv: list[str] | None = None) -> int:
                     "ULog) through the daemon's estimators, offline, and compare with the log's own attitude.")
     ap.add_argument("log", metavar="LOG", help="the flight log (.tlog, .bin, .ulg)")
     ap.add_argument("--config", metavar="FILE", help="daemon config (TOML); default: built from the log")
-    ap.add_argument("--site", metavar="LAT,LON[,ALT]", help="launch site (deg, deg, m) when the log has no GNSS fix")
+    ap.add_argument("--site", metavar="LAT,LON[,ALT]",
+                    help="launch site (deg, deg, m); overrides the config's and the log's")
     ap.add_argument("--output", metavar="OUT.csv", help="CSV, one row per output sample")
     ap.add_argument("--plot", metavar="OUT.png", help="plot of roll/pitch/heading vs the log's attitude (PNG)")
     ap.add_argument("--json", metavar="PATH", help="write the summary figures as JSON")
     ap.add_argument("--rate", type=float, metavar="HZ", default=0.0,
-                    help="output rows at most this often (FC time); default: every IMU sample")
+                    help="CSV/plot rows at most this often in FC time (the estimators still see every "
+                         "sample); default 0: one row per solution the Pipeline outputs")
     ap.add_argument("--ref-max-age", type=float, metavar="S", default=REF_MAX_AGE_S,
                     help=f"oldest FC attitude used as the reference of a row (default {REF_MAX_AGE_S} s)")
-    ap.add_argument("--no-progress", action="store_true", help="no progress lines on stderr")
+    ap.add_argument("--exclude-fc-yaw", action="store_true",
+                    help="never use the FC's own yaw as a heading source (heading.use_fc_yaw = false): "
+                         "our heading alone, compared with the FC's")
+    prog = ap.add_mutually_exclusive_group()
+    prog.add_argument("--progress", action="store_true",
+                      help="progress with ETA on stderr even when it is not a terminal")
+    prog.add_argument("--no-progress", action="store_true", help="no progress on stderr")
     try:
         args = ap.parse_args(argv)
     except SystemExit as exc:
         return int(exc.code or 0)
-    from service.logreaders import LogError, open_log
+    from service.logreaders import LogError, one_line, open_log
     try:
         if args.rate < 0 or not math.isfinite(args.rate):
             raise ReplayError(f"--rate: must be >= 0 Hz, got {args.rate}")
@@ -543,7 +639,8 @@ def main(argv: list[str] | None = None) -> int:
         if hasattr(reader, "imu_gap_s"):
             reader.imu_gap_s = cfg["mavlink"]["imu_gap_s"]
         res = run_replay(reader, cfg, Path(args.output) if args.output else None, args.ref_max_age,
-                         1.0 / args.rate if args.rate > 0 else 0.0, progress=not args.no_progress)
+                         1.0 / args.rate if args.rate > 0 else 0.0,
+                         progress=True if args.progress else (None if not args.no_progress else False))
         if res.imu_samples == 0:
             raise ReplayError(f"{args.log}: no IMU samples in this log (missing: "
                               f"{'; '.join(res.missing) or 'IMU'})")
@@ -556,7 +653,19 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"azimuthd replay: {exc.filename or args.log}: {exc.strerror or exc}", file=sys.stderr)
         return 2
+    except Exception as exc:  # noqa: BLE001 - a bug of ours: one line for the user, not a traceback
+        tb = exc.__traceback__
+        while tb is not None and tb.tb_next is not None:
+            tb = tb.tb_next
+        where = f" at {Path(tb.tb_frame.f_code.co_filename).name}:{tb.tb_lineno}" if tb is not None else ""
+        print(f"azimuthd replay: internal error{where} ({one_line(exc)}); please report it with the log",
+              file=sys.stderr)
+        return 1
     s["config_notes"] = notes
+    try:
+        s["log_takeoff_times_s"] = reader.takeoff_times_s()
+    except LogError:
+        s["log_takeoff_times_s"] = []
     print_summary(s, res, notes, Path(args.log))
     if args.output:
         print(f"  csv: {args.output}")

@@ -18,7 +18,12 @@ extension   reader                       streams used
 
 A stream the log does not have is reported in ``missing`` (never guessed, never zero-filled).
 Common interface (duck-typed, see ``LogReader``); bad input raises :class:`LogError` with a
-message naming the file and the problem.
+message naming the file and the problem, in one line (a damaged or truncated file is read up to
+the damage and says so in ``summary.notes``; a reader never lets a parser's exception out).
+
+Readers also yield ``FcFlightState`` (the FC's own armed / landed state from the log's records),
+the Pipeline's phase evidence; ``takeoff_times_s()`` gives the log's own take-off times from the
+same records, a reference for scoring only (the Pipeline never sees it).
 """
 from __future__ import annotations
 
@@ -61,6 +66,7 @@ class LogReader(Protocol):
     def decimal_year(self) -> float | None: ...
     def items(self) -> Iterator: ...
     def progress(self) -> float: ...
+    def takeoff_times_s(self) -> list[float]: ...
 
 
 EXTENSIONS = {".tlog": "tlog", ".bin": "dataflash", ".ulg": "ulog"}
@@ -102,3 +108,42 @@ GPS_EPOCH_UNIX_S = 315964800
 """1980-01-06 00:00:00 UTC, the GPS week origin, as Unix time."""
 GPS_LEAP_S = 18
 """GPS - UTC since 2017 (good to a few seconds for a date: all the field model needs)."""
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception as one short line (type and message), for a LogError's text."""
+    text = " ".join(str(exc).split())
+    return f"{type(exc).__name__}: {text[:160]}" if text else type(exc).__name__
+
+
+class FlightStateTrack:
+    """The FC's armed / landed state as a log states it, record by record, and its take-offs.
+
+    ``update(t_s, armed=..., landed=..., arming_event=...)`` takes what one record says (None: it
+    says nothing about that) and returns the combined state (armed, landed), each carried from the
+    last record that said it. A take-off is a landed -> in-air transition while armed (or while
+    the log never says): from "landed" said before, or from no landed state at all after an
+    arming seen in the log (an arming record, or armed after disarmed: a vehicle arms on the
+    ground). A log that starts in the air has no take-off until it lands again."""
+
+    def __init__(self) -> None:
+        self.armed: bool | None = None
+        self.landed: bool | None = None
+        self.takeoffs_s: list[float] = []
+        self._armed_on_ground = False
+
+    def update(self, t_s: float, armed: bool | None = None, landed: bool | None = None,
+               arming_event: bool = False) -> tuple[bool | None, bool | None]:
+        if armed is not None:
+            if armed and (arming_event or self.armed is False):
+                self._armed_on_ground = self.landed is not False
+            elif not armed:
+                self._armed_on_ground = False
+            self.armed = armed
+        if landed is False and self.landed is not False and self.armed is not False \
+                and (self.landed is True or self._armed_on_ground):
+            self.takeoffs_s.append(t_s)
+        if landed is not None:
+            self._armed_on_ground = False
+            self.landed = landed
+        return self.armed, self.landed

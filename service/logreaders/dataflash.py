@@ -1,161 +1,276 @@
-"""ArduPilot DataFlash logs (.bin) -> typed samples, with pymavlink's DFReader.
+"""ArduPilot DataFlash logs (.bin) -> typed samples, across ArduPilot generations.
 
-Messages (instance 0: field ``I`` == 0 where the log has it; first IMU/BARO/MAG of old logs) and
-units as ArduPilot logs them (body frame FRD after AHRS_ORIENTATION, like RAW_IMU):
+Records are walked by service.logreaders.dataflash_format (tolerant of damage and truncation).
+One sensor of each kind is used, the same for the whole log, and the summary says which:
+
+- the first instance: field ``I`` == the lowest instance logged where the message has ``I``
+  (ArduPilot >= 3.7 for MAG/BARO/ARSP, 4.1 for IMU), else the unnumbered message of old logs
+  (IMU, not IMU2/IMU3; MAG, not MAG2; BARO, not BAR2; ARSP, not ASP2);
+- time: ``TimeUS`` (us), or ``TimeMS`` (ms) in old logs, on the FC's boot clock.
 
 ====== ============================================= =============================================
 msg    fields                                        sample
 ====== ============================================= =============================================
-IMU    TimeUS us, GyrX/Y/Z rad/s, AccX/Y/Z m/s^2     ImuSample (specific force: [0,0,-g] at rest)
-MAG    TimeUS, MagX/Y/Z milligauss (calibrated:      ImuSample.mag_gauss (x 1e-3), held from the
-       offsets applied, as RAW_IMU's)                last MAG <= the IMU time, at most
+IMU    GyrX/Y/Z rad/s, AccX/Y/Z m/s^2                ImuSample (specific force: [0,0,-g] at rest)
+MAG    MagX/Y/Z milligauss (calibrated: offsets      ImuSample.mag_gauss (x 1e-3), held from the
+       applied, as RAW_IMU's)                        last MAG <= the IMU time, at most
                                                      MAG_MAX_AGE_S old
-BARO   TimeUS, Press Pa, Temp degC                   PressureSample (abs Pa, K)
-ARSP   TimeUS, DiffPress Pa                          PressureSample.press_diff_pa, held
-ATT    TimeUS, Roll, Pitch, Yaw deg (Yaw 0..360)     FcAttitude (rad; yaw (-pi, pi]; rates: the
+BARO   Press Pa, Temp degC                           PressureSample (abs Pa, K)
+ARSP   DiffPress Pa                                  PressureSample.press_diff_pa, held
+ATT    Roll, Pitch, Yaw deg (Yaw 0..360)             FcAttitude (rad; yaw (-pi, pi]; rates: the
                                                      last IMU gyro, as ATTITUDE's are)
-GPS    Status >= 3: Lat, Lng deg, Alt m; GWk, GMS    the site (first 3D fix) and the date
+EV     Id: 10 armed, 11 disarmed, 18 land complete,  FcFlightState (armed, landed) and the log's
+       28 not landed (ArduPilot's LogEvent ids)      take-off times
+ARM    ArmState (1 armed, 0 disarmed)                FcFlightState (armed)
+STAT   isFlying, Armed (ArduPlane)                   FcFlightState (landed = not isFlying, armed)
+GPS    Status >= 3 (3D fix): Lat, Lng deg, Alt m;    the site (first 3D fix) and the date
+       GWk/GMS (old: Week/TimeMS) GPS week and ms
 ====== ============================================= =============================================
 
 Records come in file order; ArduPilot writes them in time order per message type. An IMU sample
-whose TimeUS does not increase is passed on (the Pipeline rejects and counts it).
+whose time does not increase is passed on (the Pipeline rejects and counts it).
 """
 from __future__ import annotations
 
-import contextlib
-import io
 import math
+import struct
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
-from mavlink_io.samples import FcAttitude, ImuSample, PressureSample
-from service.logreaders import (GPS_EPOCH_UNIX_S, GPS_LEAP_S, LogError, LogSite, LogSummary,
-                                decimal_year_from_unix)
+from mavlink_io.samples import FcAttitude, FcFlightState, ImuSample, PressureSample
+from service.logreaders import (GPS_EPOCH_UNIX_S, GPS_LEAP_S, FlightStateTrack, LogError, LogSite, LogSummary,
+                                decimal_year_from_unix, one_line)
+from service.logreaders.dataflash_format import WalkStats, walk
 
 MAG_MAX_AGE_S = 0.5
 PRESS_DIFF_MAX_AGE_S = 1.0
 MGAUSS_TO_GAUSS = 1e-3
 _ZERO_C_K = 273.15
-_TYPES = ["IMU", "MAG", "BARO", "ARSP", "ATT"]
+# each sensor kind: message names, numbered ones (old logs) after the unnumbered one
+_KINDS = {"IMU": ("IMU", "IMU2", "IMU3"), "MAG": ("MAG", "MAG2", "MAG3"), "BARO": ("BARO", "BAR2", "BAR3"),
+          "ARSP": ("ARSP", "ASP2"), "GPS": ("GPS", "GPS2")}
+_NEEDS = {"IMU": ("GyrX", "GyrY", "GyrZ", "AccX", "AccY", "AccZ"), "MAG": ("MagX", "MagY", "MagZ"),
+          "BARO": ("Press",), "ARSP": ("DiffPress",), "GPS": ("Status", "Lat", "Lng"), "ATT": ("Roll", "Pitch", "Yaw")}
+_STATE_MSGS = {"EV", "ARM", "STAT"}
+# ArduPilot's LogEvent ids (AP_Logger): what each says about the armed / landed state
+_EV_ARMED, _EV_DISARMED, _EV_LAND_COMPLETE, _EV_NOT_LANDED = 10, 11, 18, 28
 
 
-def _instance0(m) -> bool:
-    i = getattr(m, "I", None)
-    return i is None or int(i) == 0
+def _time_s(rec: dict) -> float | None:
+    if "TimeUS" in rec:
+        return rec["TimeUS"] * 1e-6
+    if "TimeMS" in rec:
+        return rec["TimeMS"] * 1e-3
+    return None
+
+
+def _f(rec: dict, key: str) -> float:
+    v = rec.get(key)
+    return float(v) if isinstance(v, (int, float)) else math.nan
 
 
 class DataflashReader:
-    """``items()`` yields ImuSample, PressureSample and FcAttitude in log order."""
+    """``items()`` yields ImuSample, PressureSample, FcAttitude and FcFlightState in log order."""
 
     def __init__(self, path: Path):
         self.path = Path(path)
         self.summary = LogSummary(kind="dataflash", autopilot="ardupilot")
-        with open(self.path, "rb") as f:
-            head = f.read(3)
-        if len(head) < 3 or head[0] != 0xA3 or head[1] != 0x95:
+        try:
+            self._data = self.path.read_bytes()
+        except OSError as exc:
+            raise LogError(f"{self.path}: cannot read ({exc.strerror})") from None
+        if len(self._data) < 3 or self._data[0] != 0xA3 or self._data[1] != 0x95:
             raise LogError(f"{self.path}: not an ArduPilot DataFlash log (it does not start with the "
                            "record header 0xA3 0x95)")
-        self._stderr = io.StringIO()
-        try:
-            from pymavlink import DFReader
-            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(self._stderr):
-                self.df = DFReader.DFReader_binary(str(self.path), zero_time_base=True)
-        except Exception as exc:  # noqa: BLE001 - DFReader raises anything on a corrupt file
-            raise LogError(f"{self.path}: not a readable DataFlash log ({type(exc).__name__}: {exc})") from None
-        names = {f.name for f in self.df.formats.values()}
-        if "IMU" not in names:
-            raise LogError(f"{self.path}: no IMU message format in this DataFlash log")
         self._site: LogSite | None = None
         self._gps_unix_s: float | None = None
-        self._scanned = False
+        self._takeoffs: list[float] = []
+        self._offset = 0
+        self._scan()
+
+    # --- the first pass: formats, instances, site, date, the log's own flight state --------------
 
     def _scan(self) -> None:
-        if self._scanned:
+        st = WalkStats()
+        wanted = {n for names in _KINDS.values() for n in names} | _STATE_MSGS | {"ATT"}  # ATT: times as items()
+        instances: dict[str, set] = {}
+        track = FlightStateTrack()
+        last_t = 0.0
+        try:
+            for name, rec, _ in walk(self._data, wanted, st):
+                t = _time_s(rec) if not name.startswith("GPS") else None  # old GPS: TimeMS of the GPS week
+                last_t = t if t is not None else last_t
+                if "I" in rec:
+                    instances.setdefault(name, set()).add(rec["I"])
+                if name in _STATE_MSGS:
+                    self._state_update(track, name, rec, last_t)
+                elif name == "GPS" and self._site is None:
+                    self._gps(rec)
+        except (struct.error, ValueError, TypeError, KeyError) as exc:
+            raise LogError(f"{self.path}: unreadable DataFlash records ({one_line(exc)})") from None
+        self._stats = st
+        self._takeoffs = track.takeoffs_s
+        names = st.names()
+        self._use: dict[str, tuple[str, int | None]] = {}
+        for kind, msgs in _KINDS.items():
+            present = [m for m in msgs if m in names and st.counts.get(m)]
+            if not present:
+                continue
+            msg = present[0]
+            fmt = next(f for f in st.formats.values() if f.name == msg)
+            lacking = [c for c in _NEEDS[kind] if c not in fmt.columns]
+            if lacking:
+                if kind == "IMU":
+                    raise LogError(f"{self.path}: the IMU records have no {', '.join(lacking)} (columns: "
+                                   f"{', '.join(fmt.columns)})")
+                self.summary.notes.append(f"{msg} records have no {', '.join(lacking)}: {kind} not used")
+                continue
+            inst = min(instances[msg]) if msg in instances else None
+            self._use[kind] = (msg, inst)
+            others = sorted(instances.get(msg, ())) if inst is not None else present
+            if len(others) > 1:
+                self.summary.notes.append(f"{kind}: {msg}" + (f" instance {inst}" if inst is not None else "")
+                                          + f" used of {', '.join(map(str, others))}")
+        if "IMU" not in self._use:
+            raise LogError(f"{self.path}: no IMU records in this DataFlash log"
+                           + (" (truncated before the first)" if st.tail_bytes else ""))
+        if "ATT" in names:
+            fmt = next(f for f in st.formats.values() if f.name == "ATT")
+            lacking = [c for c in _NEEDS["ATT"] if c not in fmt.columns]
+            if lacking:
+                self.summary.notes.append(f"ATT records have no {', '.join(lacking)}: no reference attitude")
+            else:
+                self._use["ATT"] = ("ATT", None)
+        imu_cols = next(f for f in st.formats.values() if f.name == self._use["IMU"][0]).columns
+        if "TimeUS" not in imu_cols and "TimeMS" not in imu_cols:
+            raise LogError(f"{self.path}: the IMU records carry no time (no TimeUS or TimeMS column)")
+        if "TimeUS" not in imu_cols:
+            self.summary.notes.append("old DataFlash log: times from TimeMS (milliseconds)")
+        if st.tail_bytes:
+            self.summary.notes.append(f"the last {st.tail_bytes} bytes are an incomplete record (truncated log)")
+        if st.skipped_bytes or st.bad_formats:
+            self.summary.notes.append(f"{st.skipped_bytes} damaged bytes skipped"
+                                      + (f", {st.bad_formats} unusable FMT records" if st.bad_formats else "")
+                                      + " (corrupt log): records there are lost")
+
+    def _gps(self, rec: dict) -> None:
+        if "I" in rec and rec["I"] != 0:
             return
-        self._scanned = True
-        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(self._stderr):
-            self.df.rewind()
-            while True:
-                m = self.df.recv_match(type="GPS")
-                if m is None:
-                    break
-                if not _instance0(m) or int(getattr(m, "Status", 0)) < 3:
-                    continue
-                lat, lon = float(m.Lat), float(m.Lng)
-                if (lat == 0.0 and lon == 0.0) or not (-90 <= lat <= 90 and -180 <= lon <= 180):
-                    continue
-                self._site = LogSite(lat, lon, float(getattr(m, "Alt", 0.0)), f"GPS (status {int(m.Status)})")
-                wk, ms = getattr(m, "GWk", 0), getattr(m, "GMS", 0)
-                if wk:
-                    self._gps_unix_s = GPS_EPOCH_UNIX_S + wk * 604800 + ms * 1e-3 - GPS_LEAP_S
-                break
-            self.df.rewind()
+        lat, lon, status = _f(rec, "Lat"), _f(rec, "Lng"), _f(rec, "Status")
+        if not status >= 3 or not (math.isfinite(lat) and math.isfinite(lon)):
+            return
+        if (lat == 0.0 and lon == 0.0) or not (-90 <= lat <= 90 and -180 <= lon <= 180):
+            return
+        alt = _f(rec, "Alt")
+        self._site = LogSite(lat, lon, alt if math.isfinite(alt) else 0.0, f"GPS (status {int(status)})")
+        wk = rec.get("GWk", rec.get("Week"))
+        ms = rec.get("GMS", rec.get("TimeMS") if "Week" in rec else None)
+        if wk and ms is not None:
+            self._gps_unix_s = GPS_EPOCH_UNIX_S + wk * 604800 + ms * 1e-3 - GPS_LEAP_S
+
+    @staticmethod
+    def _state_update(track: FlightStateTrack, name: str, rec: dict, t: float):
+        """What one EV/ARM/STAT record says, into ``track``; (armed, landed) or None if it says nothing."""
+        if name == "EV":
+            ev = rec.get("Id")
+            if ev == _EV_ARMED:
+                return track.update(t, armed=True, arming_event=True)
+            if ev == _EV_DISARMED:
+                return track.update(t, armed=False)
+            if ev == _EV_LAND_COMPLETE:
+                return track.update(t, landed=True)
+            if ev == _EV_NOT_LANDED:
+                return track.update(t, landed=False)
+            return None
+        if name == "ARM" and "ArmState" in rec:
+            armed = bool(rec["ArmState"])
+            return track.update(t, armed=armed, arming_event=armed)
+        if name == "STAT" and "isFlying" in rec:
+            before = (track.armed, track.landed)
+            now = track.update(t, armed=bool(rec["Armed"]) if "Armed" in rec else None,
+                               landed=not rec["isFlying"])
+            return now if now != before else None
+        return None
 
     def site(self) -> LogSite | None:
-        self._scan()
         return self._site
 
     def decimal_year(self) -> float | None:
-        self._scan()
         return None if self._gps_unix_s is None else decimal_year_from_unix(self._gps_unix_s)
 
+    def takeoff_times_s(self) -> list[float]:
+        """The log's own take-offs (FC time s) from EV/ARM/STAT: for scoring only."""
+        return list(self._takeoffs)
+
     def progress(self) -> float:
-        return min(1.0, self.df.offset / self.df.data_len) if self.df.data_len else 1.0
+        return min(1.0, self._offset / len(self._data)) if self._data else 1.0
+
+    # --- the second pass: the samples --------------------------------------------------------------
 
     def items(self) -> Iterator:
         s = self.summary
-        df = self.df
-        df.rewind()
+        use = self._use
+        by_msg = {msg: (kind, inst) for kind, (msg, inst) in use.items() if kind != "GPS"}
+        wanted = set(by_msg) | _STATE_MSGS
         mag = None
         mag_t = -math.inf
         dp = None
         dp_t = -math.inf
         last_gyro = None
-        counts = {"imu": 0, "imu_with_mag": 0, "pressure": 0, "pressure_with_diff": 0, "attitude": 0}
-        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(self._stderr):
-            while True:
-                m = df.recv_match(type=_TYPES)
-                if m is None:
-                    break
-                if not _instance0(m):
+        last_t = 0.0
+        track = FlightStateTrack()
+        counts = {"imu": 0, "imu_with_mag": 0, "pressure": 0, "pressure_with_diff": 0, "attitude": 0,
+                  "flight_state": 0}
+        for name, rec, pos in walk(self._data, wanted):
+            self._offset = pos
+            t = _time_s(rec)
+            if t is None or not math.isfinite(t):
+                t = last_t  # an old EV has no time: the last record's
+            last_t = t
+            if name in _STATE_MSGS:
+                st = self._state_update(track, name, rec, t)
+                if st is not None:
+                    counts["flight_state"] += 1
+                    yield FcFlightState(t, t, st[0], st[1], name)
+                continue
+            kind, inst = by_msg[name]
+            if inst is not None and rec.get("I") != inst:
+                continue
+            if kind == "IMU":
+                g = np.array([rec["GyrX"], rec["GyrY"], rec["GyrZ"]], dtype=float)
+                a = np.array([rec["AccX"], rec["AccY"], rec["AccZ"]], dtype=float)
+                mg = mag if (mag is not None and 0.0 <= t - mag_t <= MAG_MAX_AGE_S) else None
+                counts["imu"] += 1
+                counts["imu_with_mag"] += mg is not None
+                last_gyro = g
+                yield ImuSample(t, t, g, a, mg, "IMU", 0)
+            elif kind == "MAG":
+                v = np.array([rec["MagX"], rec["MagY"], rec["MagZ"]], dtype=float) * MGAUSS_TO_GAUSS
+                if np.all(np.isfinite(v)) and np.any(v != 0.0):
+                    mag, mag_t = v, t
+            elif kind == "ARSP":
+                v = _f(rec, "DiffPress")
+                if math.isfinite(v):
+                    dp, dp_t = v, t
+            elif kind == "BARO":
+                press = _f(rec, "Press")
+                if not math.isfinite(press) or press <= 0.0:
                     continue
-                name = m.get_type()
-                t = m.TimeUS * 1e-6
-                if name == "IMU":
-                    g = np.array([m.GyrX, m.GyrY, m.GyrZ], dtype=float)
-                    a = np.array([m.AccX, m.AccY, m.AccZ], dtype=float)
-                    mg = mag if (mag is not None and 0.0 <= t - mag_t <= MAG_MAX_AGE_S) else None
-                    counts["imu"] += 1
-                    counts["imu_with_mag"] += mg is not None
-                    last_gyro = g
-                    yield ImuSample(t, t, g, a, mg, "IMU", 0)
-                elif name == "MAG":
-                    v = np.array([m.MagX, m.MagY, m.MagZ], dtype=float) * MGAUSS_TO_GAUSS
-                    if np.all(np.isfinite(v)) and np.any(v != 0.0):
-                        mag, mag_t = v, t
-                elif name == "ARSP":
-                    v = float(m.DiffPress)
-                    if math.isfinite(v):
-                        dp, dp_t = v, t
-                elif name == "BARO":
-                    press = float(m.Press)
-                    if not math.isfinite(press) or press <= 0.0:
-                        continue
-                    diff = dp if (dp is not None and 0.0 <= t - dp_t <= PRESS_DIFF_MAX_AGE_S) else None
-                    temp = float(getattr(m, "Temp", math.nan))
-                    counts["pressure"] += 1
-                    counts["pressure_with_diff"] += diff is not None
-                    yield PressureSample(t, t, press, diff, temp + _ZERO_C_K if math.isfinite(temp) else None, "BARO")
-                elif name == "ATT":
-                    roll, pitch, yaw = (math.radians(float(v)) for v in (m.Roll, m.Pitch, m.Yaw))
-                    w = last_gyro if last_gyro is not None else np.full(3, math.nan)
-                    counts["attitude"] += 1
-                    yield FcAttitude(t, t, roll, pitch, math.remainder(yaw, 2 * math.pi), w)
+                diff = dp if (dp is not None and 0.0 <= t - dp_t <= PRESS_DIFF_MAX_AGE_S) else None
+                temp = _f(rec, "Temp")
+                counts["pressure"] += 1
+                counts["pressure_with_diff"] += diff is not None
+                yield PressureSample(t, t, press, diff, temp + _ZERO_C_K if math.isfinite(temp) else None, "BARO")
+            elif kind == "ATT":
+                roll, pitch, yaw = (math.radians(_f(rec, k)) for k in ("Roll", "Pitch", "Yaw"))
+                if not (math.isfinite(roll) and math.isfinite(pitch) and math.isfinite(yaw)):
+                    continue
+                w = last_gyro if last_gyro is not None else np.full(3, math.nan)
+                counts["attitude"] += 1
+                yield FcAttitude(t, t, roll, pitch, math.remainder(yaw, 2 * math.pi), w)
+        self._offset = len(self._data)
         s.counts = counts
         if counts["imu"] == 0:
-            raise LogError(f"{self.path}: no IMU records (instance 0) in this DataFlash log")
-        skipped = [ln for ln in self._stderr.getvalue().splitlines() if ln.startswith("Skipped")]
-        if skipped:
-            s.notes.append(f"DFReader skipped damaged bytes {len(skipped)} time(s) (corrupt log)")
+            raise LogError(f"{self.path}: no IMU records in this DataFlash log")

@@ -5,7 +5,14 @@ the log's receive time (as ``mavlink_io.tlog.replay_tlog`` does), so the samples
 the daemon would have decoded live: same IMU source choice (RAW_IMU > HIGHRES_IMU > SCALED_IMU on
 ArduPilot), same units, same FC-clock unwrap, reboot and gap events. ``time_rx_s`` is the log's
 receive time (Unix seconds). Nothing is decoded a second time here except the few GNSS messages
-the site comes from (GPS_RAW_INT / GLOBAL_POSITION_INT / HOME_POSITION, which the link ignores).
+the site comes from and the FC's EXTENDED_SYS_STATE, which the link ignores:
+
+- the site: the first GPS_RAW_INT with fix_type >= 3 (3D); GLOBAL_POSITION_INT / HOME_POSITION
+  only once such a fix was seen (without a fix they hold whatever the FC initialised them to);
+- ``FcFlightState`` from the FC's EXTENDED_SYS_STATE.landed_state (1 on ground; 2 in air,
+  3 taking off, 4 landing: in the air; 0 undefined: not said), armed from its last HEARTBEAT;
+  its FC time is the last IMU sample's plus the receive time since. ``takeoff_times_s()``
+  comes from the same records (a log without EXTENDED_SYS_STATE has none to give).
 """
 from __future__ import annotations
 
@@ -13,7 +20,11 @@ import os
 from pathlib import Path
 from typing import Iterator
 
-from service.logreaders import LogError, LogSite, LogSummary, decimal_year_from_unix
+from service.logreaders import FlightStateTrack, LogError, LogSite, LogSummary, decimal_year_from_unix
+
+_MSG_HEARTBEAT, _MSG_EXTENDED_SYS_STATE = 0, 245
+_LANDED = {1: True, 2: False, 3: False, 4: False}
+"""MAV_LANDED_STATE -> landed (UNDEFINED 0: not said)."""
 
 _SITE_MESSAGES = ("GPS_RAW_INT", "GLOBAL_POSITION_INT", "HOME_POSITION")
 _ROTORCRAFT = {2, 3, 4, 13, 14, 15, 29, 35}
@@ -38,6 +49,7 @@ class TlogLogReader:
         self._site: LogSite | None = None
         self._first_t_s: float | None = None
         self._scanned = False
+        self._takeoffs: list[float] | None = None
         # a tlog must start with a record: 8-byte timestamp + MAVLink magic within the first few
         first = next(iter(TlogReader(self._data[:4096])), None)
         if first is None:
@@ -55,15 +67,18 @@ class TlogLogReader:
         from mavlink_io.tlog import TlogReader
         parser = mavlink2.MAVLink(None)
         parser.robust_parsing = True
+        fix_seen = [False]
         for t_s, frame in TlogReader(self._data):
             if self._first_t_s is None:
                 self._first_t_s = t_s
+            if _msgid(frame) not in _SITE_IDS:
+                continue
             try:
                 msgs = parser.parse_buffer(frame) or []
             except Exception:  # noqa: BLE001 - pymavlink raises bare exceptions on bad frames
                 continue
             for m in msgs:
-                site = _site_from_msg(m)
+                site = _site_from_msg(m, fix_seen)
                 if site is not None:
                     self._site = site
                     return
@@ -83,7 +98,7 @@ class TlogLogReader:
 
     def items(self) -> Iterator:
         from mavlink_io.link import LinkConfig, MavlinkLink
-        from mavlink_io.samples import FcHeartbeat
+        from mavlink_io.samples import FcFlightState, FcHeartbeat, ImuSample
         from mavlink_io.tlog import TlogReader
         from mavlink_io.transport import NullTransport
 
@@ -92,19 +107,45 @@ class TlogLogReader:
         clock_s = [0.0]
         cfg = LinkConfig(url="udpin:127.0.0.1:0", imu_gap_s=self.imu_gap_s)  # never opened
         self.link = link = MavlinkLink(cfg, clock=lambda: clock_s[0], transport=NullTransport(None))
+        os.environ.setdefault("MAVLINK20", "1")
+        from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+        parser = mavlink2.MAVLink(None)
+        parser.robust_parsing = True
         reader = TlogReader(self._data)
         record_bytes = 0
+        track = FlightStateTrack()
+        link_states = False  # the link decodes EXTENDED_SYS_STATE itself: no second copy from here
+        last_imu = None
+        n_states = 0
         for t_s, frame in reader:
             clock_s[0] = t_s
             record_bytes += 8 + len(frame)
             self._consumed = record_bytes + reader.skipped_bytes
             for item in link.feed(frame, t_s):
-                if type(item) is FcHeartbeat:
+                cls = type(item)
+                if cls is FcHeartbeat:
                     self._vehicle_type = item.vehicle_type
+                    if (item.system_id, item.component_id) == (link.target_system, link.target_component):
+                        track.update(self._fc_time(last_imu, t_s), armed=bool(item.armed))
+                elif cls is ImuSample:
+                    last_imu = item
+                elif cls is FcFlightState:
+                    link_states = True
                 yield item
+            if not link_states and _msgid(frame) == _MSG_EXTENDED_SYS_STATE \
+                    and _src(frame) == (link.target_system, link.target_component):
+                landed = _landed(parser, frame)
+                if landed is not None:
+                    t_fc = self._fc_time(last_imu, t_s)
+                    armed, landed = track.update(t_fc, landed=landed)
+                    n_states += 1
+                    yield FcFlightState(t_fc, t_s, armed, landed, "EXTENDED_SYS_STATE")
             yield from link.poll(0.0)  # timers: link timeout etc. (sent nowhere)
         self._consumed = self._size
+        self._takeoffs = track.takeoffs_s
         s = self.summary
+        if not n_states and not link_states:
+            s.notes.append("no EXTENDED_SYS_STATE from the FC: the log does not say when it was on the ground")
         s.autopilot = link.fc_autopilot
         s.counts = dict(link.stats.messages_by_type)
         st = link.stats.as_dict()
@@ -124,19 +165,64 @@ class TlogLogReader:
         if link.fc_autopilot is None:
             s.notes.append("no autopilot HEARTBEAT in the log: the link kept no vehicle's messages")
 
+    @staticmethod
+    def _fc_time(last_imu, t_rx_s: float) -> float | None:
+        """FC time at receive time ``t_rx_s``: the last IMU sample's FC time plus the receive time since."""
+        return None if last_imu is None else last_imu.time_fc_s + (t_rx_s - last_imu.time_rx_s)
+
+    def takeoff_times_s(self) -> list[float]:
+        """The log's own take-offs (FC time s) from EXTENDED_SYS_STATE and HEARTBEAT: for scoring only.
+        Replays the log through the link once if ``items()`` has not run yet."""
+        if self._takeoffs is None:
+            for _ in self.items():
+                pass
+        return [t for t in self._takeoffs if t is not None]
+
     def __repr__(self) -> str:
         return f"TlogLogReader({str(self.path)!r})"
 
 
-def _site_from_msg(m) -> LogSite | None:
+_SITE_IDS = {24, 33, 242}
+"""GPS_RAW_INT, GLOBAL_POSITION_INT, HOME_POSITION."""
+
+
+def _msgid(frame: bytes) -> int | None:
+    """The message id of a MAVLink v1 (0xFE) or v2 (0xFD) frame."""
+    if len(frame) >= 6 and frame[0] == 0xFE:
+        return frame[5]
+    if len(frame) >= 10 and frame[0] == 0xFD:
+        return frame[7] | frame[8] << 8 | frame[9] << 16
+    return None
+
+
+def _src(frame: bytes) -> tuple[int, int]:
+    return (frame[3], frame[4]) if frame[0] == 0xFE else (frame[5], frame[6])
+
+
+def _landed(parser, frame: bytes) -> bool | None:
+    try:
+        msgs = parser.parse_buffer(frame) or []
+    except Exception:  # noqa: BLE001 - pymavlink raises bare exceptions on bad frames
+        return None
+    for m in msgs:
+        if m.get_type() == "EXTENDED_SYS_STATE":
+            return _LANDED.get(int(m.landed_state))
+    return None
+
+
+def _site_from_msg(m, fix_seen: list) -> LogSite | None:
+    """A site from a GNSS message only where the log says the position is valid: GPS_RAW_INT
+    with a 3D fix; GLOBAL_POSITION_INT / HOME_POSITION once such a fix was seen."""
     t = m.get_type()
     if t not in _SITE_MESSAGES:
+        return None
+    if t == "GPS_RAW_INT" and m.fix_type >= 3:
+        fix_seen[0] = True
+    elif t == "GPS_RAW_INT" or not fix_seen[0]:
         return None
     lat, lon = m.lat * 1e-7, m.lon * 1e-7
     if lat == 0.0 and lon == 0.0 or not (-90 <= lat <= 90 and -180 <= lon <= 180):
         return None
     if t == "GPS_RAW_INT":
-        if m.fix_type < 3:
-            return None
         return LogSite(lat, lon, m.alt * 1e-3, f"GPS_RAW_INT (fix type {m.fix_type})")
-    return LogSite(lat, lon, m.alt * 1e-3, t)
+    return LogSite(lat, lon, m.alt * 1e-3, f"{t} (after a 3D fix)")
