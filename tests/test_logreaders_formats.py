@@ -310,7 +310,7 @@ def test_dataflash_old_layout_timems(tmp_path):
     assert states == [(True, None), (True, False)]
 
 
-def new_dataflash(path, events, *, gps_status=3, rename=None, cut=None) -> bytes:
+def new_dataflash(path, events, *, gps_status=3, rename=None, cut=None, seconds=4.0) -> bytes:
     """An ArduPilot 4.x log: TimeUS, instance field I (IMU 0 and 1), EV/ARM records at given times."""
     w = DataflashWriter()
     cols = {"IMU": "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ", "BARO": "TimeUS,I,Press,Temp"}
@@ -323,7 +323,7 @@ def new_dataflash(path, events, *, gps_status=3, rename=None, cut=None) -> bytes
     w.fmt(136, "ARM", "QHIbB", "TimeUS,ArmState,ArmChecks,Forced,Method")
     f = specific_force(ROLL_DEG, PITCH_DEG)
     ev = sorted(events)
-    for k in range(400):  # 100 Hz for 4 s
+    for k in range(int(100 * seconds)):  # 100 Hz
         t = 5_000_000 + 10_000 * k
         while ev and ev[0][0] * 1e6 <= t:
             t_ev, kind, val = ev.pop(0)
