@@ -523,8 +523,41 @@ def print_summary(s: dict, res: ReplayResult, notes: list[str], log: Path, out=N
 
 # --- plot --------------------------------------------------------------------------------------
 
+PLOT_SIGMA_CAP_DEG = 30.0
+"""1-sigma bands are drawn up to this (a sigma of 200 deg says "unknown": it would flatten the traces)."""
+PLOT_GAP_FACTOR = 5.0
+"""A line is broken where consecutive rows are further apart than this x the median row interval."""
+_SOURCE_COLOURS = {"azimuth": "C2", "synthetic_ahrs": "C0", "heading_filter": "C4", "coast": "C1", "fc": "C3"}
+
+
+def _breaks(t: np.ndarray, y: np.ndarray, wrap_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(t, y) with NaN inserted at time gaps and, for a wrapped angle, where it crosses 0/360, so
+    that a line plot joins neither a gap nor a wrap."""
+    if t.size < 2:
+        return t, y
+    dt = np.diff(t)
+    pos = dt[dt > 0]
+    gap = PLOT_GAP_FACTOR * (np.median(pos) if pos.size else 1.0)
+    cut = dt > gap
+    if wrap_deg is not None:
+        with np.errstate(invalid="ignore"):
+            cut |= np.abs(np.diff(y)) > wrap_deg / 2.0
+    idx = np.nonzero(cut)[0] + 1
+    return np.insert(t, idx, np.nan), np.insert(y, idx, np.nan)
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """[start, end) index runs where ``mask`` holds."""
+    m = np.concatenate([[False], mask, [False]]).astype(np.int8)
+    d = np.diff(m)
+    return list(zip(np.nonzero(d == 1)[0], np.nonzero(d == -1)[0]))
+
+
 def plot(res: ReplayResult, path: Path, title: str) -> None:
-    """Roll, pitch, heading (ours with the 1-sigma band, the log's reference) and the error."""
+    """Roll, pitch, heading (ours with the 1-sigma band capped at PLOT_SIGMA_CAP_DEG, the log's
+    reference) and the error; heading coloured by its source, the stretches whose heading uses the
+    FC's own yaw shaded (their zero error is the FC compared with itself); lines broken at gaps and
+    at the 0/360 wrap."""
     try:
         import matplotlib
     except ImportError:
@@ -534,42 +567,58 @@ def plot(res: ReplayResult, path: Path, title: str) -> None:
 
     t = np.asarray(res.time_s, float)
     c = {k: np.asarray(v, float) for k, v in res.cols.items()}
-    sig_roll = np.asarray(res.roll_sigma_deg, float)
-    sig_pitch = np.asarray(res.pitch_sigma_deg, float)
+    src = np.asarray(res.heading_source, dtype=str)
     step = max(1, t.size // 20000)  # a plot needs no more points than pixels
-    sl = slice(None, None, step)
+    t, src = t[::step], src[::step]
+    c = {k: v[::step] for k, v in c.items()}
+    cap = lambda sg: np.minimum(sg, PLOT_SIGMA_CAP_DEG)  # noqa: E731
+    sig = {"roll": cap(np.asarray(res.roll_sigma_deg, float)[::step]),
+           "pitch": cap(np.asarray(res.pitch_sigma_deg, float)[::step]),
+           "heading": cap(c["heading_sigma_deg"])}
+    uses_fc = np.array(["fc" in x.split("+") for x in src], dtype=bool)
     fig, axes = plt.subplots(3, 2, figsize=(14, 9), sharex=True, squeeze=False)
-    specs = (("roll", "roll_deg", "ref_roll_deg", sig_roll),
-             ("pitch", "pitch_deg", "ref_pitch_deg", sig_pitch),
-             ("heading", "heading_deg", "ref_heading_deg", c["heading_sigma_deg"]))
-    for row, (name, ours, ref, sig) in enumerate(specs):
+    for row, name in enumerate(("roll", "pitch", "heading")):
         ax, ax_e = axes[row]
-        y, r = c[ours], c[ref]
-        ax.plot(t[sl], r[sl], color="0.4", lw=1.0, label="log's FC estimate")
-        ax.plot(t[sl], y[sl], color="C0", lw=1.0, label="azimuthd")
-        ok = np.isfinite(y) & np.isfinite(sig)
-        if ok.any():
-            ax.fill_between(t[sl], (y - sig)[sl], (y + sig)[sl], where=ok[sl], color="C0", alpha=0.25,
-                            lw=0, label="azimuthd 1-sigma")
-        ax.set_ylabel(f"{name} (deg)")
+        y, r = c[f"{name}_deg"], c[f"ref_{name}_deg"]
+        wrap = 360.0 if name == "heading" else None
+        ax.plot(*_breaks(t, r, wrap), color="0.4", lw=1.0, label="log's FC estimate")
         err = y - r
         if name == "heading":
             err = (err + 180.0) % 360.0 - 180.0
-        ax_e.plot(t[sl], err[sl], color="C3", lw=1.0, label="azimuthd - FC")
+            for s_name in sorted(set(src) - {"none"}):
+                parts = s_name.split("+")
+                colour = _SOURCE_COLOURS.get(parts[0], "C5") if len(parts) == 1 else "C6"
+                ys = np.where(src == s_name, y, np.nan)
+                ax.plot(*_breaks(t, ys, wrap), color=colour, lw=1.0, label=f"azimuthd: {s_name}")
+            for a, b in _runs(uses_fc):
+                for a_x in (ax, ax_e):
+                    a_x.axvspan(t[a], t[min(b, t.size - 1)], color="C3", alpha=0.08, lw=0,
+                                label="heading uses the FC's own yaw" if (a_x is ax_e and a == _runs(uses_fc)[0][0])
+                                else None)
+        else:
+            ax.plot(*_breaks(t, y), color="C0", lw=1.0, label="azimuthd")
+        ok = np.isfinite(y) & np.isfinite(sig[name])
         if ok.any():
-            ax_e.fill_between(t[sl], -sig[sl], sig[sl], where=ok[sl], color="C0", alpha=0.2, lw=0,
-                              label="+-1-sigma")
+            lo, hi = y - sig[name], y + sig[name]
+            ax.fill_between(t, lo, hi, where=ok, color="C0", alpha=0.2, lw=0,
+                            label=f"azimuthd 1-sigma (capped at {PLOT_SIGMA_CAP_DEG:g} deg)")
+            ax_e.fill_between(t, -sig[name], sig[name], where=ok, color="C0", alpha=0.2, lw=0, label="+-1-sigma")
+        ax_e.plot(*_breaks(t, err), color="k", lw=0.8, label="azimuthd - FC")
         ax_e.axhline(0.0, color="0.6", lw=0.5)
+        ax.set_ylabel(f"{name} (deg)")
         ax_e.set_ylabel(f"{name} error (deg)")
+        if name == "heading":
+            ax.set_ylim(0.0, 360.0)
+            ax.set_yticks([0, 90, 180, 270, 360])
         if not np.isfinite(y).any():
             ax.text(0.5, 0.5, f"no {name} from azimuthd", transform=ax.transAxes, ha="center", color="C0")
         if not np.isfinite(r).any():
             ax.text(0.5, 0.4, "no reference in the log", transform=ax.transAxes, ha="center", color="0.4")
         for a in (ax, ax_e):
             a.grid(True, lw=0.3)
-        if row == 0:
-            ax.legend(loc="upper right", fontsize=8)
-            ax_e.legend(loc="upper right", fontsize=8)
+        if row in (0, 2):
+            ax.legend(loc="upper right", fontsize=7)
+            ax_e.legend(loc="upper right", fontsize=7)
     for p, t0 in res.phases:
         if p in ("launch", "in-flight"):
             for a in axes.ravel():
