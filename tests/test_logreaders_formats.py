@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from mavlink_io.samples import FcAttitude, FcFlightState, ImuSample, PressureSample
-from service.logreaders import FlightStateTrack, LogError, open_log
+from service.logreaders import FlightStateTrack, open_log
 from service.replay import main
 
 G0 = 9.80665
@@ -118,7 +118,7 @@ MAG_A_GA, MAG_B_GA = (0.21, -0.03, 0.42), (0.5, 0.5, 0.5)
 
 
 def px4_ulog(path, *, seconds=4.0, imu_hz=200.0, mag_hz=2.0, mag_ids=(1, 2), temp_field="ambient_temperature",
-             home=None, gyro_field="gyro_rad", with_sensor_combined=True) -> None:
+             home=None, gyro_field="gyro_rad", with_sensor_combined=True, raw_hz=1.0) -> None:
     """A still, tilted vehicle: sensor_combined at imu_hz; vehicle_magnetometer at mag_hz as instances
     ``mag_ids`` (the first MAG_A_GA, the others MAG_B_GA); vehicle_air_data with its temperature in
     ``temp_field`` (None: no temperature); vehicle_attitude; home_position = (valid_hpos, valid_alt)
@@ -126,7 +126,8 @@ def px4_ulog(path, *, seconds=4.0, imu_hz=200.0, mag_hz=2.0, mag_ids=(1, 2), tem
     T0+2.5 s (the FC's own take-off)."""
     w = UlogWriter()
     if with_sensor_combined:
-        w.topic("sensor_combined", [("uint64_t", "timestamp"), ("float[3]", gyro_field), ("uint32_t", "gyro_integral_dt"),
+        w.topic("sensor_combined", [("uint64_t", "timestamp"), ("float[3]", gyro_field),
+                                    ("uint32_t", "gyro_integral_dt"),
                                     ("int32_t", "accelerometer_timestamp_relative"), ("float[3]", "accelerometer_m_s2"),
                                     ("uint32_t", "accelerometer_integral_dt")])
     w.topic("sensor_gyro", [("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"), ("float", "x"),
@@ -149,8 +150,8 @@ def px4_ulog(path, *, seconds=4.0, imu_hz=200.0, mag_hz=2.0, mag_ids=(1, 2), tem
         t = us(T0_S + k / imu_hz)
         if with_sensor_combined:
             w.add("sensor_combined", t, [0.0, 0.0, 0.0], 5000, 0, f, 5000)
-        else:  # PX4's default profile: raw sensor topics at 1 Hz only
-            if k % int(imu_hz) == 0:
+        else:  # raw sensor topics only (PX4's default profile logs them at 1 Hz)
+            if k % int(imu_hz / raw_hz) == 0:
                 w.add("sensor_gyro", t, t, 0.0, 0.0, 0.0)
                 w.add("sensor_accel", t, t, *f)
         if k % 10 == 0:
@@ -245,6 +246,18 @@ def test_ulog_without_a_usable_imu_says_why_in_one_line(tmp_path, capsys):
     px4_ulog(p, seconds=3.0, with_sensor_combined=False)
     err = _one_line_error(capsys, [p, "--site", "1,2"])
     assert "no sensor_combined" in err and "1.0 Hz only" in err
+
+
+def test_ulog_imu_from_raw_sensor_topics(tmp_path):
+    """GIVEN no sensor_combined but sensor_gyro/sensor_accel at the full rate (high-rate profile)
+    THEN the IMU comes from them, the accelerometer held onto the gyro times, and it is said."""
+    p = tmp_path / "raw.ulg"
+    px4_ulog(p, seconds=1.0, with_sensor_combined=False, raw_hz=200.0)
+    r = open_log(p)
+    imu = [i for i in r.items() if type(i) is ImuSample]
+    assert len(imu) == 200 and imu[0].source == "sensor_gyro"
+    np.testing.assert_allclose(imu[-1].accel_m_s2, np.float32(specific_force(ROLL_DEG, PITCH_DEG)), rtol=0, atol=0)
+    assert any("IMU from sensor_gyro + sensor_accel" in n for n in r.summary.notes)
 
 
 def test_ulog_without_a_temperature_field(tmp_path):

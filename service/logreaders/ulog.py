@@ -260,7 +260,8 @@ class UlogReader:
             try:
                 self._takeoffs = self._flight_states()[2]
             except (KeyError, IndexError, ValueError, TypeError) as exc:
-                raise LogError(f"{self.path}: vehicle_status/vehicle_land_detected unreadable ({one_line(exc)})") from None
+                raise LogError(f"{self.path}: vehicle_status/vehicle_land_detected unreadable "
+                               f"({one_line(exc)})") from None
         return list(self._takeoffs)
 
     # --- streams ---------------------------------------------------------------------------------
