@@ -47,9 +47,9 @@ def _toml_value(v) -> str:
     return repr(v)
 
 
-def write_config(path: Path, overrides: dict[str, dict]) -> Path:
+def write_config(path: Path, overrides: dict[str, dict], example: Path = EXAMPLE_CONFIG) -> Path:
     """The example config with some keys replaced (a config a user would write for this flight)."""
-    with open(EXAMPLE_CONFIG, "rb") as f:
+    with open(example, "rb") as f:
         cfg = tomllib.load(f)
     for section, keys in overrides.items():
         cfg.setdefault(section, {}).update(keys)
