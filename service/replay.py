@@ -96,6 +96,17 @@ def _read_config(path: str) -> dict:
     return raw
 
 
+def _from_log(reader, fn):
+    """``fn()`` of a reader; a damaged log's parser exception becomes one LogError line."""
+    from service.logreaders import LogError, one_line
+    try:
+        return fn()
+    except LogError:
+        raise
+    except (ValueError, KeyError, IndexError, TypeError, AttributeError, OverflowError) as exc:
+        raise LogError(f"{reader.path}: unreadable ({one_line(exc)})") from None
+
+
 def build_config(args, reader) -> tuple[dict, list[str]]:
     """The Pipeline config: --config if given, else the defaults; the site from --site, else the
     config, else the log's GNSS. Returns (validated config, notes for the user)."""
@@ -109,7 +120,7 @@ def build_config(args, reader) -> tuple[dict, list[str]]:
         notes.append(f"config: {args.config}")
     site_cfg = raw.setdefault("site", {})
     have_site = site_cfg.get("lat_deg") is not None or site_cfg.get("earth_field_ned_gauss") is not None
-    year = reader.decimal_year()
+    year = _from_log(reader, reader.decimal_year)
     if args.site:
         lat, lon, alt = _parse_site(args.site)
         site_cfg.update({"lat_deg": lat, "lon_deg": lon, "earth_field_ned_gauss": None})
@@ -118,7 +129,7 @@ def build_config(args, reader) -> tuple[dict, list[str]]:
         notes.append(f"site from --site: {lat:.6f}, {lon:.6f}")
         have_site, site_from_log = True, False
     elif not have_site:
-        site = reader.site()
+        site = _from_log(reader, reader.site)
         if site is None:
             raise ReplayError(f"{reader.path}: the log has no GNSS position to take the launch site from: "
                               "give --site LAT,LON or --config FILE with [site] lat_deg/lon_deg")
