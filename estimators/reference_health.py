@@ -8,7 +8,11 @@ the FC's attitude is trusted. Trusted means all of:
    ``require_horiz_pos_ok`` (default), horiz_pos_ok: losing GNSS (the simulator's "GNSS lost /
    degraded" switch) clears horiz_pos_ok in EKF_STATUS_REPORT, and the FC's attitude then
    degrades slowly, so the loss of the position solution is the signal to stop trusting it;
-2. freshness: an FC ATTITUDE sample no older than ``max_attitude_age_s`` (FC time);
+2. freshness: an FC ATTITUDE sample no older than ``max_attitude_age_s`` (FC time), and a stream
+   that comes at least that often (the mean interval, an exponential average of the FC-time steps):
+   a 1 Hz ATTITUDE (ArduPilot's stock stream rate when a faster request is refused) would otherwise
+   be fresh half of each second and stale the other half, and the FC's heading source would flap
+   in and out of the arbitration with it;
 3. agreement with our gyros (silent divergence): the FC's attitude change since an anchor is
    compared with the change of our bias-corrected, gyro-only attitude over the same interval.
    Anchors are laid every ``anchor_period_s`` and kept up to ``window_s``; for each anchor
@@ -40,6 +44,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+INTERVAL_AVERAGING = 0.2
+"""Weight of the newest FC-time step in the mean ATTITUDE interval."""
 MAV_STATE_STANDBY = 3
 MAV_STATE_ACTIVE = 4
 HEALTHY_SYSTEM_STATUS = (MAV_STATE_STANDBY, MAV_STATE_ACTIVE)
@@ -85,6 +91,8 @@ class ReferenceHealthState:
     horiz_pos_ok: bool | None = None
     fc_time_s: float | None = None
     """FC time of the last ATTITUDE sample."""
+    attitude_interval_s: float | None = None
+    """Mean interval of the FC's ATTITUDE samples (FC time, exponential average)."""
     anchors: tuple = ()
     """((t_a, C_fc(t_a), C_gyro(t_a)), ...), oldest first."""
     max_discrepancy_rad: float = 0.0
@@ -132,6 +140,11 @@ def health_on_attitude(state: ReferenceHealthState, C_nav_from_body_fc: np.ndarr
     C_g = np.asarray(C_nav_from_body_gyro, dtype=float)
     if not (np.all(np.isfinite(C_fc)) and np.all(np.isfinite(C_g)) and math.isfinite(time_s)):
         raise ValueError("health_on_attitude: non-finite input")
+    interval = state.attitude_interval_s
+    if state.fc_time_s is not None and 0.0 < time_s - state.fc_time_s < params.window_s:
+        step = time_s - state.fc_time_s  # the mean interval: new = old + a (step - old)
+        interval = step if interval is None else interval + INTERVAL_AVERAGING * (step - interval)
+    state = replace(state, attitude_interval_s=interval)
     if (state.check_time_s is not None and 0.0 <= time_s - state.check_time_s < params.check_period_s
             and not _signals_bad(state, params)):
         return replace(state, fc_time_s=time_s)
@@ -170,6 +183,9 @@ def health_trusted(state: ReferenceHealthState, time_s: float,
     """Is the FC attitude trusted at FC time ``time_s``? (trusted, reason when not)."""
     if state.fc_time_s is None:
         return False, "no FC attitude yet"
+    if state.attitude_interval_s is not None and state.attitude_interval_s > params.max_attitude_age_s:
+        return False, (f"FC ATTITUDE every {state.attitude_interval_s:.2f} s (> {params.max_attitude_age_s:g} s): "
+                       "too slow to be a reference")
     if time_s - state.fc_time_s > params.max_attitude_age_s:
         return False, f"FC attitude stale ({time_s - state.fc_time_s:.2f} s)"
     signals = _signals_bad(state, params)

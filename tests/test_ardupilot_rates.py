@@ -169,3 +169,24 @@ def test_param_value_px4_bytewise_integers_are_reinterpreted():
     assert dec.decode_param_value(a, 1.0, bytewise=False).value == 1.0  # ArduPilot casts to float
     with pytest.raises(dec.NonFiniteField):
         dec.decode_param_value(mavlink2.MAVLink_param_value_message(b"X", float("nan"), 9, 1, 0), 1.0, False)
+
+
+def test_a_1_hz_fc_attitude_is_never_a_reference_instead_of_flapping():
+    """ArduPilot's stock 1 Hz ATTITUDE was fresh (< 0.5 s old) half of each second: trust, and the
+    FC's heading source with it, went in and out every second. Now a stream slower than
+    max_attitude_age_s is not a reference at all; 25 Hz (what a refused 50 Hz request gets) is."""
+    import numpy as np
+    from estimators.reference_health import health_init, health_on_attitude, health_on_ekf_status, \
+        health_on_heartbeat, health_trusted
+    for rate_hz, expect in ((1.0, False), (25.0, True)):
+        st = health_on_ekf_status(health_on_heartbeat(health_init(), 4), True, True)
+        verdicts = []
+        for k in range(int(30 * rate_hz)):
+            t = k / rate_hz
+            st = health_on_attitude(st, np.eye(3), np.eye(3), t)
+            for dt in (0.0, 0.3, 0.6 / rate_hz):  # checked at, and between, samples
+                verdicts.append(health_trusted(st, t + dt))
+        late = verdicts[len(verdicts) // 2:]  # after the 10 s re-trust hold and the averaging
+        assert {ok for ok, _ in late} == {expect}, rate_hz
+        if not expect:
+            assert {why for _, why in late} == {"FC ATTITUDE every 1.00 s (> 0.5 s): too slow to be a reference"}
