@@ -106,12 +106,31 @@ def _cmd_sim(argv: list[str]) -> int:
     return sim_main(argv)
 
 
+def missing_extra(module: str, extra: str, what: str) -> str | None:
+    """The one-line message for an optional dependency that is not installed, else None."""
+    import importlib.util
+    if importlib.util.find_spec(module) is not None:
+        return None
+    return (f"{what} needs {module}, an optional part of azimuthd: pip install 'azimuthd[{extra}]' "
+            f"(into the same environment as azimuthd)")
+
+
 def _cmd_replay(argv: list[str]) -> int:
+    if any(a == "--plot" or a.startswith("--plot=") for a in argv):
+        msg = missing_extra("matplotlib", "plot", "--plot")
+        if msg:  # said before a long replay, not after it
+            print(f"azimuthd replay: {msg}", file=sys.stderr)
+            return 2
     from service.replay import main as replay_main
     return replay_main(argv)
 
 
 def _cmd_watch(argv: list[str]) -> int:
+    if "--json" not in argv and not any(a in ("-h", "--help") for a in argv):
+        msg = missing_extra("rich", "tui", "the terminal dashboard")
+        if msg:
+            print(f"azimuthd watch: {msg}; or use --json", file=sys.stderr)
+            return 2
     from service.watch import main as watch_main
     return watch_main(argv)
 

@@ -85,8 +85,10 @@ def _fmt_angle(rad: float | None, sigma: float | None, width: int = 6) -> str:
 def status_line(sol: NavSolution | None, rates: dict[str, float], link_up: bool,
                 imu_silent_s: float | None = None) -> str:
     """The one-line live status: phase, roll/pitch/heading with sigma, link rates (wall-clock Hz over
-    the last 2 s). imu_silent_s: time since the last IMU sample; from IMU_SILENCE_SHOWN_S on, the line
-    says so (the FC still answers but its sensor streams stopped, or the sender stalled)."""
+    the last 2 s of receive time). imu_silent_s: time since the newest IMU sample handled was read;
+    from IMU_SILENCE_SHOWN_S on, the line says so: the FC's sensor streams stopped, the sender
+    stalled, or this loop is behind (a batch read at once is stamped with its read time), which is
+    also when the rates read 0 Hz while the link is up."""
     if sol is None:
         head = "phase=boot"
     else:
@@ -100,7 +102,7 @@ def status_line(sol: NavSolution | None, rates: dict[str, float], link_up: bool,
     r = " ".join(f"{k.lower()}={v:.0f}Hz" for k, v in sorted(rates.items()) if k in _SHOWN_RATES)
     silent = ""
     if link_up and imu_silent_s is not None and imu_silent_s >= IMU_SILENCE_SHOWN_S:
-        silent = f" (no IMU for {imu_silent_s:.1f} s)"
+        silent = f" (last IMU read {imu_silent_s:.1f} s ago)"
     return f"{head} | link={'up' if link_up else 'DOWN'} {r}{silent}"
 
 
