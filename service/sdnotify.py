@@ -7,7 +7,8 @@ that, conventionally every half period. Outside systemd every call is a no-op re
 
 The daemon calls:
     notifier = Notifier.from_env()
-    notifier.notify("READY=1")                 # once the MAVLink link and the bus are up
+    notifier.notify("READY=1\nSTATUS=waiting for the flight controller on URL")   # once it runs,
+                                               # before the FC answers (service/daemon.py)
     if notifier.watchdog_due(now_s): notifier.notify("WATCHDOG=1")   # from the main loop
     notifier.notify("STATUS=in-flight, heading azimuth 231.2 deg")
     notifier.notify("STOPPING=1")              # on shutdown
