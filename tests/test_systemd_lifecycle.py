@@ -130,3 +130,26 @@ def test_bad_urls_stop_the_start_with_one_line(tmp_path, capsys, args, expected)
     assert main(["run", "--config", str(cfg), *args]) == 2
     err = capsys.readouterr().err
     assert expected in err and len(err.strip().splitlines()) == 1
+
+
+def test_sighup_saves_what_the_flight_learnt_and_the_loop_runs_on(tmp_path, monkeypatch):
+    """GIVEN a daemon whose flight has a magnetometer-error estimate WHEN SIGHUP arrives THEN the
+    next loop step writes it to the state directory, and the daemon is not asked to stop."""
+    from estimators.mag_error_kf import kf1_init
+    from service.config import load
+    from service.daemon import Daemon
+    cfg = load(_config(tmp_path, free_udp_port()))
+    cfg["azimuth"]["solve_in_background"] = False  # no worker process to start and join here
+    d = Daemon(cfg)
+    learnt = kf1_init()
+    monkeypatch.setattr(d.pipeline, "kf1_estimate", lambda: learnt)
+    d.open()
+    try:
+        files_before = set((tmp_path / "state").iterdir()) if (tmp_path / "state").exists() else set()
+        d._on_sighup(signal.SIGHUP, None)
+        d.step(0.0)
+        written = set((tmp_path / "state").iterdir()) - files_before
+        assert [p.name for p in written] == [d.calibration.store.path.name]
+        assert not d.stop_requested and not d.reload_requested
+    finally:
+        d.close()
