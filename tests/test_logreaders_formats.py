@@ -421,3 +421,59 @@ def test_flight_state_takeoffs(records, takeoffs):
     for t, armed, landed in records:
         track.update(t, armed=armed, landed=landed)
     assert track.takeoffs_s == takeoffs
+
+
+# --- MAVLink telemetry log -----------------------------------------------------------------------------
+
+def test_tlog_landed_state_and_the_fcs_takeoff(tmp_path):
+    """GIVEN a telemetry log with the FC's HEARTBEAT (armed bit) and EXTENDED_SYS_STATE
+    WHEN read THEN FcFlightState follows landed_state with the armed bit, at FC time, and the
+    log's own take-off is the first in-air state after arming."""
+    import os
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink.dialects.v20 import ardupilotmega as mav
+    m = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+    t_unix0, out = 1_700_000_000.0, []
+
+    def rec(t_s, msg):
+        out.append(struct.pack(">Q", int(round((t_unix0 + t_s) * 1e6))) + msg.pack(m))
+    f = specific_force(0.0, 0.0)
+    for k in range(300):  # 50 Hz for 6 s
+        t = k * 0.02
+        if k % 25 == 0:
+            armed = t >= 2.0
+            rec(t, mav.MAVLink_heartbeat_message(2, 3, 128 if armed else 0, 0, 4 if armed else 3, 3))
+            landed_state = 1 if t < 3.0 else 2
+            rec(t + 0.001, mav.MAVLink_extended_sys_state_message(0, landed_state))
+        rec(t + 0.002, mav.MAVLink_raw_imu_message(int((100.0 + t) * 1e6), int(f[0] * 1000 / G0),
+                                                   int(f[1] * 1000 / G0), int(f[2] * 1000 / G0), 0, 0, 0, 200, 0, 400))
+    p = tmp_path / "f.tlog"
+    p.write_bytes(b"".join(out))
+    r = open_log(p)
+    items = list(r.items())
+    # the landed state as the daemon's link gives it (armed: the HEARTBEAT's, or None when the link
+    # decodes EXTENDED_SYS_STATE itself and leaves armed to the HEARTBEAT)
+    states = [(s.armed, s.landed) for s in items if type(s) is FcFlightState]
+    assert [x[1] for x in states] == [True] * 6 + [False] * 6
+    assert {x[0] for x in states} <= {None, False, True}
+    # take-off at the first IN_AIR state (receive time 3.001 s: FC time of the last RAW_IMU + 0.019 s)
+    assert r.takeoff_times_s() == [pytest.approx(100.0 + 2.98 + 0.019, abs=1e-6)]
+
+
+def test_dataflash_arduplane_stat_is_flying(tmp_path):
+    """ArduPlane's STAT (isFlying, Armed), logged continuously: a state change only, one take-off."""
+    w = DataflashWriter()
+    w.fmt(129, "IMU", "QBffffff", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ")
+    w.fmt(140, "STAT", "QBfBBBBBB", "TimeUS,isFlying,isFlyProb,Armed,Safety,Crash,Still,Stage,Hit")
+    f = specific_force(0.0, 0.0)
+    for k in range(300):  # 100 Hz for 3 s; STAT at 10 Hz
+        t = 1_000_000 + 10_000 * k
+        w.rec("IMU", t, 0, 0.0, 0.0, 0.0, *f)
+        if k % 10 == 0:
+            w.rec("STAT", t + 5, int(k >= 200), 0.0, int(k >= 100), 0, 0, 0, 0, 0)
+    p = tmp_path / "plane.bin"
+    p.write_bytes(w.bytes())
+    r = open_log(p)
+    states = [(round(s.time_fc_s, 6), s.armed, s.landed) for s in r.items() if type(s) is FcFlightState]
+    assert states == [(1.000005, False, True), (2.000005, True, True), (3.000005, True, False)]
+    assert r.takeoff_times_s() == [pytest.approx(3.000005)]

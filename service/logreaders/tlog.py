@@ -11,8 +11,9 @@ the site comes from and the FC's EXTENDED_SYS_STATE, which the link ignores:
   only once such a fix was seen (without a fix they hold whatever the FC initialised them to);
 - ``FcFlightState`` from the FC's EXTENDED_SYS_STATE.landed_state (1 on ground; 2 in air,
   3 taking off, 4 landing: in the air; 0 undefined: not said), armed from its last HEARTBEAT;
-  its FC time is the last IMU sample's plus the receive time since. ``takeoff_times_s()``
-  comes from the same records (a log without EXTENDED_SYS_STATE has none to give).
+  its FC time is the last IMU sample's plus the receive time since (when the link decodes
+  EXTENDED_SYS_STATE itself, its FcFlightState is passed on instead, as the daemon gets it).
+  ``takeoff_times_s()`` comes from the same records (a log without EXTENDED_SYS_STATE has none).
 """
 from __future__ import annotations
 
@@ -131,6 +132,8 @@ class TlogLogReader:
                     last_imu = item
                 elif cls is FcFlightState:
                     link_states = True
+                    if item.landed is not None:
+                        track.update(self._fc_time(last_imu, t_s), landed=item.landed)
                 yield item
             if not link_states and _msgid(frame) == _MSG_EXTENDED_SYS_STATE \
                     and _src(frame) == (link.target_system, link.target_component):
