@@ -37,6 +37,7 @@ VERDICT = {
     "pitch_rms_deg_max": 1.0,
     "heading_rms_deg_max": 2.0,        # the project's heading target (README: <= 2 deg RMS)
     "daemon_errors_max": 0,
+    "attitude_rate_fraction_min": 0.5,  # of [outputs] attitude_hz, as received by the ground station
 }
 """PASS needs every one; the accuracy thresholds are the README's targets, not its demo figure
 (README_DEMO_FIGURE), which a healthy run is printed beside."""
@@ -58,7 +59,10 @@ def compare_with_truth(attitude: list, truth: dict, launch_time_s: float | None)
     idx = np.clip(np.searchsorted(tt, t), 0, len(tt) - 1)
     d_roll = np.degrees(angle_diff_rad(a[:, 1], eul[idx, 0]))
     d_pitch = np.degrees(angle_diff_rad(a[:, 2], eul[idx, 1]))
+    rx = np.array([row[4] for row in attitude], dtype=float)
     out = {"attitude_messages": int(len(a)),
+           # wall-clock rate at the ground station while the daemon was sending
+           "attitude_received_hz": float((len(rx) - 1) / (rx[-1] - rx[0])) if len(rx) > 1 and rx[-1] > rx[0] else 0.0,
            "roll_rms_deg": float(np.sqrt(np.mean(d_roll ** 2))), "roll_max_abs_deg": float(np.max(np.abs(d_roll))),
            "pitch_rms_deg": float(np.sqrt(np.mean(d_pitch ** 2))), "pitch_max_abs_deg": float(np.max(np.abs(d_pitch)))}
     valid = np.isfinite(a[:, 3])
@@ -126,6 +130,12 @@ def sim_outcome(log: str) -> dict:
     return {"simulated_s": float(m.group(1)), "wall_s": float(m.group(2)), "sent": json.loads(m.group(4))}
 
 
+def configured_attitude_hz(config_path) -> float:
+    import tomllib
+    with open(config_path, "rb") as f:
+        return float(tomllib.load(f).get("outputs", {}).get("attitude_hz", 50.0))
+
+
 DRAIN_WAIT_S = 30.0
 
 
@@ -167,6 +177,10 @@ def verdict(summary: dict, requested_s: float, speed: float) -> list[str]:
             why.append(f"no {axis} was received from the daemon")
         elif rms > lim:
             why.append(f"{axis} RMS {rms:.2f} deg > {lim:g} deg")
+    got, asked = summary.get("attitude_received_hz"), summary.get("attitude_configured_hz")
+    if got is not None and asked and got < v["attitude_rate_fraction_min"] * asked:
+        why.append(f"ATTITUDE reached the ground station at {got:.1f} Hz, < {v['attitude_rate_fraction_min']:.0%} "
+                   f"of the configured {asked:g} Hz")
     if summary.get("daemon_errors", 0) > v["daemon_errors_max"]:
         why.append(f"the daemon logged {summary['daemon_errors']} error(s)")
     return why
@@ -216,6 +230,7 @@ def main(argv: list[str] | None = None) -> int:
                "simulator_finished": finished, "speed_requested_x": args.speed,
                "speed_achieved_x": flown / sim_wall if sim_wall > 0 else 0.0, "wall_s": wall_s,
                **compare_with_truth(sitl.listener.attitude, truth, launch),
+               "attitude_configured_hz": configured_attitude_hz(sitl.config_path),
                "daemon_heartbeats_seen": sitl.listener.heartbeats,
                "imu_messages_sent_by_simulator": imu_sent, "imu_messages_received_by_daemon": imu_got,
                "imu_lost_fraction": (1.0 - imu_got / imu_sent) if imu_sent and imu_got is not None else None,
@@ -240,7 +255,8 @@ def main(argv: list[str] | None = None) -> int:
     Path(args.json).write_text(json.dumps(summary, indent=2))
     print(f"\n  thresholds: flown >= {VERDICT['flown_fraction_min']:.0%} of the asked time, IMU lost <= "
           f"{VERDICT['imu_lost_fraction_max']:.0%}, roll/pitch RMS <= {VERDICT['roll_rms_deg_max']:g} deg, heading "
-          f"RMS <= {VERDICT['heading_rms_deg_max']:g} deg, no daemon error ({README_DEMO_FIGURE})")
+          f"RMS <= {VERDICT['heading_rms_deg_max']:g} deg, ATTITUDE received at >= "
+          f"{VERDICT['attitude_rate_fraction_min']:.0%} of its configured rate, no daemon error ({README_DEMO_FIGURE})")
     if failed:
         print("VERDICT: FAIL: " + "; ".join(failed))
     else:

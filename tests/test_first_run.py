@@ -74,19 +74,22 @@ def test_readme_pair_as_written_reaches_a_ground_station(tmp_path):
 
 def _summary(**over) -> dict:
     base = {"simulated_flown_s": 120.0, "speed_achieved_x": 3.9, "imu_lost_fraction": 0.0,
-            "roll_rms_deg": 0.6, "pitch_rms_deg": 0.2, "heading_rms_deg": 0.5, "daemon_errors": 0}
+            "roll_rms_deg": 0.6, "pitch_rms_deg": 0.2, "heading_rms_deg": 0.5, "daemon_errors": 0,
+            "attitude_received_hz": 48.0, "attitude_configured_hz": 50.0}
     return {**base, **over}
 
 
 def test_verdict_pass_at_the_thresholds_and_each_failure_named():
     assert live_demo.verdict(_summary(), 120.0, 4.0) == []
     assert live_demo.verdict(_summary(roll_rms_deg=1.0, heading_rms_deg=2.0, imu_lost_fraction=0.01), 120.0, 4.0) == []
+    assert live_demo.verdict(_summary(attitude_received_hz=25.0), 120.0, 4.0) == []
     why = live_demo.verdict(_summary(simulated_flown_s=37.5, speed_achieved_x=0.26, imu_lost_fraction=0.103,
-                                     heading_rms_deg=2.5, daemon_errors=2), 120.0, 4.0)
+                                     heading_rms_deg=2.5, daemon_errors=2, attitude_received_hz=0.75), 120.0, 4.0)
     assert why == ["the simulator flew only 37.5 s of the 120 s asked (< 95%) at 0.26x instead of 4x: the machine is "
                    "too busy for this speed; try --speed 1",
                    "the daemon lost 10.3% of the IMU messages (> 1%)",
                    "heading RMS 2.50 deg > 2 deg",
+                   "ATTITUDE reached the ground station at 0.8 Hz, < 50% of the configured 50 Hz",
                    "the daemon logged 2 error(s)"]
     nothing = live_demo.verdict(_summary(roll_rms_deg=None, pitch_rms_deg=None, heading_rms_deg=None,
                                          imu_lost_fraction=None), 120.0, 4.0)
