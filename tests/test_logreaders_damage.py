@@ -145,3 +145,30 @@ def _rename_ulog_field(data: bytes, old: bytes, new: bytes) -> bytes:
         out += len(payload).to_bytes(2, "little") + bytes([kind]) + payload
         pos += 3 + size
     return bytes(out + data[pos:])
+
+
+def _without(data: bytes, msg_ids: set[int]) -> bytes:
+    """A tlog's records minus the frames of ``msg_ids`` (a stream the FC never sent)."""
+    from mavlink_io.tlog import TlogReader
+    out = []
+    for t_s, frame in TlogReader(data):
+        mid = frame[5] if frame[0] == 0xFE else frame[7] | frame[8] << 8 | frame[9] << 16
+        if mid not in msg_ids:
+            out.append(int(round(t_s * 1e6)).to_bytes(8, "big") + frame)
+    return b"".join(out)
+
+
+def test_tlog_missing_streams(tmp_path, capsys):
+    """GIVEN a telemetry log without SCALED_PRESSURE THEN no pressure samples and replay names the
+    barometer missing; without any IMU message THEN one line, exit 2."""
+    from service.replay import main
+    data = _bytes("tlog")
+    p = tmp_path / "nobaro.tlog"
+    p.write_bytes(_without(data, {29}))  # SCALED_PRESSURE
+    items, r = _read(p)
+    assert items is not None and not [i for i in items if type(i) is PressureSample]
+    assert [i for i in items if type(i) is ImuSample]
+    p.write_bytes(_without(data, {27, 26, 105, 116, 129}))  # RAW_IMU, SCALED_IMU(1-3), HIGHRES_IMU
+    assert main([str(p), "--site", "1,2", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "no IMU samples" in err and err.count("\n") == 1
