@@ -1,0 +1,321 @@
+"""``azimuthd web`` in a real browser (headless Chromium driven by selenium), against the bundled
+simulator and the daemon, as a user runs them: three processes on loopback (sim -> MAVLink ->
+daemon -> Zenoh -> web -> SSE -> Chromium).
+
+GIVEN `azimuthd sim` (inclined rail, at rest before launch), `azimuthd run` publishing on Zenoh
+      with a geofence, and `azimuthd web` connected to it
+WHEN the page is loaded in Chromium
+THEN it shows the vehicle by name, the phase, a heading equal (to its 0.1 deg display) to the
+     `heading` payload the daemon published for the same FC time, the heading sources the daemon
+     reported with which one is used, link up, the fence; every topic the daemon published
+     validates against the schema and carries `time_unix_s`; and when the daemon stops the page
+     shows it GONE.
+
+Chromium and chromedriver are Debian's packages (`apt-get install chromium chromium-driver`; .ci/run
+installs them). Outside CI the browser test is skipped, with the reason, when they are absent.
+AZIMUTHD_DASHBOARD_PNG=PATH also saves the screenshot there; docs/dashboard.png is made with
+AZIMUTHD_DASHBOARD_WAIT_S=150 (a longer flight, GNSS lost 15 s after the launch: the track is dead
+reckoned) and AZIMUTHD_DASHBOARD_PNG=docs/dashboard.png.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from service import schema
+from service.web.hub import Client, Hub
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))
+from sitl import Sitl, scenario_site  # noqa: E402
+
+VEHICLE = "uav-web"
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMEDRIVER = shutil.which("chromedriver")
+HEADING_DISPLAY_TOL_DEG = 0.05 + 1e-9
+"""The page shows the heading with one decimal: rounding is the only difference allowed."""
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_until(cond, timeout_s: float, poll_s: float = 0.1):
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        got = cond()
+        if got:
+            return got
+        time.sleep(poll_s)
+    return cond()
+
+
+# --- the hub and the command line, without a browser ---------------------------------------------
+
+def test_hub_fans_out_keeps_the_track_and_drops_the_oldest_for_a_slow_browser():
+    """GIVEN a browser connected to the hub WHEN more messages arrive than its queue holds THEN
+    it loses the oldest (counted), keeps the newest; geofence positions make the track."""
+    hub = Hub(["tcp/127.0.0.1:1"])
+    client = hub.connect()
+    first = json.loads(client.queue.get_nowait())
+    assert first["type"] == "snapshot" and first["status"]["no_daemon"] is True
+    assert "no azimuthd found on tcp/127.0.0.1:1" in first["status"]["message"]
+    small = Client(maxsize=3)
+    hub.clients.append(small)
+    for k in range(5):
+        body = json.dumps({"schema": "azimuthd/1", "vehicle": "uav1", "time_fc_s": float(k),
+                           "state": "ok", "lat_deg": 47.0 + k * 1e-4, "lon_deg": 8.0})
+        hub.state.on_sample("azimuthd/uav1/geofence", body)
+        hub.on_sample("azimuthd/uav1/geofence", body)
+    assert small.dropped == 2
+    kept = [json.loads(small.queue.get_nowait())["payload"]["time_fc_s"] for _ in range(3)]
+    assert kept == [2.0, 3.0, 4.0]
+    assert hub.snapshot()["tracks"]["uav1"] == [[47.0 + k * 1e-4, 8.0] for k in range(5)]
+    hub.on_liveliness("azimuthd/uav1/alive", False)
+    hub.state.on_liveliness("azimuthd/uav1/alive", False)
+    assert hub.status()["vehicles"]["uav1"]["status"] == "GONE"
+    hub.disconnect(client)
+    assert client not in hub.clients
+
+
+def run_web(args: list[str], timeout_s: float = 30.0) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "service.cli", "web", *args], cwd=ROOT,
+                          capture_output=True, text=True, timeout=timeout_s)
+
+
+def test_web_refuses_a_busy_port_and_a_bad_endpoint_in_one_line():
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        taken = run_web(["--listen", f"127.0.0.1:{port}", "--duration", "1"])
+    assert taken.returncode == 2
+    assert taken.stderr.strip() == (f"azimuthd web: cannot listen on 127.0.0.1:{port}: address already in "
+                                    "use (another azimuthd web? choose another --listen HOST:PORT)")
+    bad = run_web(["--connect", "localhost:7447", "--listen", f"127.0.0.1:{free_tcp_port()}",
+                   "--duration", "1"])
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr
+    assert bad.stderr.startswith("azimuthd web: cannot open a Zenoh peer session to localhost:7447")
+    assert len(bad.stderr.strip().splitlines()) == 1
+    form = run_web(["--listen", "8765"])
+    assert form.returncode == 2 and "--listen must be HOST:PORT" in form.stderr
+
+
+# --- the browser ---------------------------------------------------------------------------------
+
+def _browser_or_skip():
+    if CHROMIUM and CHROMEDRIVER:
+        return
+    why = ("chromium and chromedriver not installed (Debian: apt-get install chromium chromium-driver; "
+           ".ci/run installs them)")
+    if os.environ.get("CI"):
+        pytest.fail(why)
+    pytest.skip(why)
+
+
+def chrome(user_data_dir: Path):
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = CHROMIUM
+    for arg in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                "--disable-dev-shm-usage", "--window-size=1500,1100", f"--user-data-dir={user_data_dir}"):
+        opts.add_argument(arg)
+    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    # explicit binaries: selenium's driver manager never goes to the network
+    return webdriver.Chrome(options=opts, service=Service(executable_path=CHROMEDRIVER))
+
+
+class ZenohRecorder:
+    """The test's own subscriber: what the daemon published, to compare the page with."""
+
+    def __init__(self, endpoint: str):
+        import zenoh
+
+        conf = zenoh.Config()
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        self.session = zenoh.open(conf)
+        self.lock = threading.Lock()
+        self.by_topic: dict[str, list[dict]] = {}
+        self.sub = self.session.declare_subscriber(f"azimuthd/{VEHICLE}/**", self._on)
+
+    def _on(self, s) -> None:
+        topic = str(s.key_expr).rsplit("/", 1)[1]
+        with self.lock:
+            self.by_topic.setdefault(topic, []).append(json.loads(s.payload.to_string()))
+
+    def get(self, topic: str) -> list[dict]:
+        with self.lock:
+            return list(self.by_topic.get(topic, []))
+
+    def close(self) -> None:
+        self.sub.undeclare()
+        self.session.close()
+
+
+def fence_around(site: dict, half_deg: float = 0.02) -> list:
+    la, lo = site["lat_deg"], site["lon_deg"]
+    return [[[la - half_deg, lo - half_deg], [la - half_deg, lo + half_deg],
+             [la + half_deg, lo + half_deg], [la + half_deg, lo - half_deg]]]
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory):
+    _browser_or_skip()
+    wd = tmp_path_factory.mktemp("web")
+    zenoh_ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    http_port = free_tcp_port()
+    site = scenario_site("inclined_rail")["site"]
+    overrides = {"vehicle": {"name": VEHICLE}, "zenoh": {"enabled": True, "listen": [zenoh_ep]},
+                 "geofence": {"enabled": True, "inclusion": fence_around(site), "actions": ["rtl"]}}
+    sim_args = ["--duration", "400"]
+    if float(os.environ.get("AZIMUTHD_DASHBOARD_WAIT_S", "0")) > 0:
+        sim_args += ["--set", "gnss.lost_at_s=75"]  # the documentation's flight: dead reckoning after 15 s
+    sitl = Sitl(scenario="inclined_rail", speed=1.0, seed=5, workdir=wd, config_overrides=overrides,
+                sim_args=sim_args)
+    web = subprocess.Popen([sys.executable, "-m", "service.cli", "web", "--connect", zenoh_ep,
+                            "--listen", f"127.0.0.1:{http_port}"], cwd=ROOT,
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                           env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    recorder = driver = None
+    try:
+        recorder = ZenohRecorder(zenoh_ep)
+        line = web.stdout.readline()
+        assert "azimuthd web: serving http://127.0.0.1:" in line, line
+        sitl.__enter__()
+        driver = chrome(wd / "chromium-profile")
+        driver.set_page_load_timeout(30)
+        driver.get(f"http://127.0.0.1:{http_port}/")
+        yield {"driver": driver, "sitl": sitl, "recorder": recorder, "web": web, "workdir": wd}
+    finally:
+        if driver is not None:
+            driver.quit()
+        if sitl.daemon is not None:
+            sitl.stop()
+        if recorder is not None:
+            recorder.close()
+        web.send_signal(signal.SIGTERM)
+        try:
+            web.wait(15)
+        except subprocess.TimeoutExpired:
+            web.kill()
+            web.wait(5)
+
+
+CARD = f'section.vehicle[data-vehicle="{VEHICLE}"]'
+PAGE_STATE_JS = """
+const card = document.querySelector(arguments[0]);
+if (!card) return null;
+const f = (n) => { const e = card.querySelector(`[data-field="${n}"]`); return e ? e.textContent : null; };
+const h = card.querySelector('[data-field="heading_true_deg"]');
+return {vehicle: f("vehicle"), status: f("status"), status_reason: f("status_reason"), link: f("link"),
+        phase: f("phase"), autopilot: f("autopilot"), heading: h.textContent,
+        heading_time_fc_s: h.dataset.time_fc_s || null, sigma: f("heading_sigma_deg"),
+        counters: f("counters"), fences: card.querySelectorAll(".track polygon.fence").length,
+        events: card.querySelectorAll('[data-field="events"] li').length,
+        sources: [...card.querySelectorAll('[data-field="sources"] tr[data-source]')].map(
+          (r) => [r.dataset.source, ...[...r.cells].map((c) => c.textContent)])};
+"""
+
+
+def page(driver) -> dict | None:
+    """What the vehicle's card shows, read in one script call (one instant of the live page)."""
+    return driver.execute_script(PAGE_STATE_JS, CARD)
+
+
+def test_page_shows_what_the_daemon_publishes(live):
+    d, rec, sitl = live["driver"], live["recorder"], live["sitl"]
+    # WHEN the daemon has levelled on the launcher and has a heading (what the daemon itself
+    # reports, waited for with a bound: no timing luck)
+    assert wait_until(lambda: any(c["kind"] == "levelling" for c in rec.get("calibration")), 60.0), \
+        f"no levelling published; daemon log:\n{sitl.log('daemon')[-2000:]}"
+    assert wait_until(lambda: (p := page(d)) and re.fullmatch(r"\d{1,3}\.\d°", p["heading"]), 20.0), \
+        d.page_source[:3000]
+    assert wait_until(lambda: page(d)["fences"] >= 1, 15.0), "the fence was not drawn"
+    wait_s = float(os.environ.get("AZIMUTHD_DASHBOARD_WAIT_S", "0"))
+    if wait_s > 0:
+        sitl.wait_for(lambda: False, wait_s)  # a longer flight for the documentation's screenshot
+
+    # the page at one instant, and the heading payload the daemon published for the same FC time
+    def shown_and_published():
+        p = page(d)
+        t_fc = p["heading_time_fc_s"]
+        match = [h for h in rec.get("heading") if t_fc and h["time_fc_s"] == float(t_fc)]
+        return (p, match[-1]) if match and p["heading"].endswith("°") else None
+    pair = wait_until(shown_and_published, 10.0)
+    assert pair, "the heading on the page matches no heading payload the daemon published"
+    shown, published = pair
+
+    # THEN the vehicle, by name, alive, link up, in the phase the daemon published
+    assert shown["vehicle"] == VEHICLE
+    assert shown["status"] == "alive" and shown["link"] == "up"
+    assert shown["phase"] in ("pre-launch", "launch", "in-flight")
+    assert shown["phase"] in {a["phase"] for a in rec.get("attitude")[-40:]}
+    # the heading, to its display's rounding, and its sigma
+    assert published["heading_valid"] is True
+    assert abs(float(shown["heading"].rstrip("°")) - published["heading_true_deg"]) <= HEADING_DISPLAY_TOL_DEG
+    assert shown["sigma"] == f"± {published['heading_sigma_deg']:.1f}° (1σ)"
+    # the sources of that same payload: every one shown, used as reported, a reason when unused
+    rows = {name: (used, why) for name, _, used, why in shown["sources"]}
+    assert set(rows) == set(published["sources"])
+    assert {"synthetic_ahrs", "heading_filter"} <= set(rows)  # B and C always report
+    for name, s in published["sources"].items():
+        assert rows[name][0] == ("yes" if s["used"] else "no"), name
+        if not s["used"]:
+            assert rows[name][1] == s["reason"] and s["reason"], name
+    assert set(published["heading_source"].split("+")) <= {n for n, (u, _) in rows.items() if u == "yes"} | {"coast"}
+    # health counters and events came through
+    assert shown["autopilot"] == "ardupilot"
+    assert "imu samples" in shown["counters"]
+    assert shown["events"] >= 1
+
+    # no script error in the page
+    errors = [e for e in d.get_log("browser") if e["level"] == "SEVERE"]
+    assert not errors, errors
+
+    d.save_screenshot(str(live["workdir"] / "dashboard.png"))
+    if os.environ.get("AZIMUTHD_DASHBOARD_PNG"):
+        d.save_screenshot(os.environ["AZIMUTHD_DASHBOARD_PNG"])
+
+
+def test_every_topic_published_validates_and_carries_wall_clock(live):
+    rec = live["recorder"]
+    # air_data at 2 Hz from method B's air data; calibration on change (levelling at least)
+    for topic in ("attitude", "heading", "azimuth", "air_data", "calibration", "geofence", "health", "events"):
+        payloads = rec.get(topic)
+        assert payloads, f"nothing published on {topic}"
+        for p in payloads:
+            assert schema.validate(topic, p) == [], (topic, schema.validate(topic, p)[:3])
+            assert isinstance(p["time_unix_s"], float) and p["time_unix_s"] > 1.7e9
+    level = next(c for c in rec.get("calibration") if c["kind"] == "levelling")
+    assert level["status"] == "done" and len(level["gyro_bias_rad_s"]) == 3
+    air = rec.get("air_data")[-1]
+    assert 300.0 < air["pressure_altitude_m"] < 500.0  # the launch site is at about 400 m
+    fence = next(g for g in rec.get("geofence") if "inclusion_polygons_deg" in g)
+    assert len(fence["inclusion_polygons_deg"][0]) == 4
+
+
+def test_page_shows_the_daemon_gone_when_it_stops(live):
+    d, sitl = live["driver"], live["sitl"]
+    sitl.daemon.send_signal(signal.SIGTERM)
+    sitl.daemon.wait(20)
+    assert wait_until(lambda: page(d)["status"] == "GONE", 20.0)
+    shown = page(d)
+    assert "liveliness token withdrawn" in shown["status_reason"]
+    assert shown["link"] == "-"  # not the last "up" of a daemon that is gone
