@@ -30,7 +30,7 @@ pytestmark = [pytest.mark.skipif(MISSING is not None, reason=MISSING or ""), pyt
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory):
     # instance 3: ports 5790-5793, apart from the bench's default -I 1 and other users of -I 2
-    args = aps.build_parser().parse_args(["-I", "3", "--speedup", "2", "--flight-wall-limit-s", "300"])
+    args = aps.build_parser().parse_args(["-I", "3", "--speedup", "2", "--rest-s", "4", "--flight-wall-limit-s", "300"])
     args.sitl_dir = SITL
     if not all(aps.port_free(p) for p in aps.sitl_ports(args.instance).values()):
         pytest.skip(f"SITL instance -I {args.instance} ports are in use")
