@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcHeartbeat, FcSysStatus,
+from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, FcSysStatus,
                                 ImuSample, PressureSample)
 
 G0_M_S2 = 9.80665
@@ -246,6 +246,19 @@ def decode_command_ack(msg, time_rx_s: float) -> CommandAck:
     return CommandAck(time_rx_s, int(msg.command), int(msg.result), int(getattr(msg, "progress", 0) or 0),
                       int(getattr(msg, "result_param2", 0) or 0), int(getattr(msg, "target_system", 0) or 0),
                       int(getattr(msg, "target_component", 0) or 0))
+
+
+# EXTENDED_SYS_STATE.landed_state (MAV_LANDED_STATE): the FC's land detector
+LANDED_STATE_LANDED = {0: None, 1: True, 2: False, 3: False, 4: False}
+"""UNDEFINED -> None (not said), ON_GROUND -> landed, IN_AIR / TAKEOFF / LANDING -> in the air
+(FcFlightState.landed: taking off and landing count as in the air)."""
+
+
+def decode_extended_sys_state(msg, time_rx_s: float) -> FcFlightState:
+    """EXTENDED_SYS_STATE (no timestamp; armed is the HEARTBEAT's, so None here). A landed_state
+    outside the enum says nothing (None), it does not fail the message."""
+    return FcFlightState(None, time_rx_s, None, LANDED_STATE_LANDED.get(int(msg.landed_state)),
+                         "EXTENDED_SYS_STATE")
 
 
 # --- STATUSTEXT and PARAM_VALUE ----------------------------------------------------------------

@@ -1148,6 +1148,8 @@ class MavlinkLink:
                 items.append(dataclasses.replace(att, time_fc_s=t))
         elif mtype == "HEARTBEAT":
             items.append(dec.decode_heartbeat(msg, rx_s))
+        elif mtype == "EXTENDED_SYS_STATE":  # the FC's land detector: phase evidence
+            items.append(dec.decode_extended_sys_state(msg, rx_s))
         elif mtype == "EKF_STATUS_REPORT":
             opt = dec.OptionalFieldCounter()
             items.append(dec.decode_ekf_status_report(msg, rx_s, opt))

@@ -123,14 +123,20 @@ class Pipeline:
         self.cfg = cfg
         imu, launch, heading = cfg["imu"], cfg["launch"], cfg["heading"]
         self.gyro_bias_sigma_rad_s = math.radians(imu["gyro_bias_sigma_deg_s"])
+        self.in_flight_start_detect = launch["in_flight_start_detect"]
+        # levelling: 20 samples is the statistics' floor (1 s at 20 Hz); the block length is still_seconds
+        mount = quat_from_euler(*(math.radians(imu[k]) for k in ("mount_roll_deg", "mount_pitch_deg", "mount_yaw_deg")))
         self.phase_params = PhaseParams(still_seconds=imu["still_seconds"],
-                                        levelling=LevellingParams(accel_bias_sigma_m_s2=imu["accel_bias_sigma_m_s2"]),
+                                        levelling=LevellingParams(min_samples=20,
+                                                                  accel_bias_sigma_m_s2=imu["accel_bias_sigma_m_s2"]),
                                         detect_accel_m_s2=launch["detect_accel_m_s2"],
                                         detect_hold_s=launch["detect_hold_s"],
                                         boost_window_s=launch["boost_window_s"],
+                                        vehicle=launch["vehicle"],
+                                        forward_sensor=tuple(dcm_from_quat(mount)[0, :]),  # body x in sensor axes
+                                        detect_started_in_flight=self.in_flight_start_detect,
                                         in_flight=InFlightParams(airspeed_m_s=launch["in_flight_airspeed_m_s"],
                                                                  alt_rate_m_s=launch["in_flight_alt_rate_m_s"]))
-        self.in_flight_start_detect = launch["in_flight_start_detect"]
         self.strapdown_params = StrapdownParams(max_dt_s=cfg["mavlink"]["imu_gap_s"])
         # q_body_from_sensor: the sensor axes' attitude in the body frame (configured mount)
         self.q_body_from_sensor = quat_from_euler(math.radians(imu["mount_roll_deg"]),
@@ -170,6 +176,9 @@ class Pipeline:
             e_ned_gauss=self.field.e_ned_gauss, launch_case=launch["case"],
             distortion_model=cfg["azimuth"]["distortion_model"], C_body_from_sensor=self.C_body_from_sensor,
             levelling=self.phase_params.levelling, strapdown=self.strapdown_params,
+            # the delay line must outlast the take-off detector's latency (the runway roll's hold)
+            prelaunch_buffer_s=max(0.5, self.phase_params.runway_hold_s, self.phase_params.liftoff_hold_s)
+            + 2.0 * self.phase_params.filter_tau_s,
             gyro_bias_sigma_rad_s=self.gyro_bias_sigma_rad_s, field_model_sigma_rad=self.declination_sigma_rad)
         # the step never solves by itself: on_imu hands snapshots to the solver on this schedule
         self.solve_period_s = (self.azimuth_params.resolve_period_s, self.azimuth_params.resolve_period_unsolved_s)
@@ -263,8 +272,7 @@ class Pipeline:
         self._last_rx_s = s.time_rx_s
 
         prev_phase = self.phase.phase
-        evidence = (self._flight_evidence(t) if prev_phase == PRE_LAUNCH and self.in_flight_start_detect
-                    else None)
+        evidence = self._flight_evidence(t) if prev_phase in (PRE_LAUNCH, LAUNCH) else None
         self.phase, events = phase_step(self.phase, gyro_s, accel_s, t, self.phase_params, evidence)
         for ev in events:
             self._event(*ev)
@@ -483,7 +491,17 @@ class Pipeline:
         elif prev_phase == PRE_LAUNCH:  # launch detected on this sample
             self._declination_at_launch()
             self.azimuth = azimuth_prelaunch_step(self.azimuth, gyro_s, accel_s, t)
-            self.azimuth, why = azimuth_launch(self.azimuth, self.phase.launch_time_s)
+            why = self._azimuth_why_not()
+            if why:  # one line, and method A stays off for this flight
+                self._azimuth_off, self.azimuth_out = f"not run: {why}", None
+                self._event("azimuth", self._azimuth_off)
+                return
+            # method A levels on the phases' kept block (the quietest window), the samples from the
+            # launch on replayed from its delay line
+            t_launch = self.phase.launch_time_s
+            self.azimuth = dc_replace(self.azimuth, levelling=self.phase.level_block,
+                                      pending=tuple(x for x in self.azimuth.pending if x[0] >= t_launch))
+            self.azimuth, why = azimuth_launch(self.azimuth, t_launch)
             if why:
                 self._event("azimuth", why)
         elif self.azimuth.phase != "prelaunch":
@@ -499,6 +517,33 @@ class Pipeline:
                 self._event("azimuth", f"{out.status}: {out.reason}" if out.reason else out.status)
             self._azimuth_status = out.status
             self.azimuth_out = out
+
+    def _azimuth_why_not(self) -> str:
+        """Why method A cannot run from this take-off ("" = its conditions hold: levelled on a
+        block that still holds at the launch, and a flight direction for the configured case)."""
+        ph, pp = self.phase, self.phase_params
+        if ph.level is None or ph.level_block is None:
+            return "no levelling before the take-off"
+        if ph.moved_rad > pp.moved_rad:
+            return (f"the vehicle turned {math.degrees(ph.moved_rad):.1f} deg since its last still block "
+                    f"(> {math.degrees(pp.moved_rad):g} deg): the levelling does not hold at the take-off")
+        if self.azimuth_params.launch_case == "inclined" and pp.vehicle not in ("launcher", "hand"):
+            return (f"launch.case inclined needs a boost along the flight axis; a {pp.vehicle} take-off has "
+                    "none (set launch.case aligned)")
+        return ""
+
+    def azimuth_status(self) -> str:
+        """Method A's state in one line (what the replay summary and the status topic show)."""
+        if self.phase.started_in_flight:
+            return "disabled: started in flight"
+        if self._azimuth_off is not None:
+            return self._azimuth_off
+        if self.azimuth_out is not None:
+            o = self.azimuth_out
+            return f"{o.status}: {o.reason}" if o.reason else o.status
+        if self.phase.level is None:
+            return "waiting: not levelled yet"
+        return "waiting for the take-off"
 
     def _deviation_corrected(self, mag_body_gauss: np.ndarray) -> np.ndarray:
         """Method D's correction of the magnetometer (body axes) for C, once it covers enough
@@ -645,14 +690,9 @@ class Pipeline:
         for ev in arb_out.events:
             self._event("heading_" + ev.kind, ev.message)
 
-        flags = {}
+        flags = {"azimuth": self.azimuth_status()}
         az = self.azimuth_out
-        if az is not None:
-            flags["azimuth"] = f"{az.status}: {az.reason}" if az.reason else az.status
-        if self._azimuth_off is not None:
-            flags["azimuth"] = self._azimuth_off
         if self.phase.started_in_flight:
-            flags["azimuth"] = "disabled: started in flight"
             flags["started_in_flight"] = self.phase.in_flight_evidence
         if self.ahrs_out is not None:
             flags["fc_reference"] = "trusted" if self.ahrs_out.reference_trusted else self.ahrs_out.reference_reason

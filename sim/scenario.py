@@ -28,6 +28,12 @@ DEFAULTS: dict[str, Any] = {
         "takeoff_accel_m_s2": 3.0,   # runway: ground-roll acceleration
         "rotate_airspeed_m_s": 16.0, # runway: lift-off speed
         "ground_pitch_deg": 0.0,     # runway: pitch of the airframe on its wheels
+        "spinup_s": 0.0,             # the motors run this long before rest_s (vibration from then)
+        "pickup_s": 4.0,             # hand: picked up this long before the throw
+        "liftoff_accel_m_s2": 2.0,   # multicopter/vtol: vertical acceleration at lift-off ...
+        "climb_rate_m_s": 2.0,       # ... up to this climb rate ...
+        "hover_alt_m": 10.0,         # ... braking into a hover at this height above the site ...
+        "hover_s": 5.0,              # ... for this long, then the legs in forward flight
     },
     "flight": {
         "cruise_airspeed_m_s": 22.0,
@@ -70,6 +76,13 @@ DEFAULTS: dict[str, Any] = {
     "baro": {"noise_pa": 2.0, "bias_pa": 0.0, "temperature_offset_k": 5.0, "temperature_noise_k": 0.05,
              "rate_hz": 50.0},
     "airspeed": {"noise_pa": 1.5, "offset_pa": 0.0},
+    "vibration": {                   # motor vibration on the IMU from launcher.spinup_s before rest_s
+        "accel_rms_m_s2": 0.0,       # per axis, at the blade-pass frequency
+        "gyro_rms_rad_s": 0.0,       # per axis, same frequency
+        "freq_hz": 137.0,            # blade-pass frequency (sampled as is: it aliases, as on an FC)
+        "freq_wander_hz": 4.0,       # the motor speed's slow change (+-, period 7 s)
+        "broadband_accel_rms_m_s2": 0.0,  # per axis, white
+    },
     "fc": {
         "rate_hz": 50.0,             # offline fc_* arrays rate
         "roll_pitch_error_deg": 0.3, # 1-sigma, Gauss-Markov
@@ -90,7 +103,7 @@ DEFAULTS: dict[str, Any] = {
                   "base_rate_hz": 1000.0, "simstate_rate_hz": 10.0},
 }
 
-LAUNCHER_TYPES = ("rail", "tube", "runway")
+LAUNCHER_TYPES = ("rail", "tube", "runway", "hand", "multicopter", "vtol")
 LEG_TYPES = ("climb", "descend", "level", "turn", "figure8", "loiter", "goto", "rtl")
 
 
@@ -175,6 +188,17 @@ def validate(s: dict) -> dict:
     _num(s, "launcher", "takeoff_accel_m_s2", 0.0, 50.0, lo_open=True)
     _num(s, "launcher", "rotate_airspeed_m_s", 0.0, 200.0, lo_open=True)
     _num(s, "launcher", "ground_pitch_deg", -20.0, 20.0)
+    _num(s, "launcher", "spinup_s", 0.0, 86400.0)
+    _num(s, "launcher", "pickup_s", 1.5, 600.0)
+    _num(s, "launcher", "liftoff_accel_m_s2", 0.0, 20.0, lo_open=True)
+    _num(s, "launcher", "climb_rate_m_s", 0.0, 20.0, lo_open=True)
+    _num(s, "launcher", "hover_alt_m", 0.0, 1000.0, lo_open=True)
+    _num(s, "launcher", "hover_s", 0.0, 86400.0)
+    if L["type"] == "hand" and L["pickup_s"] > L["rest_s"]:
+        raise ValueError(f"launcher.pickup_s ({L['pickup_s']}) must not exceed launcher.rest_s ({L['rest_s']})")
+    for k in ("accel_rms_m_s2", "gyro_rms_rad_s", "freq_wander_hz", "broadband_accel_rms_m_s2"):
+        _num(s, "vibration", k, 0.0, 1000.0)
+    _num(s, "vibration", "freq_hz", 0.0, 5000.0, lo_open=True)
     F = s["flight"]
     for k in F:
         _num(s, "flight", k, 0.0, 1e6, lo_open=k not in ("alpha_deg",))

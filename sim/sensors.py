@@ -150,6 +150,39 @@ class GaussMarkovGrid:
         return out
 
 
+class Vibration:
+    """Motor vibration added to the true rate and specific force (sensor axes), from
+    ``launcher.spinup_s`` before ``launcher.rest_s`` on, ramped in over 1 s (the spin-up):
+
+        x_i(t) = s(t) sqrt(2) rms sin(phi(t) + c_i) + broadband,  phi(t) = 2 pi (f0 t - df T/(2 pi) cos(2 pi t / T))
+
+    (the blade-pass frequency f0 wandering by +-df with period T = 7 s: a closed form, so chunks
+    join exactly), phases c_i fixed per axis and sensor. Sampled at the sample times as is: a
+    blade-pass above the Nyquist frequency aliases, as an FC's decimated stream does."""
+
+    PERIOD_S = 7.0
+    RAMP_S = 1.0
+
+    def __init__(self, scenario: dict, rng: np.random.Generator):
+        v, L = scenario["vibration"], scenario["launcher"]
+        self.v = v
+        self.on = bool(v["accel_rms_m_s2"] or v["gyro_rms_rad_s"] or v["broadband_accel_rms_m_s2"])
+        self.t_on = L["rest_s"] - L["spinup_s"] if L["spinup_s"] > 0 else math.inf
+        self.rng = rng
+        self.c_accel, self.c_gyro = rng.uniform(0, 2 * math.pi, 3), rng.uniform(0, 2 * math.pi, 3)
+
+    def add(self, t: np.ndarray, w_s: np.ndarray, f_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if not self.on or len(t) == 0 or t[-1] < self.t_on:
+            return w_s, f_s
+        v, T = self.v, self.PERIOD_S
+        s = np.clip((t - self.t_on) / self.RAMP_S, 0.0, 1.0)[:, None]
+        phi = 2 * math.pi * (v["freq_hz"] * t - v["freq_wander_hz"] * T / (2 * math.pi) * np.cos(2 * math.pi * t / T))
+        f = f_s + s * (math.sqrt(2) * v["accel_rms_m_s2"] * np.sin(phi[:, None] + self.c_accel)
+                       + v["broadband_accel_rms_m_s2"] * self.rng.standard_normal((len(t), 3)))
+        w = w_s + s * math.sqrt(2) * v["gyro_rms_rad_s"] * np.sin(phi[:, None] + self.c_gyro)
+        return w, f
+
+
 class SensorSuite:
     """All sensors of one vehicle; ``measure(truth_chunk)`` is chunk-continuous and deterministic."""
 
@@ -181,6 +214,7 @@ class SensorSuite:
         self.fc_gm = GaussMarkovGrid(self.rng_fc, F["error_tau_s"], 3)
         self.fc_drift_sign = float(self.rng_fc.choice([-1.0, 1.0]))
         self.dropouts = scenario["faults"]["sensor_dropouts"]
+        self.vibration = Vibration(scenario, np.random.default_rng(seed_seq.spawn(1)[0]))
 
     # -- magnetic field ------------------------------------------------------------------
     def field_ned_gauss(self, st: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -213,6 +247,7 @@ class SensorSuite:
         C_sb = self.C_body_from_sensor.T
         w_s = tr["omega_body_rad_s"] @ C_sb.T
         f_s = tr["f_body_m_s2"] @ C_sb.T
+        w_s, f_s = self.vibration.add(st["time_s"], w_s, f_s)
         main, total = self.field_ned_gauss(st)
         b_s = np.einsum("nji,nj->ni", C_ns, total)
         n = len(w_s)

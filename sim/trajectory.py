@@ -14,6 +14,18 @@ Position: lat' = vN/(R_M+h), lon' = vE/((R_N+h) cos lat), h' = -vD.
 
 The sensors-side truth (angular rate, specific force) is derived from the sampled states in
 ``sim.truth`` by differencing, so it is consistent with the attitude and velocity histories.
+
+Take-offs besides the rail/tube boost and the runway roll (``launcher.type``):
+- ``hand``: on the ground until ``pickup_s`` before the throw; picked up (lifted 0.6 m in 1 s, peak 3.8 m/s^2, while
+  pitched to ``elevation_deg``), held with a sway of the hand (pitch 1 deg at 0.7 Hz + 0.15 deg
+  tremor at 8 Hz, yaw 1.5 deg at 0.4 Hz), then thrown: ``boost_accel_m_s2`` for ``boost_time_s``
+  along the flight axis. A vertical velocity uses gamma = +-90 deg with alpha = pitch - gamma, so
+  the body attitude qy(gamma) qy(alpha) = qy(pitch) is independent of where the vehicle moves.
+- ``multicopter`` / ``vtol``: a vertical lift-off at ``rest_s`` (the same gamma/alpha pairing with
+  a level body): ``liftoff_accel_m_s2`` up to ``climb_rate_m_s``, decelerating to a hover at
+  ``hover_alt_m``, a hover of ``hover_s``, then the legs in forward flight from zero airspeed
+  (vtol: the transition; multicopter: the same forward-flight kinematics, an approximation).
+The motors (vibration, sim.sensors) start ``spinup_s`` before ``rest_s``.
 """
 from __future__ import annotations
 
@@ -25,7 +37,10 @@ import numpy as np
 from sim.earth import gravity_m_s2, radii_m
 
 PHASES = ("rest", "boost", "ground_roll", "climb", "descend", "level", "turn", "figure8", "loiter",
-          "goto", "rtl")
+          "goto", "rtl", "hand", "liftoff", "hover")
+ON_GROUND_PHASES = ("rest", "boost", "ground_roll", "hand")
+HAND_LIFT_S, HAND_LIFT_M = 1.0, 0.6
+"""The hand launch's pick-up: lifted this high (m) in this long (s)."""
 PHASE_CODE = {p: i for i, p in enumerate(PHASES)}
 EARTH_MEAN_RADIUS_M = 6371008.8
 GUIDANCE_PERIOD_S = 0.02
@@ -119,6 +134,10 @@ class Flight:
         self.gamma = math.radians(L["elevation_deg"])
         self.phi = math.radians(L["roll_deg"])
         self.alpha = math.radians(L["ground_pitch_deg"]) if L["type"] == "runway" else 0.0
+        if L["type"] in ("hand", "multicopter", "vtol"):  # on the ground, level
+            self.gamma = self.phi = self.alpha = 0.0
+        self.psi0 = self.psi
+        self._t_phase = 0.0
         self.phase = "rest"
         self.launch_time_s: float | None = None
         self.boost_end_s: float | None = None
@@ -160,7 +179,7 @@ class Flight:
 
     @property
     def airborne(self) -> bool:
-        return self.phase not in ("rest", "boost", "ground_roll")
+        return self.phase not in ON_GROUND_PHASES
 
     # ---- guidance -------------------------------------------------------------------------
     def _rate_max(self, bank_rad: float) -> float:
@@ -266,6 +285,50 @@ class Flight:
         if done and leg is not self.override:
             self.leg_index += 1
 
+    # ---- take-offs besides the boost and the roll (module docstring) --------------------------
+    def _set_vertical(self, v_up_m_s: float, pitch_rad: float) -> None:
+        """Move vertically at v_up (m/s) with the body at pitch (rad), wings level."""
+        self.gamma = math.pi / 2 if v_up_m_s >= 0.0 else -math.pi / 2
+        self.V = abs(v_up_m_s)
+        self.alpha = pitch_rad - self.gamma
+        self.phi = 0.0
+
+    def _hand_step(self, L: dict) -> None:
+        """Picked up, held with the hand's sway, thrown at rest_s."""
+        u = self.t + self.dt - self._t_phase  # state for the next sample
+        elev = math.radians(L["elevation_deg"])
+        if self.t + self.dt >= L["rest_s"] - 1e-9:  # the throw
+            pitch = self.gamma + self.alpha
+            self.gamma, self.V = elev, 0.0
+            self.alpha = pitch - elev
+            self.launch_time_s = self.t + self.dt
+            self.phase, self.boost_end_s = "boost", self.t + self.dt + L["boost_time_s"]
+            return
+        if u < HAND_LIFT_S:  # raised cosine: lifted HAND_LIFT_M, pitched up smoothly
+            x = u / HAND_LIFT_S
+            v_up = HAND_LIFT_M / HAND_LIFT_S * (1.0 - math.cos(2.0 * math.pi * x))
+            pitch = elev * (x - math.sin(2.0 * math.pi * x) / (2.0 * math.pi))
+            self._set_vertical(v_up, pitch)
+            return
+        w = u - HAND_LIFT_S  # held: the hand's sway and tremor (they start from zero)
+        pitch = elev + math.radians(1.0) * math.sin(2 * math.pi * 0.7 * w) \
+            + math.radians(0.15) * math.sin(2 * math.pi * 8.0 * w)
+        self.psi = self.psi0 + math.radians(1.5) * math.sin(2 * math.pi * 0.4 * w)
+        self._set_vertical(0.0, pitch)
+
+    def _liftoff_step(self, L: dict) -> None:
+        """Vertical lift-off: accelerate to the climb rate, brake into a hover at hover_alt_m."""
+        a, vc = L["liftoff_accel_m_s2"], L["climb_rate_m_s"]
+        to_go = L["hover_alt_m"] - (self.h - self.h0)
+        v = self.V
+        if v * v / (2.0 * a) >= to_go:  # braking distance reached: decelerate
+            v = max(0.0, v - a * self.dt)
+            if v == 0.0:
+                self.phase, self._t_phase = "hover", self.t + self.dt
+        else:
+            v = min(vc, v + a * self.dt)
+        self._set_vertical(v, 0.0)
+
     # ---- stepping --------------------------------------------------------------------------
     def run(self, n: int) -> dict[str, np.ndarray]:
         """Sample the state at the current time, then step; n times. Returns arrays of length n:
@@ -308,10 +371,26 @@ class Flight:
                 gf[j] += (gu[j] - gf[j]) * resp_a
             ph = self.phase
             if ph == "rest":
-                if self.t + 1e-9 >= L["rest_s"]:
+                if L["type"] == "hand" and self.t + 1e-9 >= L["rest_s"] - L["pickup_s"]:
+                    self.phase, self._t_phase = "hand", self.t
+                elif L["type"] in ("multicopter", "vtol") and self.t + 1e-9 >= L["rest_s"]:
+                    self.launch_time_s = self.t
+                    self.phase = "liftoff"
+                    self.gamma, self.alpha = math.pi / 2, -math.pi / 2  # moving up, body level
+                elif L["type"] != "hand" and self.t + 1e-9 >= L["rest_s"]:
                     self.launch_time_s = self.t
                     self.phase = "ground_roll" if L["type"] == "runway" else "boost"
                     self.boost_end_s = self.t + L["boost_time_s"]
+            elif ph == "hand":
+                self._hand_step(L)
+            elif ph == "liftoff":
+                self._liftoff_step(L)
+            elif ph == "hover":
+                self.V = 0.0
+                if self.t + 1e-9 >= self._t_phase + L["hover_s"]:  # forward flight from here
+                    self.gamma = self.alpha = 0.0  # same (level) body attitude, V = 0
+                    self._next_guidance_t = self.t + dt
+                    self.phase = "climb"
             elif ph == "boost":
                 self.V += L["boost_accel_m_s2"] * dt
                 if self.t + dt >= self.boost_end_s - 1e-9:
