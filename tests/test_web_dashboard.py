@@ -5,7 +5,7 @@ daemon -> Zenoh -> web -> SSE -> Chromium).
 GIVEN `azimuthd sim` (inclined rail, at rest before launch), `azimuthd run` publishing on Zenoh
       with a geofence, and `azimuthd web` connected to it
 WHEN the page is loaded in Chromium
-THEN it shows the vehicle by name, the phase, a heading equal (to its 0.1 deg display) to the
+THEN it shows the vehicle by name (and a second vehicle of the test's own in its own card), the phase, a heading equal (to its 0.1 deg display) to the
      `heading` payload the daemon published for the same FC time, the heading sources the daemon
      reported with which one is used, link up, the fence; every topic the daemon published
      validates against the schema and carries `time_unix_s`; and when the daemon stops the page
@@ -41,6 +41,9 @@ sys.path.insert(0, str(ROOT / "bench"))
 from sitl import Sitl, scenario_site  # noqa: E402
 
 VEHICLE = "uav-web"
+OTHER = "uav-x2"
+"""A second vehicle on the same page: a ZenohBus of the test's own, heading OTHER_HEADING_DEG."""
+OTHER_HEADING_DEG = 123.4
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
 HEADING_DISPLAY_TOL_DEG = 0.05 + 1e-9
@@ -169,6 +172,31 @@ class ZenohRecorder:
         self.session.close()
 
 
+def publish_other(stop: threading.Event, endpoint: str) -> None:
+    """The second vehicle: a fixed attitude and heading, its health, until ``stop``."""
+    import math
+
+    import numpy as np
+
+    from estimators.rotations import quat_from_euler
+    from service.solution import NavSolution
+    from service.zenoh_bus import ZenohBus, health_payload
+
+    yaw = math.radians(OTHER_HEADING_DEG)
+    with ZenohBus(OTHER, "peer", [endpoint], []) as bus:
+        k = 0
+        while not stop.is_set():
+            sol = NavSolution(time_fc_s=10.0 + 0.1 * k, time_rx_s=time.monotonic(), phase="in-flight",
+                              q_nav_from_body=quat_from_euler(0.1, 0.05, yaw), roll_rad=0.1, pitch_rad=0.05,
+                              rates_body_rad_s=np.zeros(3), heading_rad=yaw, heading_sigma_rad=math.radians(2.0),
+                              heading_source="heading_filter", heading_valid=True)
+            bus.publish_solution(sol, time.monotonic())
+            if k % 10 == 0:
+                bus.publish("health", health_payload(True, "in-flight", 0.1 * k, {"RAW_IMU": 50.0}))
+            k += 1
+            stop.wait(0.1)
+
+
 def fence_around(site: dict, half_deg: float = 0.02) -> list:
     la, lo = site["lat_deg"], site["lon_deg"]
     return [[[la - half_deg, lo - half_deg], [la - half_deg, lo + half_deg],
@@ -180,6 +208,7 @@ def live(tmp_path_factory):
     _browser_or_skip()
     wd = tmp_path_factory.mktemp("web")
     zenoh_ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    other_ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     http_port = free_tcp_port()
     site = scenario_site("inclined_rail")["site"]
     overrides = {"vehicle": {"name": VEHICLE}, "zenoh": {"enabled": True, "listen": [zenoh_ep]},
@@ -190,11 +219,14 @@ def live(tmp_path_factory):
     sitl = Sitl(scenario="inclined_rail", speed=1.0, seed=5, workdir=wd, config_overrides=overrides,
                 sim_args=sim_args)
     web = subprocess.Popen([sys.executable, "-m", "service.cli", "web", "--connect", zenoh_ep,
-                            "--listen", f"127.0.0.1:{http_port}"], cwd=ROOT,
+                            "--connect", other_ep, "--listen", f"127.0.0.1:{http_port}"], cwd=ROOT,
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
     recorder = driver = None
+    stop_other = threading.Event()
+    other = threading.Thread(target=publish_other, args=(stop_other, other_ep), daemon=True)
     try:
+        other.start()
         recorder = ZenohRecorder(zenoh_ep)
         line = web.stdout.readline()
         assert "azimuthd web: serving http://127.0.0.1:" in line, line
@@ -204,6 +236,8 @@ def live(tmp_path_factory):
         driver.get(f"http://127.0.0.1:{http_port}/")
         yield {"driver": driver, "sitl": sitl, "recorder": recorder, "web": web, "workdir": wd}
     finally:
+        stop_other.set()
+        other.join(10)
         if driver is not None:
             driver.quit()
         if sitl.daemon is not None:
@@ -218,7 +252,6 @@ def live(tmp_path_factory):
             web.wait(5)
 
 
-CARD = f'section.vehicle[data-vehicle="{VEHICLE}"]'
 PAGE_STATE_JS = """
 const card = document.querySelector(arguments[0]);
 if (!card) return null;
@@ -234,9 +267,9 @@ return {vehicle: f("vehicle"), status: f("status"), status_reason: f("status_rea
 """
 
 
-def page(driver) -> dict | None:
-    """What the vehicle's card shows, read in one script call (one instant of the live page)."""
-    return driver.execute_script(PAGE_STATE_JS, CARD)
+def page(driver, vehicle: str = VEHICLE) -> dict | None:
+    """What a vehicle's card shows, read in one script call (one instant of the live page)."""
+    return driver.execute_script(PAGE_STATE_JS, f'section.vehicle[data-vehicle="{vehicle}"]')
 
 
 def test_page_shows_what_the_daemon_publishes(live):
@@ -280,6 +313,12 @@ def test_page_shows_what_the_daemon_publishes(live):
         if not s["used"]:
             assert rows[name][1] == s["reason"] and s["reason"], name
     assert set(published["heading_source"].split("+")) <= {n for n, (u, _) in rows.items() if u == "yes"} | {"coast"}
+    # the second vehicle on the same page, in its own card, in name order
+    other = page(d, OTHER)
+    assert other["vehicle"] == OTHER and other["status"] == "alive"
+    assert other["heading"] == f"{OTHER_HEADING_DEG:.1f}°" and other["sigma"] == "± 2.0° (1σ)"
+    assert d.execute_script("return [...document.querySelectorAll('section.vehicle')].map(s => s.dataset.vehicle)") \
+        == [VEHICLE, OTHER]
     # health counters and events came through
     assert shown["autopilot"] == "ardupilot"
     assert "imu samples" in shown["counters"]
@@ -290,7 +329,8 @@ def test_page_shows_what_the_daemon_publishes(live):
     assert not errors, errors
 
     d.save_screenshot(str(live["workdir"] / "dashboard.png"))
-    if os.environ.get("AZIMUTHD_DASHBOARD_PNG"):
+    if os.environ.get("AZIMUTHD_DASHBOARD_PNG"):  # the whole page: both vehicles
+        d.set_window_size(1500, d.execute_script("return document.body.scrollHeight") + 140)
         d.save_screenshot(os.environ["AZIMUTHD_DASHBOARD_PNG"])
 
 
