@@ -131,7 +131,8 @@ def build_config(args, reader) -> tuple[dict, list[str]]:
     elif not have_site:
         site = _from_log(reader, reader.site)
         if site is None:
-            raise ReplayError(f"{reader.path}: the log has no GNSS position to take the launch site from: "
+            raise ReplayError(f"{reader.path}: the log has no GNSS position it says is valid (no 3D fix, no "
+                              "valid home) to take the launch site from: "
                               "give --site LAT,LON or --config FILE with [site] lat_deg/lon_deg")
         site_cfg.update({"lat_deg": round(site.lat_deg, 7), "lon_deg": round(site.lon_deg, 7),
                          "alt_m": float(min(max(site.alt_m, -500.0), 10000.0))})
