@@ -6,20 +6,25 @@ Part D: simulated flights (``sim.offline.simulate`` on the inclined_rail site, 1
 N(0, 0.03 G) per axis and soft iron I + N(0, 0.03) per element drawn per seed) with a calibration
 manoeuvre: climb, a left and a right 360-deg turn at 20 and 40 deg of bank, a descent, a
 figure-eight; then an evaluation part (level legs, a 270-deg turn, a second figure-eight, a
-loiter). The 21-coefficient model is fitted by RLS (10 Hz) over the calibration window with the
-reference attitude from the estimators only: roll/pitch from the polar attitude filter, heading
-from the gyros less the attitude filter's bias estimate (the heading filter propagating without
-the magnetometer) started from the launcher azimuth (claim 1 (a): the known initial direction), reference field from the WMM.
-Heading error = tilt-compensated magnetic heading + WMM declination - true heading, before and
-after compensation, in the calibration window and on the later evaluation part (out of sample),
-for the consumer and the tactical IMU (the reference gyro quality matters). A batch hard/soft-iron
-fit (12 parameters) and the extended 33-coefficient model (cross terms) on the same data are
-shown for comparison. The magnetometer is averaged over 0.1 s (MAG_AVG_N). Target: >= 5x
-smaller RMS on the calibration manoeuvre (x_cal); x_eval is the out-of-sample figure.
+loiter). Every flight runs through the daemon's own ``service.pipeline.Pipeline`` with
+[deviation] calibrate on, exactly as the daemon learns: 21 coefficients by RLS (10 Hz) against
+the Pipeline's heading (method A's solution or the trusted FC attitude) and its roll/pitch, with
+its WMM field. The calibration window is the OPERATOR's switch (OPERATOR_CAL_WINDOW_S after the
+launch the Pipeline itself detects), not the simulator's phase labels; nothing is seeded from the
+launcher azimuth. The simulator's field is IGRF + the WMM's error budget + a crustal field
+(docs/SIMULATOR.md), so the figures include the field model's error.
+Heading error = tilt-compensated magnetic heading (the Pipeline's roll/pitch) + the Pipeline's
+declination - true heading (truth only scores), before and after compensation, in the
+calibration window and on the later evaluation part (out of sample), for the consumer and the
+tactical IMU. A batch hard/soft-iron fit (12 parameters) and the extended 33-coefficient model on
+the same reference are shown for comparison. The magnetometer is averaged over 0.1 s (MAG_AVG_N)
+for the scored headings and the comparison fits (the Pipeline learns on its own samples).
+Target: >= 5x smaller RMS on the calibration manoeuvre (x_cal); x_eval is the out-of-sample figure.
 
 Part E: 5 minutes at rest on the launcher at 4 sites (45 N, 20 N, 35 S, 60 N), magnetometer
 without hard/soft iron (compensated), per IMU grade: the gyro-grade check's decision and message,
-the declination used (measured or WMM) and its error vs the WMM, and the 'forced' TRIAD
+the declination used (measured or WMM) and its error vs the WMM and vs the simulator's true
+field at the launcher (the WMM is not the truth there either), and the 'forced' TRIAD
 declination (the check switched off) to show what the gyros would have given. Grades: consumer,
 tactical (1 deg/h turn-on bias) and a navigation-grade override (0.005 deg/h, 0.002 deg/sqrt(h)).
 One anomaly case: a launch-site distortion of 0.03 G north / -0.02 G east, navigation grade.
@@ -51,18 +56,21 @@ from estimators.geomag import earth_field  # noqa: E402
 from estimators.mag_deviation import (DeviationParams, corrected_heading, deviation_coverage,  # noqa: E402
                                       deviation_init, deviation_step, fit_hard_soft_iron,
                                       reference_field_body, residual_sigma_gauss)
-from estimators.polar_attitude import (PolarAttitudeParams, polar_attitude_estimate,  # noqa: E402
-                                       polar_attitude_init, polar_attitude_step)
-from estimators.polar_heading import (HeadingInputs, PolarHeadingParams, magnetic_heading,  # noqa: E402
-                                      polar_heading_estimate, polar_heading_init, polar_heading_step)
+from estimators.polar_heading import magnetic_heading  # noqa: E402
+from service.config import validate  # noqa: E402
+from service.pipeline import Pipeline  # noqa: E402
 from sim.offline import simulate  # noqa: E402
 
-from bench._prelaunch import levelling_at_rest  # noqa: E402
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from _truth_guard import sealed  # noqa: E402
+from sitl import feed_pipeline, pipeline_inputs, scenario_site  # noqa: E402
 
 DEG = math.pi / 180.0
 RATE_HZ = 100.0
-LEVEL_S = 30.0
-CAL_START_AFTER_LAUNCH_S = 25.0
+OPERATOR_CAL_WINDOW_S = (25.0, 165.0)
+"""The operator's calibration switch, seconds after the launch the Pipeline detects: on after the
+climb-out, off before the planned manoeuvre (climb, two 360-deg turns, descent, figure-eight:
+nominally ~170 s at 22 m/s) ends. Configuration, not the simulator's phase labels."""
 CAL_LEGS = [
     {"type": "climb", "alt_m": 150.0, "rate_m_s": 5.0},
     {"type": "turn", "by_deg": 360.0, "bank_deg": 20.0},
@@ -77,11 +85,6 @@ EVAL_LEGS = [
     {"type": "figure8", "bank_deg": 35.0, "loops": 1},
     {"type": "loiter", "radius_m": 150.0, "direction": "ccw"},
 ]
-ATT = {"consumer": PolarAttitudeParams(accel_bias_sigma_m_s2=0.1, manoeuvre_speed_m_s=22.0),
-       "tactical": PolarAttitudeParams(gyro_noise_rad_s_rt_hz=0.005 * DEG, gyro_bias_sigma_rad_s=0.002 * DEG,
-                                       accel_noise_m_s2=0.01, accel_bias_sigma_m_s2=0.02,
-                                       manoeuvre_speed_m_s=22.0)}
-BIAS_PRIOR = {"consumer": 0.02 * DEG, "tactical": 0.005 * DEG}
 DEV_PARAMS = DeviationParams(roll_limit_rad=45 * DEG, pitch_limit_rad=20 * DEG, mag_noise_gauss=0.001)
 DEV_PARAMS_EXT = replace(DEV_PARAMS, extended=True)
 MAG_AVG_N = 10
@@ -108,68 +111,67 @@ def rms_deg(e):
 
 
 # ---------------------------------------------------------------------------------------------
-def deviation_flight(seed: int, grade: str, n_cal_turn_legs: int | None = None) -> dict:
+def deviation_decide(run) -> dict:
+    """The daemon's decision half on a (sealed) SimRun: the Pipeline with [deviation] calibrate
+    on, learning against its own heading (A's solution or the trusted FC, service/pipeline.py
+    _deviation_learn) inside the operator's window (OPERATOR_CAL_WINDOW_S after the launch the
+    Pipeline itself detects). Reads no truth (tests/test_truth_isolation.py)."""
+    cfg = scenario_site("inclined_rail")   # the operator's config: site, date, launcher case, IMU mount
+    p = Pipeline(validate({**cfg, "mavlink": {"imu_rate_hz": RATE_HZ}, "deviation": {"calibrate": True}}))
+    p.deviation_calibrate = False           # the operator switches it on for the planned manoeuvre
+    C_bs = np.asarray(run.site["C_body_from_sensor"], float)  # equal to the configured mount
+    mag = centred_mean(run.mag_gauss @ C_bs.T, MAG_AVG_N)
+    t = run.time_s
+    ef = p.field                            # the daemon's field model (WMM at the configured site)
+    t_launch = None
+    cal0 = cal1 = None
+    rows = []        # (i, roll, pitch, reference heading, in_cal, in_eval)
+    ref_b, mag_cal = [], []
+    dev_ext = deviation_init(DEV_PARAMS_EXT)
+    n_sol = 0
+    for sol in feed_pipeline(p, pipeline_inputs(run)):
+        n_sol += 1
+        if t_launch is None and sol.phase in ("launch", "in-flight"):
+            t_launch = sol.time_fc_s
+            cal0, cal1 = t_launch + OPERATOR_CAL_WINDOW_S[0], t_launch + OPERATOR_CAL_WINDOW_S[1]
+        if t_launch is not None:
+            p.deviation_calibrate = cal0 <= sol.time_fc_s <= cal1
+        if n_sol % 10 or sol.roll_rad is None or not sol.heading_valid:
+            continue
+        i = min(int(np.searchsorted(t, sol.time_fc_s - 1e-9)), len(t) - 1)
+        in_cal = t_launch is not None and cal0 <= sol.time_fc_s <= cal1
+        in_eval = t_launch is not None and sol.time_fc_s > cal1 + 5.0
+        ref_ok = bool(set(sol.heading_source.split("+")) & {"azimuth", "fc"})
+        if in_cal and ref_ok and np.all(np.isfinite(mag[i])):
+            dev_ext, _ = deviation_step(dev_ext, mag[i], ef.e_ned_gauss, sol.heading_rad, sol.roll_rad,
+                                        sol.pitch_rad, DEV_PARAMS_EXT)
+            ref_b.append(reference_field_body(ef.e_ned_gauss, sol.heading_rad, sol.roll_rad, sol.pitch_rad))
+            mag_cal.append(mag[i])
+        rows.append((i, sol.roll_rad, sol.pitch_rad, sol.heading_rad, in_cal, in_eval))
+    return {"dev": p.deviation, "dev_ext": dev_ext, "mag_cal": mag_cal, "ref_b": ref_b, "rows": rows,
+            "mag": mag, "decl": p.declination_rad, "t_launch": t_launch, "cal0": cal0, "cal1": cal1}
+
+
+def deviation_flight(seed: int, grade: str) -> dict:
+    """One flight: simulate, decide on the sealed run (deviation_decide), score against the truth."""
     rng = np.random.default_rng(1000 + seed)
     hard = rng.normal(0.0, 0.03, 3)
     soft = np.eye(3) + rng.normal(0.0, 0.03, (3, 3))
-    cal_legs = CAL_LEGS
     run = simulate("inclined_rail", seed=seed, imu_grade=grade, imu_rate_hz=RATE_HZ, duration_s=None,
-                   overrides={"legs": cal_legs + EVAL_LEGS, "scenario": {"duration_s": 600.0},
+                   overrides={"legs": CAL_LEGS + EVAL_LEGS, "scenario": {"duration_s": 600.0},
                               "mag": {"hard_iron_gauss": hard.tolist(), "soft_iron": soft.tolist(),
                                       "site_distortion_ned_gauss": [0.0, 0.0, 0.0]}})
-    site = run.site
-    C_bs = np.asarray(site["C_body_from_sensor"], float)
-    gyro, accel, mag = (x @ C_bs.T for x in (run.gyro_rad_s, run.accel_m_s2, run.mag_gauss))
-    mag = centred_mean(mag, MAG_AVG_N)
-    t = run.time_s
-    ef = earth_field(site["lat_deg"], site["lon_deg"], site["alt_m"], site["decimal_year"])
-    decl = ef.declination_rad
-    t_launch = run.truth.launch_time_s
-    # the calibration window ends when the first figure-eight is over (phase change to 'level'
-    # of the evaluation legs); the service would get start/stop from the operator
-    ph = run.truth.phase
-    fig = np.nonzero(ph == "figure8")[0]
-    first_fig_end = fig[np.nonzero(np.diff(fig) > 1)[0][0]] if np.any(np.diff(fig) > 1) else fig[-1]
-    t_cal0, t_cal1 = t_launch + CAL_START_AFTER_LAUNCH_S, t[first_fig_end]
-
     t0 = time.perf_counter()
-    lev = levelling_at_rest(t, gyro, accel, LEVEL_S)
-    pa = ATT[grade]
-    sa = polar_attitude_init(pa, gyro_bias_rad_s=lev.gyro_mean_rad_s, gyro_bias_sigma_rad_s=BIAS_PRIOR[grade])
-    ph_params = PolarHeadingParams()
-    sh = polar_heading_init(math.radians(site["launcher_azimuth_deg"]), math.radians(1.0), ph_params)
-    dev = deviation_init(DEV_PARAMS)
-    dev_ext = deviation_init(DEV_PARAMS_EXT)
-    est = None
-    rows = []        # (i, roll, pitch, gyro heading, in_cal)
-    ref_b, mag_cal = [], []
-    for i in range(len(t)):
-        sa, d = polar_attitude_step(sa, t[i], gyro[i], accel[i], pa)
-        if d.updated:
-            est = polar_attitude_estimate(sa)
-        if est is None:
-            continue
-        # gyro-only heading (no magnetometer input): the short-term reference of claim 1 (a),
-        # with the attitude filter's gyro-bias estimate removed (its vertical bias is observed
-        # through the tilt it causes in banked turns; the levelled prior alone drifts)
-        sh, _ = polar_heading_step(sh, HeadingInputs(t[i], gyro[i] - est.gyro_bias_rad_s, est.roll_rad, est.pitch_rad,
-                                                     est.cov_roll_pitch_rad2, None, decl, 0.0), ph_params)
-        if i % 10:
-            continue
-        psi_g = polar_heading_estimate(sh).heading_rad
-        in_cal = t_cal0 <= t[i] <= t_cal1
-        if in_cal and np.all(np.isfinite(mag[i])):
-            dev, _ = deviation_step(dev, mag[i], ef.e_ned_gauss, psi_g, est.roll_rad, est.pitch_rad, DEV_PARAMS)
-            dev_ext, _ = deviation_step(dev_ext, mag[i], ef.e_ned_gauss, psi_g, est.roll_rad, est.pitch_rad,
-                                        DEV_PARAMS_EXT)
-            ref_b.append(reference_field_body(ef.e_ned_gauss, psi_g, est.roll_rad, est.pitch_rad))
-            mag_cal.append(mag[i])
-        rows.append((i, est.roll_rad, est.pitch_rad, psi_g, in_cal, t[i] > t_cal1 + 5.0))
+    d = deviation_decide(sealed(run))
+    dev, dev_ext, mag, decl, rows = d["dev"], d["dev_ext"], d["mag"], d["decl"], d["rows"]
+    t_launch, cal0, cal1 = d["t_launch"], d["cal0"], d["cal1"]
+    mag_cal, ref_b = d["mag_cal"], d["ref_b"]
     S, b = fit_hard_soft_iron(np.array(mag_cal), np.array(ref_b))
     S_inv = np.linalg.inv(S)
+    # scoring (truth from here on)
     r = np.array(rows)
     idx = r[:, 0].astype(int)
-    true_psi = run.truth.euler_rad[idx, 2]
+    true_psi = run.truth.euler_rad[idx, 2]   # scoring only
     raw, cor, ext, hsi = [], [], [], []
     for j, i in enumerate(idx):
         if not np.all(np.isfinite(mag[i])):
@@ -187,10 +189,12 @@ def deviation_flight(seed: int, grade: str, n_cal_turn_legs: int | None = None) 
     ok = np.isfinite(raw)
     cov = deviation_coverage(dev, DEV_PARAMS)
     out = {
-        "calibration_s": float(t_cal1 - t_cal0),
+        "calibration_s": float(cal1 - cal0) if cal0 is not None else 0.0,
+        "launch_detected_at_s": t_launch,
+        "deviation_updates": int(dev.n),
         "coverage_heading": cov.heading_fraction, "coverage_roll": cov.roll_fraction,
         "coverage_pitch": cov.pitch_fraction, "coverage_overall": cov.overall,
-        "gyro_reference_heading_rms_cal_deg": rms_deg(ref_err[cal]),
+        "reference_heading_rms_cal_deg": rms_deg(ref_err[cal]),
         "heading_rms_before_cal_deg": rms_deg(raw[cal & ok]),
         "heading_rms_after_cal_deg": rms_deg(cor[cal & ok]),
         "heading_rms_before_eval_deg": rms_deg(raw[ev & ok]),
@@ -245,6 +249,7 @@ def declination_case(lat, lon, seed, grade, anomaly=False, rest_s=300.0, persona
         "declination_used_deg": math.degrees(res.declination_rad),
         "wmm_declination_deg": math.degrees(ef.declination_rad),
         "used_error_vs_wmm_deg": math.degrees(wrap_pi(res.declination_rad - ef.declination_rad)),
+        "used_error_vs_true_field_deg": math.degrees(wrap_pi(res.declination_rad - true_decl)),
         "forced_error_vs_wmm_deg": math.degrees(wrap_pi(forced.measured_declination_rad - ef.declination_rad)),
         "forced_error_vs_true_field_deg": math.degrees(wrap_pi(forced.measured_declination_rad - true_decl)),
         "forced_sigma_deg": math.degrees(forced.measured_sigma_rad),
@@ -275,7 +280,7 @@ def main() -> int:
         agg["target_5x_met_eval"] = bool(agg["improvement_eval_x"] >= 5.0)
         out["deviation"][grade] = {**agg, "per_seed": per}
         print(f"{grade:9s} {agg['calibration_s']:6.0f} {agg['coverage_overall']:5.2f} "
-              f"{agg['gyro_reference_heading_rms_cal_deg']:6.2f} {agg['heading_rms_before_cal_deg']:6.2f} "
+              f"{agg['reference_heading_rms_cal_deg']:6.2f} {agg['heading_rms_before_cal_deg']:6.2f} "
               f"{agg['heading_rms_after_cal_deg']:6.2f} {agg['heading_rms_before_eval_deg']:6.2f} "
               f"{agg['heading_rms_after_eval_deg']:6.2f} {agg['improvement_cal_x']:6.1f} "
               f"{agg['improvement_eval_x']:6.1f} {agg['heading_rms_hard_soft_iron_eval_deg']:6.2f} "
@@ -292,6 +297,8 @@ def main() -> int:
             "cases": len(cases),
             "measured_fraction": len(measured) / len(cases),
             "used_error_rms_deg": float(np.sqrt(np.mean(used ** 2))),
+            "used_error_vs_true_field_rms_deg": float(np.sqrt(np.mean(
+                [c["used_error_vs_true_field_deg"] ** 2 for c in cases]))),
             "measured_error_rms_deg": (float(np.sqrt(np.mean([c["used_error_vs_wmm_deg"] ** 2 for c in measured])))
                                        if measured else None),
             "forced_triad_error_rms_deg": float(np.sqrt(np.mean(forced ** 2))),
@@ -300,7 +307,8 @@ def main() -> int:
         }
         out["declination"][grade] = {**summary, "cases_detail": cases}
         print(f"{grade:10s} measured {summary['measured_fraction']*100:3.0f}%  used-error RMS "
-              f"{summary['used_error_rms_deg']:6.2f}  forced-TRIAD RMS {summary['forced_triad_error_rms_deg']:6.2f} "
+              f"{summary['used_error_rms_deg']:6.2f}  vs true field {summary['used_error_vs_true_field_rms_deg']:6.2f}"
+              f"  forced-TRIAD RMS {summary['forced_triad_error_rms_deg']:6.2f} "
               f"(predicted sigma {summary['forced_predicted_sigma_rms_deg']:.2f})")
         print(f"           e.g. {cases[0]['message']}")
     an = declination_case(45.0, 10.0, 0, "navigation", anomaly=True)

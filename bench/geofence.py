@@ -1,6 +1,7 @@
 """Geofence bench: divert before the breach with GNSS denied, and no divert while inside.
 
-    python bench/geofence.py [--quick] [--json PATH] [--mode offline|closed|daemon|all] [--seeds N]
+    python bench/geofence.py [--quick] [--json PATH] [--mode headline|daemon|pipeline|offline|closed|all]
+                             [--load idle|busy|both] [--busy] [--seeds N] [--seed0 S] [--speed X]
 
 Scenarios (docs/GEOFENCE.md): a 5 km x 5 km inclusion square around the launch site (plus a
 300 m ceiling band: 20..400 m above the launch site); a rail launch, GNSS lost 25 s after the
@@ -9,24 +10,31 @@ launch, random wind (0-8 m/s, any direction, gusts 0.5 m/s).
   (launch azimuth 0..360 deg: incidence 0..45 deg on an edge); without a divert it crosses the
   fence after ~110-160 s.
 * ``inside``: a climb-out, back to the launch site, loiters around it and a 600 m excursion:
-  within ~1 km of the launch site (> 1.4 km inside the fence) for 240 s. The look-ahead is a straight line along the current
-  track: a vehicle circling closer than ground speed x look-ahead + margin + k sigma to the fence
-  is diverted (conservative by design).
+  within ~1 km of the launch site (> 1.4 km inside the fence). The look-ahead is a straight line
+  along the current track: a vehicle circling closer than ground speed x look-ahead + margin +
+  k sigma to the fence is diverted (conservative by design).
 
-Heading input (the daemon's azimuth/AHRS heading is not integrated yet): the TRUE yaw plus a
-constant bias drawn N(0, 1.5 deg) per seed plus white noise 0.5 deg, and the monitor is told a
-sigma of 1.6 deg. The bench states it; the monitor never sees truth otherwise.
+Headline modes (truth only scores):
+* ``daemon``: the real daemon (``azimuthd run``) and the simulator (``azimuthd sim``) as two
+  processes over UDP (bench/sitl.py). The daemon has the operator's config and MAVLink only
+  (SIMSTATE, the truth on the wire, is not streamed unless asked for, and nothing in the
+  daemon's code reads it: tests/test_truth_isolation.py); its own heading, phases and monitor decide; the
+  simulator's truth log scores the TRUE track: fence exits (< 0 m) and margin violations (< 50 m),
+  false diverts of the inside flights; the UDP tap counts the RAW_IMU the daemon was sent against
+  the samples it processed (its "stopped" log line), and the ATTITUDE latency. ``--load busy``:
+  two CPU-bound competitor processes for the whole run. Each flight records the simulator's
+  achieved speed and the 1-min load average: a flight where the simulator fell behind real time
+  (a real FC never does; the daemon then sees FC-clock lags) is counted but marked invalid.
+* ``pipeline``: the same flights offline (sim.offline), through the daemon's own
+  ``service.pipeline.Pipeline`` and ``GeofenceMonitor`` as service/daemon.py wires them: no wall
+  clock, so no machine load in the figure. Open loop: the latch must come before the TRUE track
+  crosses the fence (lead time), the inside flights must never latch. The decision half runs
+  on a sealed SimRun (bench/_truth_guard.py): it cannot read truth.
 
-Modes:
-* ``offline`` (open loop, sim.offline.simulate): the monitor must latch the breach before the
-  TRUE track crosses the fence (outbound), and never latch (inside). Lead time in seconds.
-* ``closed`` (live simulator process at --speed, MAVLink over UDP): a stand-in for the daemon
-  loop in this process (MavlinkLink + GeofenceMonitor + CommandProtocol, heading as above from the
-  SIMSTATE truth stream) sends the divert; the simulator turns back; the TRUE track (the
-  simulator's truth log) must never leave the fence (counts with and without the margin).
-* ``daemon``: the same scenarios against the real daemon (bench/sitl.py) once the lead has wired
-  the geofence into it: the daemon's COMMAND_LONG/INT are read on the UDP tap. Skipped (and said
-  so) while the daemon does not accept a [geofence] config section.
+Diagnostics (keys ``diagnostic_truth_heading.*``, never a headline): ``offline`` and ``closed``
+give the monitor the TRUE yaw plus a per-seed bias N(0, 1.5 deg) and white noise 0.5 deg
+(sigma told 1.6 deg; ``closed`` reads it from SIMSTATE) and the truth's phase labels (offline):
+what the monitor does with a heading of known quality, not what the daemon does.
 """
 from __future__ import annotations
 
@@ -110,7 +118,8 @@ def scenario(kind: str, seed: int) -> dict:
 
 
 class HeadingNoise:
-    """Truth heading + a per-seed constant bias + white noise; the sigma the monitor is told."""
+    """DIAGNOSTIC stand-in (offline/closed modes only): truth heading + a per-seed constant bias +
+    white noise; the sigma the monitor is told. Never a headline figure."""
 
     def __init__(self, seed: int):
         self.rng = np.random.default_rng([seed, 77])
@@ -138,7 +147,8 @@ def true_clearance_m(lat_rad: np.ndarray, lon_rad: np.ndarray, cfg) -> np.ndarra
 
 def run_offline(kind: str, seed: int, raw: dict | None = None, rate_hz: float = 10.0,
                 flight_s: float | None = None) -> dict:
-    """Open loop on sim.offline data: when does the monitor latch vs when does the truth cross?"""
+    """DIAGNOSTIC (truth heading + noise, truth phase labels): open loop on sim.offline data, when
+    does the monitor latch vs when does the truth cross? The headline is run_pipeline."""
     from sim.offline import simulate
     raw = raw or fence_raw()
     cfg = validate_geofence(raw)
@@ -192,6 +202,114 @@ def run_offline(kind: str, seed: int, raw: dict | None = None, rate_hz: float = 
             "launch_azimuth_deg": sc["launcher"]["azimuth_deg"], "gnss_lost_time_s": lost}
 
 
+# --- the daemon's Pipeline, offline: its own heading and phases, no wall clock --------------------
+
+PIPELINE_IMU_HZ = 100.0
+
+
+def operator_config(decimal_year: float) -> dict:
+    """What the operator configures for the bench's flights: the site, the date, a rail
+    launcher, the IMU mount (level) and the IMU rate asked of the FC."""
+    return {"site": {**SITE, "decimal_year": float(decimal_year)}, "launch": {"case": "inclined"},
+            "imu": {"mount_roll_deg": 0.0, "mount_pitch_deg": 0.0, "mount_yaw_deg": 0.0},
+            "mavlink": {"imu_rate_hz": PIPELINE_IMU_HZ}}
+
+
+def fc_gnss_positions(run, rate_hz: float = 5.0) -> list[tuple]:
+    """The simulated FC's GLOBAL_POSITION_INT while its GNSS is healthy (sim/autopilot.py sends the
+    simulated position then): (time_fc_s, lat_deg, lon_deg, alt_m, v_north, v_east). A harness
+    input the daemon also gets, cut at the FC's reported GNSS loss; nothing after it."""
+    tr = run.truth
+    lost = run.gnss_lost_time_s
+    out = []
+    for t in np.arange(0.0, float(run.time_s[-1]), 1.0 / rate_hz).tolist():
+        if lost is not None and t >= lost:
+            break
+        k = min(int(np.searchsorted(run.time_s, t)), run.time_s.size - 1)
+        v = tr.vel_ned_m_s[k]
+        out.append((float(run.time_s[k]), math.degrees(tr.lat_rad[k]), math.degrees(tr.lon_rad[k]),
+                    float(tr.alt_m[k]), float(v[0]), float(v[1])))
+    return out
+
+
+def pipeline_decide(run, fc_positions: list[tuple], raw: dict) -> dict:
+    """The daemon's decision path on a (sealed) SimRun: Pipeline (heading, phases, air data) ->
+    GeofenceMonitor, as service/daemon.py wires them (_geofence_step per solution). Reads no
+    truth: bench/_truth_guard.sealed(run) is what it gets in tests/test_truth_isolation.py."""
+    from mavlink_io.samples import FcEkfStatus, ImuSample
+    from service.config import validate
+    from service.pipeline import Pipeline
+    from sitl import pipeline_inputs
+    cfg = validate_geofence(raw)
+    p = Pipeline(validate(operator_config(run.site["decimal_year"])))
+    mon = GeofenceMonitor(cfg, SITE["lat_deg"], SITE["lon_deg"], SITE["alt_m"])
+    mon.on_heartbeat(SimpleNamespace(armed=True, autopilot="ardupilot", vehicle_type=1))
+    lost = run.gnss_lost_time_s
+    items = pipeline_inputs(run)
+    ekf = [FcEkfStatus(t, True, lost is None or t < lost, 0, "ekf_status_report", t)
+           for t in np.arange(0.0, float(run.time_s[-1]), 0.5).tolist()]
+    merged = sorted([(it.time_rx_s, 0, i, it) for i, it in enumerate(ekf)]
+                    + [(f[0], 1, i, f) for i, f in enumerate(fc_positions)]
+                    + [(it.time_rx_s, 2, i, it) for i, it in enumerate(items)], key=lambda x: x[:3])
+    latch = first_cmd = latch_state = None
+    heading_src: dict[str, int] = {}
+    for _t, kind, _i, it in merged:
+        if kind == 0:
+            p.on_fc_ekf_status(it)
+            mon.on_gnss_health(bool(it.horiz_pos_ok))
+        elif kind == 1:
+            mon.on_fc_position(*it)
+        elif type(it) is ImuSample:
+            sol = p.on_imu(it)
+            p.drain_events()
+            if sol is None:
+                continue
+            heading_src[sol.heading_source] = heading_src.get(sol.heading_source, 0) + 1
+            cmds = mon.step(sol, p.air_data(), sol.time_fc_s)
+            if cmds and first_cmd is None:
+                first_cmd = (sol.time_fc_s, cmds[0].name)
+            if mon.latched and latch is None:
+                latch, latch_state = sol.time_fc_s, mon.state()
+        elif hasattr(it, "press_abs_pa"):
+            p.on_pressure(it)
+        else:
+            p.on_fc_attitude(it)
+    return {"latch_time_s": latch, "first_command": first_cmd[1] if first_cmd else None,
+            "latch_state": latch_state, "heading_sources": heading_src}
+
+
+def run_pipeline(kind: str, seed: int, raw: dict | None = None, flight_s: float | None = None) -> dict:
+    """One flight: simulate, decide on the sealed run (no truth), then score against the truth."""
+    from sim.offline import simulate
+
+    from _truth_guard import sealed
+    raw = raw or fence_raw()
+    cfg = validate_geofence(raw)
+    sc = scenario(kind, seed)
+    if flight_s is not None:
+        sc["scenario"]["duration_s"] = REST_S + flight_s
+    run = simulate(sc, seed=seed, imu_rate_hz=PIPELINE_IMU_HZ)
+    d = pipeline_decide(sealed(run), fc_gnss_positions(run), raw)
+    # scoring (truth from here on)
+    tr = run.truth
+    clear = true_clearance_m(tr.lat_rad, tr.lon_rad, cfg)
+    out_idx = np.nonzero(clear < 0.0)[0]
+    cross_t = float(run.time_s[out_idx[0]]) if out_idx.size else None
+    dr_err = dr_sig = None
+    if d["latch_time_s"] is not None:
+        k = min(int(np.searchsorted(run.time_s, d["latch_time_s"])), run.time_s.size - 1)
+        st = d["latch_state"]
+        dr_err, _a, _b = vincenty_inverse(float(tr.lat_rad[k]), float(tr.lon_rad[k]),
+                                          math.radians(st["lat_deg"]), math.radians(st["lon_deg"]))
+        dr_sig = st["pos_sigma_major_m"]
+    latch = d["latch_time_s"]
+    return {"kind": kind, "seed": seed, "latch_time_s": latch, "true_cross_time_s": cross_t,
+            "lead_time_s": (cross_t - latch) if (cross_t is not None and latch is not None) else None,
+            "first_command": d["first_command"], "dr_error_at_latch_m": dr_err,
+            "dr_sigma_major_at_latch_m": dr_sig, "heading_sources": d["heading_sources"],
+            "launch_azimuth_deg": sc["launcher"]["azimuth_deg"], "gnss_lost_time_s": run.gnss_lost_time_s}
+
+
 # --- closed loop against the live simulator, with an in-process stand-in for the daemon loop -----
 
 def _toml_value(v) -> str:
@@ -224,7 +342,8 @@ def write_scenario_toml(sc: dict, path: Path) -> Path:
 
 def run_closed(kind: str, seed: int, raw: dict | None = None, speed: float = 20.0,
                flight_s: float = 200.0, workdir: Path | None = None) -> dict:
-    """One closed-loop flight: simulator process + this process as the daemon loop."""
+    """DIAGNOSTIC (the SIMSTATE truth yaw + noise): one closed-loop flight, simulator process +
+    this process as a stand-in for the daemon loop. The headline is run_daemon."""
     from mavlink_io.commands import CommandProtocol, CommandProtocolParams
     from mavlink_io.link import LinkConfig, MavlinkLink
     from mavlink_io.samples import CommandAck, FcHeartbeat, FcSysStatus, PressureSample
@@ -325,23 +444,68 @@ def run_closed(kind: str, seed: int, raw: dict | None = None, speed: float = 20.
             "launch_azimuth_deg": sc["launcher"]["azimuth_deg"], "workdir": str(wd)}
 
 
-# --- the daemon itself (once the lead has wired the geofence) ------------------------------------
+# --- the daemon itself: the headline ----------------------------------------------------------
 
-def daemon_supports_geofence() -> tuple[bool, str]:
-    from service.config import ConfigError, validate
+def _logfmt_fields(line: str) -> dict:
+    """key=value pairs of one logfmt line (service/logs.py), values unquoted."""
+    import shlex
+    out = {}
     try:
-        validate({"site": {"lat_deg": 0.0, "lon_deg": 0.0}, "geofence": {"enabled": False}})
-    except ConfigError as exc:
-        return False, f"service.config does not accept [geofence] yet ({exc})"
-    return True, ""
+        parts = shlex.split(line)
+    except ValueError:
+        return out
+    for p in parts:
+        k, sep, v = p.partition("=")
+        if sep:
+            out[k] = v
+    return out
+
+
+def attitude_latency_ms(tap) -> np.ndarray:
+    """Latency of every daemon ATTITUDE: tap receive time minus the tap's forward time of the
+    RAW_IMU with the same FC time (within 1 ms; bench/speed.py's matching). One clock, one thread."""
+    imu = sorted((m.time_usec, t) for t, m in tap.to_daemon)
+    if not imu:
+        return np.zeros(0)
+    us = np.array([u for u, _ in imu], dtype=np.int64)
+    tf = np.array([t for _, t in imu])
+    lat = []
+    for t_rx, m in tap.from_daemon:
+        if m.get_type() != "ATTITUDE":
+            continue
+        lo = np.searchsorted(us, m.time_boot_ms * 1000 - 1000, side="left")
+        hi = np.searchsorted(us, m.time_boot_ms * 1000 + 1000, side="right")
+        if hi - lo == 1:
+            lat.append(t_rx - tf[lo])
+    return np.array(lat) * 1e3
+
+
+class CpuHogs:
+    """``n`` CPU-bound competitor processes for the whole run (``--busy``), killed on exit."""
+
+    def __init__(self, n: int):
+        self.n, self.procs = n, []
+
+    def __enter__(self):
+        self.procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(self.n)]
+        return self
+
+    def __exit__(self, *exc):
+        for p in self.procs:
+            p.kill()
+            p.wait(5)
 
 
 def run_daemon(kind: str, seed: int, raw: dict | None = None, speed: float = 3.0, flight_s: float = 200.0) -> dict:
-    """The same flight with the real daemon (sim + daemon processes, the UDP tap reads commands).
+    """One flight with the real daemon (``azimuthd sim`` + ``azimuthd run`` processes over UDP,
+    bench/sitl.py). The daemon gets only the operator's config (site, launcher case, IMU mount,
+    [geofence]) and MAVLink; its own heading and phases drive its monitor. The UDP tap between
+    them records the commands it sends, the RAW_IMU it was forwarded and its ATTITUDE (latency);
+    its "stopped" log line gives the samples it processed. Truth (the simulator's truth log)
+    only scores: the true track's clearance to the fence.
 
-    ``speed`` 3: the pure-Python daemon keeps up with 600 IMU samples/s of wall time on the
-    development machine; at 10x it falls behind, the UDP buffer overflows and a 0.4 s boost can
-    be lost (no launch detected)."""
+    ``speed`` 3: the pure-Python daemon keeps up with ~300 IMU messages/s of wall time on an idle
+    machine; faster, or on a busy machine, it may fall behind: the bench reports the loss."""
     from sim.truthlog import load_truth_log
     from sitl import Sitl
     raw = raw or fence_raw()
@@ -350,101 +514,202 @@ def run_daemon(kind: str, seed: int, raw: dict | None = None, speed: float = 3.0
     sc = scenario(kind, seed)
     sc["scenario"]["duration_s"] = REST_S + flight_s
     scen = write_scenario_toml(sc, wd / "scenario.toml")
-    with Sitl(scenario=str(scen), speed=speed, seed=seed, tap=True, workdir=wd,
-              config_overrides={"geofence": raw}, sim_args=["--truth-log-rate", "10"]) as s:
-        s.wait_for(lambda: s.sim.poll() is not None, flight_s / speed + 90)
+    # SIMSTATE (the truth on the wire) not streamed by default (a legacy REQUEST_DATA_STREAM EXTRA1
+    # turns it on; the daemon's code never reads it: tests/test_truth_isolation.py).
+    # The simulator's sensors at 500 Hz (default 1 kHz) so that it keeps real time on a shared
+    # machine: a 200 Hz RAW_IMU averages 2-3 base samples instead of 5.
+    sim_args = ["--truth-log-rate", "10", "--set", "autopilot.simstate_rate_hz=0",
+                "--set", "autopilot.base_rate_hz=500"]
+    load0 = os.getloadavg()[0]
+    t_wall0 = time.monotonic()
+    with Sitl(scenario=str(scen), speed=speed, seed=seed, tap=True, workdir=wd, tap_record_to_daemon=("RAW_IMU",),
+              config_overrides={"geofence": raw}, sim_args=sim_args) as s:
+        # a slow simulator is waited for (its flight must be complete), up to 6x the nominal time
+        s.wait_for(lambda: s.sim.poll() is not None, 6.0 * flight_s / speed + 120)
+    wall_s = time.monotonic() - t_wall0
+    load1 = os.getloadavg()[0]
     divert_cmds = {20, 176, 192, 185}
     sent = [m for m in s.tap.sent_by_daemon("COMMAND_LONG") + s.tap.sent_by_daemon("COMMAND_INT")
             if m.command in divert_cmds]
     tr = load_truth_log(str(s.truth_log))
     clear = true_clearance_m(tr["lat_rad"], tr["lon_rad"], cfg)
     flying = tr["phase"] != 0
+    log_text = s.log("daemon")
+    stopped = {}
+    events: dict[str, int] = {}
+    for line in log_text.splitlines():
+        if "msg=stopped" in line:
+            stopped = _logfmt_fields(line)
+        if " event=geofence_" in line:
+            ev = _logfmt_fields(line).get("event", "?")
+            events[ev] = events.get(ev, 0) + 1
+    forwarded = len(s.tap.to_daemon)
+    processed = int(stopped.get("imu_samples", -1))
+    lat = attitude_latency_ms(s.tap)
+    # the simulator's pace: FC time of the RAW_IMU stream against the tap's wall clock. A real FC
+    # keeps real time; a simulator that fell behind it makes the daemon see FC-clock lags (and
+    # declare reboots): such a flight measures the harness, not the daemon.
+    fwd = s.tap.to_daemon
+    sim_rate = ((fwd[-1][1].time_usec - fwd[0][1].time_usec) * 1e-6 / (fwd[-1][0] - fwd[0][0])
+                if len(fwd) > 1 and fwd[-1][0] > fwd[0][0] else 0.0)
+    worst_lag_s = 0.0
+    if len(fwd) > 1:
+        t_fc = np.array([m.time_usec for _, m in fwd]) * 1e-6
+        t_w = np.array([t for t, _ in fwd])
+        worst_lag_s = float(np.max((t_w - t_w[0]) - (t_fc - t_fc[0])))  # behind real time, s
+    flown_s = float(tr["time_s"][-1]) if tr["time_s"].size else 0.0
+    reboots = log_text.count("event=fc_reboot")
     return {"kind": kind, "seed": seed, "diverts_sent": len(sent), "commands": sorted({m.command for m in sent}),
-            "min_true_clearance_m": float(np.min(clear[flying])) if flying.any() else None, "workdir": str(wd)}
+            "min_true_clearance_m": float(np.min(clear[flying])) if flying.any() else None,
+            "raw_imu_forwarded": forwarded, "imu_samples_processed": processed,
+            "imu_samples_lost": (forwarded - processed) if processed >= 0 else None,
+            "kernel_rx_drops": int(stopped.get("kernel_rx_drops", 0) or 0),
+            "link_seq_lost": int(stopped.get("link_seq_lost", 0) or 0),
+            "attitude_latency_p50_ms": float(np.percentile(lat, 50)) if lat.size else None,
+            "attitude_latency_p99_ms": float(np.percentile(lat, 99)) if lat.size else None,
+            "attitude_latency_max_ms": float(lat.max()) if lat.size else None,
+            "geofence_events": events, "daemon_stopped_cleanly": bool(stopped),
+            "daemon_declared_fc_reboots": reboots,
+            "sim_flown_s": flown_s, "flight_complete": flown_s >= REST_S + flight_s - 1.0,
+            "sim_speed_achieved": sim_rate, "sim_behind_real_time_max_s": worst_lag_s,
+            "valid": flown_s >= REST_S + flight_s - 1.0 and worst_lag_s < 2.0,
+            "wall_s": wall_s, "loadavg_1min_start": load0, "loadavg_1min_end": load1,
+            "launch_azimuth_deg": sc["launcher"]["azimuth_deg"], "workdir": str(wd)}
 
 
 # --- main ---------------------------------------------------------------------------------------
 
-def _summarise(results: list[dict], margin_m: float, mode: str) -> dict:
+def _open_loop_summary(results: list[dict], prefix: str) -> dict:
     out = [r for r in results if r["kind"] == "outbound"]
     ins = [r for r in results if r["kind"] == "inside"]
-    s: dict = {f"{mode}_outbound_runs": len(out), f"{mode}_inside_runs": len(ins)}
-    if mode == "offline":
-        ok = [r for r in out if r["latch_time_s"] is not None and r["true_cross_time_s"] is not None
-              and r["lead_time_s"] > 0]
-        leads = [r["lead_time_s"] for r in out if r["lead_time_s"] is not None]
-        ratios = [r["dr_error_at_latch_m"] / r["dr_sigma_major_at_latch_m"] for r in out
-                  if r["dr_error_at_latch_m"] is not None and r["dr_sigma_major_at_latch_m"]]
-        s.update({"offline_outbound_latched_before_true_crossing": len(ok),
-                  "offline_dr_error_over_sigma_at_latch_max": max(ratios) if ratios else None,
-                  "offline_dr_error_over_sigma_at_latch_rms": float(np.sqrt(np.mean(np.square(ratios)))) if ratios else None,
-                  "offline_lead_time_min_s": min(leads) if leads else None,
-                  "offline_lead_time_median_s": float(np.median(leads)) if leads else None,
-                  "offline_inside_no_latch": sum(r["latch_time_s"] is None for r in ins)})
-    else:
-        kept = [r for r in out if r["diverts_sent"] > 0 and r["min_true_clearance_m"] is not None
-                and r["min_true_clearance_m"] >= 0.0]
-        kept_margin = [r for r in kept if r["min_true_clearance_m"] >= margin_m]
-        mins = [r["min_true_clearance_m"] for r in out if r["min_true_clearance_m"] is not None]
-        s.update({f"{mode}_outbound_diverted_and_track_inside": len(kept),
-                  f"{mode}_outbound_track_inside_with_margin": len(kept_margin),
-                  f"{mode}_outbound_min_true_clearance_m": min(mins) if mins else None,
-                  f"{mode}_inside_no_divert": sum(r["diverts_sent"] == 0 for r in ins)})
+    ok = [r for r in out if r["latch_time_s"] is not None and r["true_cross_time_s"] is not None
+          and r["lead_time_s"] > 0]
+    leads = [r["lead_time_s"] for r in out if r["lead_time_s"] is not None]
+    ratios = [r["dr_error_at_latch_m"] / r["dr_sigma_major_at_latch_m"] for r in out
+              if r["dr_error_at_latch_m"] is not None and r["dr_sigma_major_at_latch_m"]]
+    return {f"{prefix}outbound_runs": len(out), f"{prefix}inside_runs": len(ins),
+            f"{prefix}outbound_latched_before_true_crossing": len(ok),
+            f"{prefix}dr_error_over_sigma_at_latch_max": max(ratios) if ratios else None,
+            f"{prefix}dr_error_over_sigma_at_latch_rms": float(np.sqrt(np.mean(np.square(ratios)))) if ratios else None,
+            f"{prefix}lead_time_min_s": min(leads) if leads else None,
+            f"{prefix}lead_time_median_s": float(np.median(leads)) if leads else None,
+            f"{prefix}inside_no_latch": sum(r["latch_time_s"] is None for r in ins)}
+
+
+def _closed_loop_summary(results: list[dict], margin_m: float, prefix: str) -> dict:
+    out = [r for r in results if r["kind"] == "outbound"]
+    ins = [r for r in results if r["kind"] == "inside"]
+    mins = [r["min_true_clearance_m"] for r in out + ins if r["min_true_clearance_m"] is not None]
+    s = {f"{prefix}outbound_runs": len(out), f"{prefix}inside_runs": len(ins),
+         f"{prefix}outbound_diverted": sum(r["diverts_sent"] > 0 for r in out),
+         # an exit: the TRUE track outside the fence (< 0 m), or inside the 50 m margin (< margin)
+         f"{prefix}fence_exits": sum(r["min_true_clearance_m"] is not None and r["min_true_clearance_m"] < 0.0
+                                     for r in out + ins),
+         f"{prefix}margin_violations": sum(r["min_true_clearance_m"] is not None
+                                           and r["min_true_clearance_m"] < margin_m for r in out + ins),
+         f"{prefix}min_true_clearance_m": min(mins) if mins else None,
+         f"{prefix}inside_false_diverts": sum(r["diverts_sent"] > 0 for r in ins)}
+    if results and "raw_imu_forwarded" in results[0]:
+        valid = [r for r in results if r.get("valid")]
+        lost = [r["imu_samples_lost"] for r in results if r["imu_samples_lost"] is not None]
+        fwd = sum(r["raw_imu_forwarded"] for r in results)
+        p99 = [r["attitude_latency_p99_ms"] for r in results if r["attitude_latency_p99_ms"] is not None]
+        p50 = [r["attitude_latency_p50_ms"] for r in results if r["attitude_latency_p50_ms"] is not None]
+        s.update({f"{prefix}flights_valid": len(valid),
+                  f"{prefix}flights_sim_behind_real_time": sum(not r["valid"] for r in results),
+                  f"{prefix}raw_imu_forwarded": fwd,
+                  f"{prefix}imu_samples_lost": int(sum(lost)) if lost else None,
+                  f"{prefix}imu_samples_lost_pct": 100.0 * sum(lost) / fwd if lost and fwd else None,
+                  f"{prefix}kernel_rx_drops": sum(r["kernel_rx_drops"] for r in results),
+                  f"{prefix}daemon_declared_fc_reboots": sum(r["daemon_declared_fc_reboots"] for r in results),
+                  f"{prefix}attitude_latency_p50_median_ms": float(np.median(p50)) if p50 else None,
+                  f"{prefix}attitude_latency_p99_max_ms": max(p99) if p99 else None,
+                  f"{prefix}sim_speed_achieved_min": min(r["sim_speed_achieved"] for r in results),
+                  f"{prefix}loadavg_1min_max": max(max(r["loadavg_1min_start"], r["loadavg_1min_end"])
+                                                   for r in results)})
+        for k, sub in (("valid_", valid),):
+            if sub:
+                s.update({f"{prefix}{k}fence_exits": sum(r["min_true_clearance_m"] < 0.0 for r in sub),
+                          f"{prefix}{k}margin_violations": sum(r["min_true_clearance_m"] < margin_m for r in sub),
+                          f"{prefix}{k}inside_false_diverts": sum(r["diverts_sent"] > 0 for r in sub
+                                                                  if r["kind"] == "inside")})
     return s
+
+
+def _line(mode: str, r: dict) -> str:
+    if mode in ("pipeline", "offline"):
+        lead = "-" if r["lead_time_s"] is None else f"{r['lead_time_s']:.1f} s"
+        err = ("" if r["dr_error_at_latch_m"] is None else
+               f"  DR error {r['dr_error_at_latch_m']:.0f} m (sigma {r['dr_sigma_major_at_latch_m']:.0f} m)")
+        return f"latch {r['latch_time_s']}  true crossing {r['true_cross_time_s']}  lead {lead}{err}"
+    line = f"diverts {r['diverts_sent']}  min true clearance {r['min_true_clearance_m']:.0f} m"
+    if mode == "closed":
+        return line + f" {r['actions']} {r['outcomes']}  modes {r['modes_seen']}"
+    return line + (f"  imu lost {r['imu_samples_lost']}/{r['raw_imu_forwarded']}  lat p99 "
+                   f"{r['attitude_latency_p99_ms']} ms  sim x{r['sim_speed_achieved']:.2f} "
+                   f"behind {r['sim_behind_real_time_max_s']:.1f} s  reboots {r['daemon_declared_fc_reboots']}  "
+                   f"load {r['loadavg_1min_start']:.1f}  {'valid' if r['valid'] else 'INVALID (sim behind)'}")
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--quick", action="store_true", help="2 seeds per kind, shorter flights")
     ap.add_argument("--json", default=str(ROOT / "bench" / "results" / "geofence.json"))
-    ap.add_argument("--mode", default="all", choices=("offline", "closed", "daemon", "all"))
+    ap.add_argument("--mode", default="headline",
+                    choices=("daemon", "pipeline", "offline", "closed", "headline", "all"),
+                    help="headline = daemon + pipeline; offline/closed are truth-heading diagnostics")
+    ap.add_argument("--load", default="both", choices=("idle", "busy", "both"),
+                    help="daemon mode: as the machine is, and/or with two competing CPU-bound processes")
+    ap.add_argument("--busy", action="store_true", help="same as --load busy")
     ap.add_argument("--seeds", type=int, default=None, help="seeds per scenario kind (default 20, quick 2)")
-    ap.add_argument("--speed", type=float, default=20.0, help="simulator speed for the closed loop")
+    ap.add_argument("--seed0", type=int, default=0, help="first seed")
+    ap.add_argument("--speed", type=float, default=None, help="simulator speed (daemon default 2, closed 20)")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT / "bench"))
     n = args.seeds or (2 if args.quick else 20)
+    seeds = range(args.seed0, args.seed0 + n)
     raw = fence_raw()
     margin = raw["margin_m"]
-    summary: dict = {"seeds_per_kind": n, "heading_bias_sigma_deg": HEADING_BIAS_SIGMA_DEG,
-                     "heading_white_sigma_deg": HEADING_WHITE_SIGMA_DEG,
-                     "heading_stated_sigma_deg": HEADING_STATED_SIGMA_DEG, "margin_m": margin,
-                     "fence_half_size_m": HALF_SIZE_M}
+    flight_s = 160.0 if args.quick else 200.0
+    summary: dict = {"seeds_per_kind": n, "seed0": args.seed0, "margin_m": margin, "fence_half_size_m": HALF_SIZE_M,
+                     "flight_s": flight_s, "gnss_lost_after_launch_s": GNSS_LOST_AFTER_LAUNCH_S}
     runs: dict = {}
-    modes = ["offline", "closed", "daemon"] if args.mode == "all" else [args.mode]
+    modes = {"headline": ["pipeline", "daemon"], "all": ["pipeline", "daemon", "offline", "closed"]}.get(
+        args.mode, [args.mode])
+    loads = ["busy"] if args.busy else (["idle", "busy"] if args.load == "both" else [args.load])
     for mode in modes:
-        if mode == "daemon":
-            ok, why = daemon_supports_geofence()
-            if not ok:
-                print(f"daemon mode skipped: {why}")
-                summary["daemon_skipped"] = why
-                continue
-        res = []
-        t0 = time.monotonic()
-        for kind in ("outbound", "inside"):
-            for seed in range(n):
-                if mode == "offline":
-                    r = run_offline(kind, seed, raw)
-                    lead = "-" if r["lead_time_s"] is None else f"{r['lead_time_s']:.1f} s"
-                    err = ("" if r["dr_error_at_latch_m"] is None else
-                           f"  DR error {r['dr_error_at_latch_m']:.0f} m (sigma {r['dr_sigma_major_at_latch_m']:.0f} m)")
-                    line = f"latch {r['latch_time_s']}  true crossing {r['true_cross_time_s']}  lead {lead}{err}"
-                elif mode == "closed":
-                    r = run_closed(kind, seed, raw, speed=args.speed, flight_s=160.0 if args.quick else 200.0)
-                    line = (f"diverts {r['diverts_sent']} {r['actions']} {r['outcomes']}  "
-                            f"min true clearance {r['min_true_clearance_m']:.0f} m  modes {r['modes_seen']}")
-                else:
-                    r = run_daemon(kind, seed, raw)
-                    line = f"diverts {r['diverts_sent']} min true clearance {r['min_true_clearance_m']:.0f} m"
-                print(f"{mode:8s} {kind:8s} seed {seed:2d} az {r.get('launch_azimuth_deg', 0):5.1f}  {line}",
-                      flush=True)
-                res.append(r)
-        summary.update(_summarise(res, margin, mode))
-        summary[f"{mode}_wall_s"] = round(time.monotonic() - t0, 1)
-        runs[mode] = res
+        for load in (loads if mode == "daemon" else [None]):
+            label = mode if load is None else f"daemon_{load}"
+            prefix = {"offline": "diagnostic_truth_heading.offline.",
+                      "closed": "diagnostic_truth_heading.closed."}.get(mode, f"{label}.")
+            res = []
+            t0 = time.monotonic()
+            with CpuHogs(2 if load == "busy" else 0):
+                for kind in ("outbound", "inside"):
+                    for seed in seeds:
+                        if mode == "pipeline":
+                            r = run_pipeline(kind, seed, raw, flight_s=flight_s)
+                        elif mode == "offline":
+                            r = run_offline(kind, seed, raw)
+                        elif mode == "closed":
+                            r = run_closed(kind, seed, raw, speed=args.speed or 20.0, flight_s=flight_s)
+                        else:
+                            r = run_daemon(kind, seed, raw, speed=args.speed or 2.0, flight_s=flight_s)
+                        print(f"{label:12s} {kind:8s} seed {seed:2d} az {r.get('launch_azimuth_deg', 0):5.1f}  "
+                              f"{_line(mode, r)}", flush=True)
+                        res.append(r)
+            summary.update(_open_loop_summary(res, prefix) if mode in ("pipeline", "offline")
+                           else _closed_loop_summary(res, margin, prefix))
+            summary[f"{prefix}wall_s"] = round(time.monotonic() - t0, 1)
+            runs[label] = res
+    if "offline" in modes or "closed" in modes:
+        summary.update({"diagnostic_truth_heading.heading_bias_sigma_deg": HEADING_BIAS_SIGMA_DEG,
+                        "diagnostic_truth_heading.heading_white_sigma_deg": HEADING_WHITE_SIGMA_DEG,
+                        "diagnostic_truth_heading.heading_stated_sigma_deg": HEADING_STATED_SIGMA_DEG})
     print()
-    print(f"{'figure':55s} value")
+    print(f"{'figure':60s} value")
     for k, v in summary.items():
-        print(f"{k:55s} {v}")
+        print(f"{k:60s} {v}")
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps({"summary": summary, "runs": runs}, indent=1, default=str))
     return 0

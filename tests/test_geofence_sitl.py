@@ -1,14 +1,19 @@
-"""Geofence closed loop end to end: the simulator as its own process over MAVLink/UDP.
+"""Geofence end to end with the REAL daemon and its own heading: `azimuthd sim` and `azimuthd run`
+as two processes over UDP (bench/geofence.py run_daemon). The daemon gets the operator's config
+(site, launcher, [geofence]) and MAVLink only; the simulator's truth log only scores.
 
-GIVEN the bench's fence and an outbound flight (GNSS lost 25 s after the launch)
-WHEN the geofence loop (GeofenceMonitor + CommandProtocol on a MavlinkLink, as the daemon runs them)
-     predicts the breach on dead reckoning
-THEN it sends MAV_CMD_NAV_RETURN_TO_LAUNCH, the simulator ACKs it and turns back (mode RTL), and the
-     TRUE track (the simulator's truth log) never leaves the fence, keeping at least the 50 m margin.
+GIVEN the bench's fence and an outbound flight (seed 1, launch azimuth 194 deg), GNSS lost 25 s
+      after the launch
+WHEN the daemon dead-reckons on its own heading and predicts the breach
+THEN it sends MAV_CMD_NAV_RETURN_TO_LAUNCH and the TRUE track never leaves the fence (the offline
+     Pipeline run of this flight latches 25 s before the true crossing:
+     tests/test_geofence_offline.py); the RAW_IMU the daemon was sent and the samples it
+     processed are both counted (the bench reports the difference as lost).
 
-The first test runs the loop in this process (a stand-in for the daemon, bench/geofence.py
-run_closed); the second runs the real daemon and is skipped until the daemon accepts [geofence]
-(the lead wires it: docs/GEOFENCE.md "Wiring into the daemon"). 20 + 20 seeds: bench/geofence.py.
+What was lost and why, never timing: when the simulator itself fell behind real time on a
+loaded machine (a real FC never does; the daemon then sees FC-clock lags), the flight measures
+the harness, and the test says so and stops there. 20 + 20 flights, idle and busy:
+bench/geofence.py --mode daemon.
 """
 import sys
 from pathlib import Path
@@ -18,22 +23,17 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 import geofence as bench  # noqa: E402
 
-
-@pytest.mark.timeout(120)
-def test_closed_loop_divert_before_the_breach_true_track_stays_inside():
-    r = bench.run_closed("outbound", 1, speed=25.0, flight_s=130.0)
-    assert r["truth_rows"] > 1000, f"truth log too short; see {r['workdir']}"
-    assert r["actions"][:1] == ["rtl"] and r["outcomes"][:1] == ["rtl:accepted"], r
-    assert r["first_divert_time_fc_s"] > bench.REST_S + bench.GNSS_LOST_AFTER_LAUNCH_S  # on dead reckoning
-    assert "RTL" in r["modes_seen"]
-    assert r["min_true_clearance_m"] >= bench.fence_raw()["margin_m"], r
+RTL = 20  # MAV_CMD_NAV_RETURN_TO_LAUNCH
 
 
-@pytest.mark.timeout(180)
-def test_daemon_end_to_end_divert():
-    ok, why = bench.daemon_supports_geofence()
-    if not ok:
-        pytest.skip(f"daemon not wired yet: {why}")
-    r = bench.run_daemon("outbound", 1, speed=3.0, flight_s=150.0)  # a daemon that keeps up (see run_daemon)
-    assert r["diverts_sent"] >= 1, r
+@pytest.mark.timeout(900)
+def test_daemon_diverts_on_its_own_heading_and_the_true_track_stays_inside():
+    r = bench.run_daemon("outbound", 1, speed=2.0, flight_s=150.0)
+    assert r["daemon_stopped_cleanly"], f"no 'stopped' line from the daemon; see {r['workdir']}"
+    assert r["flight_complete"], r
+    if not r["valid"]:
+        pytest.skip(f"the simulator fell {r['sim_behind_real_time_max_s']:.1f} s behind real time "
+                    f"(load {r['loadavg_1min_start']:.1f}): this run measures the machine, not the daemon")
+    assert RTL in r["commands"], r
     assert r["min_true_clearance_m"] >= 0.0, r
+    assert r["imu_samples_lost"] is not None and r["imu_samples_lost"] >= 0, r
