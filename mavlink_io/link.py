@@ -72,7 +72,8 @@ from mavlink_io.url import Endpoint, parse_url
 
 LINK_EVENT_KINDS = ("autopilot_detected", "rates_requested", "rates_acked", "rates_limited", "fc_reboot",
                     "time_gap", "time_wrap", "link_lost", "link_restored", "reconnect", "transport_error",
-                    "signature_rejected", "unsigned_command_rejected", "udp_split_frames", "params_read")
+                    "signature_rejected", "unsigned_command_rejected", "udp_split_frames", "params_read",
+                    "input_backlog")
 
 REQUIRE_SIGNED = ("commands", "all", "none")
 COMMAND_TYPES = ("COMMAND_LONG", "COMMAND_INT")
@@ -1094,6 +1095,8 @@ class MavlinkLink:
                 self.stats.time_gaps += 1
             elif ev.kind == "time_wrap":
                 self.stats.time_wraps += 1
+            elif ev.kind == "input_backlog":  # FC time lags, its clock did not restart: no reboot
+                self.stats.input_backlogs += 1
         if t is None:
             self.stats.stale_time_drops += 1
         return t

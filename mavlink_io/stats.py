@@ -66,6 +66,9 @@ class LinkStats:
     time_gaps: int = 0
     time_wraps: int = 0
     fc_reboots: int = 0
+    input_backlogs: int = 0
+    """Samples whose FC time lagged the local clock by over 1 s with the FC clock continuous: a
+    stalled sender or a queued read (mavlink_io/timebase.py), not an FC reboot."""
     link_losses: int = 0
     reconnects: int = 0
     transport_errors: int = 0

@@ -68,7 +68,8 @@ _EVENT_SEVERITY = {"link_lost": "warning", "fc_reboot": "warning", "time_gap": "
                    "transport_error": "error", "not_still": "info", "strapdown": "warning",
                    "imu_input": "warning", "signature_rejected": "warning",
                    "unsigned_command_rejected": "warning", "input_overflow": "warning", "input_loss": "warning",
-                   "loop_stall": "warning", "command": "info", "started_in_flight": "warning"}
+                   "loop_stall": "warning", "command": "info", "started_in_flight": "warning",
+                   "input_backlog": "warning"}
 
 
 def _fmt_angle(rad: float | None, sigma: float | None, width: int = 6) -> str:
@@ -620,7 +621,8 @@ class Daemon:
             self.bus.publish_solution(sol, now, arb.per_source if arb is not None else None)
 
     _LINK_COUNTERS = ("seq_lost", "crc_errors", "framing_errors", "kernel_rx_drops", "signed_accepted",
-                      "signature_bad", "signature_replay", "unsigned_rejected", "unsigned_commands_rejected")
+                      "signature_bad", "signature_replay", "unsigned_rejected", "unsigned_commands_rejected",
+                      "fc_reboots", "input_backlogs")
 
     def _link_counters(self) -> dict[str, int]:
         ls = self.link.stats

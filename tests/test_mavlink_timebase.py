@@ -122,15 +122,18 @@ def test_reboot_detected_and_output_stays_monotonic():
 
 def test_quick_reboot_told_from_reordering_by_the_local_clock():
     """Up 3 s, reboot, 2 s of silence, first sample at 2 s since boot: only 1 s back, but 3 s
-    behind what the local clock predicts -> a reboot, not a late packet."""
+    behind what the local clock predicts and within the silence -> a restart candidate, confirmed
+    by the next sample going on from it (that first sample is dropped as stale)."""
     tb = FcTimebase(TimebaseParams(reboot_jump_s=1.0))
     _feed_all(tb, [("IMU", 2_995_000, "us", 10.0), ("IMU", 3_000_000, "us", 10.005)])
     t, ev = tb.feed("IMU", 2_000_000, "us", 12.005)
-    assert [e.kind for e in ev] == ["fc_reboot"] and t == pytest.approx(3.0 + 2.0)
+    assert t is None and ev == [] and tb.stale == 1
+    t, ev = tb.feed("IMU", 2_005_000, "us", 12.010)
+    assert [e.kind for e in ev] == ["fc_reboot"] and t == pytest.approx(3.0 + 2.005)
     # whereas a late packet from 0.5 s ago arriving right away is just dropped
-    tb.feed("IMU", 2_005_000, "us", 12.010)
-    t, ev = tb.feed("IMU", 1_505_000, "us", 12.011)
-    assert t is None and ev == []
+    tb.feed("IMU", 2_010_000, "us", 12.015)
+    t, ev = tb.feed("IMU", 1_510_000, "us", 12.016)
+    assert t is None and ev == [] and tb.reboots == 1
 
 
 def test_reboot_during_a_long_outage_seen_from_the_local_clock():
@@ -194,3 +197,103 @@ def test_output_never_goes_backwards_per_stream(steps, start_ms):
             if stream in last:
                 assert t > last[stream]
             last[stream] = t
+
+
+# --- a lag alone is a stall or a backlog, never a reboot ------------------------------------------
+
+IMU_DT_US = 5_000  # 200 Hz
+
+
+def _imu_run(tb, t0_us, n, rx0_s, rx_step_s=IMU_DT_US * 1e-6, gap_s=0.05):
+    """n consecutive 200 Hz RAW_IMU stamps from t0_us, received from rx0_s every rx_step_s."""
+    return _feed_all(tb, [("IMU", t0_us + IMU_DT_US * i, "us", rx0_s + rx_step_s * i) for i in range(n)], gap_s)
+
+
+def test_sender_stall_is_a_backlog_not_a_reboot():
+    """GIVEN an FC (the simulator) whose clock paused for 5.35 s while the machine starved it
+    WHEN its samples resume, consecutive at 200 Hz but 5.35 s behind the local clock
+    THEN no reboot: one input_backlog naming the lag, every sample delivered 5 ms apart."""
+    tb = FcTimebase()
+    out1, ev1 = _imu_run(tb, 60_000_000, 400, 100.0)  # 2 s of flight at 60 s since boot
+    out2, ev2 = _imu_run(tb, 60_000_000 + 400 * IMU_DT_US, 400, 100.0 + 400 * 0.005 + 5.35)
+    out = out1 + out2
+    assert ev1 == [] and [e.kind for e in ev2] == ["input_backlog"]
+    assert "by 5.350 s" in ev2[0].detail and "not a reboot" in ev2[0].detail
+    assert None not in out and np.allclose(np.diff(out), 0.005, atol=1e-9)  # integration goes on
+    assert tb.reboots == 0 and tb.backlogs == 1 and tb.backlog_max_s == pytest.approx(5.35, abs=1e-6)
+
+
+def test_read_loop_backlog_is_a_backlog_not_a_reboot():
+    """GIVEN a daemon whose read loop stalled 5 s while the kernel queued the FC's samples
+    WHEN it reads them all at once (one receive time for the whole batch)
+    THEN every queued sample is delivered in order, 5 ms apart, one input_backlog, no reboot."""
+    tb = FcTimebase()
+    _imu_run(tb, 30_000_000, 200, 10.0)
+    last_rx = 10.0 + 199 * 0.005
+    out, ev = _imu_run(tb, 30_000_000 + 200 * IMU_DT_US, 1000, last_rx + 5.0, rx_step_s=0.0)
+    assert [e.kind for e in ev] == ["input_backlog"] and "by 4.995 s" in ev[0].detail
+    assert None not in out and np.allclose(np.diff(out), 0.005, atol=1e-9)
+    assert tb.reboots == 0 and tb.stale == 0
+
+
+def test_backlog_with_samples_lost_is_a_gap_not_a_reboot():
+    """GIVEN 12 s of local silence after which the FC time went on by 5 s (a sender stalled 7 s,
+    then the kernel dropped what the stalled reader could not hold; FC up 60 s) WHEN read THEN
+    a time_gap and an input_backlog (7 s), no reboot: a clock 65 s since boot cannot have
+    restarted within a 12 s silence."""
+    tb = FcTimebase()
+    _imu_run(tb, 60_000_000, 10, 0.0)
+    t_after = 60_000_000 + 9 * IMU_DT_US + 5_000_000
+    out, ev = _feed_all(tb, [("IMU", t_after, "us", 0.045 + 12.0)], gap_s=0.05)
+    assert sorted(e.kind for e in ev) == ["input_backlog", "time_gap"] and out[0] == pytest.approx(65.045)
+    assert "by 7.000 s" in next(e.detail for e in ev if e.kind == "input_backlog") and tb.reboots == 0
+
+
+def test_stall_longer_than_the_uptime_is_still_no_reboot():
+    """2 s after boot the sender stalls 6 s, then goes on 5 ms later: its time since boot (2 s)
+    would fit in the silence, but a restarted clock does not continue where the old one stopped."""
+    tb = FcTimebase()
+    _imu_run(tb, 2_000_000, 10, 50.0)
+    out, ev = _imu_run(tb, 2_000_000 + 10 * IMU_DT_US, 10, 50.045 + 6.0)
+    assert [e.kind for e in ev] == ["input_backlog"] and tb.reboots == 0
+    assert np.allclose(np.diff(out), 0.005, atol=1e-9)
+
+
+def test_repeat_and_late_packet_in_a_backlog_are_dropped_not_a_reboot():
+    """2 s after boot, a 4 s stall; a duplicated and a reordered packet arrive first (the late one
+    could be a restarted clock's first sample: held), then the old clock goes on: no reboot."""
+    tb = FcTimebase()
+    _imu_run(tb, 2_000_000, 10, 50.0)
+    last = 2_000_000 + 9 * IMU_DT_US
+    out, ev = _feed_all(tb, [("IMU", last, "us", 54.045), ("IMU", last - 10_000, "us", 54.045),
+                             ("IMU", last + IMU_DT_US, "us", 54.045), ("IMU", last + 2 * IMU_DT_US, "us", 54.045)])
+    assert out[:2] == [None, None] and out[2:] == pytest.approx([2.05, 2.055])
+    assert [e.kind for e in ev] == ["input_backlog"] and tb.stale == 2 and tb.reboots == 0
+
+
+def test_reboot_inside_a_read_backlog_is_a_reboot():
+    """The FC rebooted while our loop stalled: the batch holds the old boot, then the new one
+    (its clock back near zero). One fc_reboot at the first new-boot sample, output monotonic."""
+    tb = FcTimebase()
+    _imu_run(tb, 80_000_000, 10, 0.0)
+    old, ev_old = _imu_run(tb, 80_000_000 + 10 * IMU_DT_US, 20, 8.0, rx_step_s=0.0)
+    new, ev_new = _imu_run(tb, 3_000_000, 20, 8.0, rx_step_s=0.0)
+    assert [e.kind for e in ev_old] == ["input_backlog"]
+    assert [e.kind for e in ev_new] == ["fc_reboot"] and "went back 77.145 s" in ev_new[0].detail
+    out = old + new
+    assert None not in out and np.all(np.diff(out) > 0) and tb.reboots == 1
+
+
+def test_small_lag_is_not_reported():
+    """A 0.9 s lag (below backlog_report_s = 1 s): delivered silently."""
+    tb = FcTimebase()
+    _imu_run(tb, 10_000_000, 10, 0.0)
+    out, ev = _imu_run(tb, 10_000_000 + 10 * IMU_DT_US, 5, 0.045 + 0.905)
+    assert ev == [] and None not in out and tb.backlogs == 0
+
+
+def test_new_params_validated():
+    with pytest.raises(ValueError, match="restart_margin_s"):
+        TimebaseParams(restart_margin_s=-1.0)
+    with pytest.raises(ValueError, match="backlog_report_s"):
+        TimebaseParams(backlog_report_s=0.0)
