@@ -36,7 +36,7 @@ from estimators.azimuth import (AzimuthOutput, AzimuthParams, azimuth_apply_solv
 from estimators.declination import (DeclinationParams, RestState, estimate_declination,
                                     rest_accumulate)
 from estimators.geomag import EarthField, earth_field, field_from_vector
-from estimators.levelling import LevellingParams
+from estimators.levelling import LevellingParams, LevellingState
 from estimators.mag_deviation import (DeviationParams, DeviationState, corrected_mag, deviation_coverage,
                                       deviation_init, deviation_step, residual_sigma_gauss)
 from estimators.mag_error_kf import Kf1State
@@ -499,7 +499,15 @@ class Pipeline:
             # method A levels on the phases' kept block (the quietest window), the samples from the
             # launch on replayed from its delay line
             t_launch = self.phase.launch_time_s
-            self.azimuth = dc_replace(self.azimuth, levelling=self.phase.level_block,
+            block = self.phase.level_block
+            if self.phase.moved_rad > self.phase_params.moved_rad:  # picked up since: C's tilt at the launch
+                block, why = self._level_block_from_attitude_filter(block)
+                if block is None:
+                    self._azimuth_off, self.azimuth_out = f"not run: {why}", None
+                    self._event("azimuth", self._azimuth_off)
+                    return
+                self._event("azimuth", why)
+            self.azimuth = dc_replace(self.azimuth, levelling=block,
                                       pending=tuple(x for x in self.azimuth.pending if x[0] >= t_launch))
             self.azimuth, why = azimuth_launch(self.azimuth, t_launch)
             if why:
@@ -524,13 +532,39 @@ class Pipeline:
         ph, pp = self.phase, self.phase_params
         if ph.level is None or ph.level_block is None:
             return "no levelling before the take-off"
-        if ph.moved_rad > pp.moved_rad:
+        if ph.moved_rad > pp.moved_rad and polar_attitude_estimate(self.polar_att) is None:
             return (f"the vehicle turned {math.degrees(ph.moved_rad):.1f} deg since its last still block "
-                    f"(> {math.degrees(pp.moved_rad):g} deg): the levelling does not hold at the take-off")
+                    f"(> {math.degrees(pp.moved_rad):g} deg) and the attitude filter has not levelled")
         if self.azimuth_params.launch_case == "inclined" and pp.vehicle not in ("launcher", "hand"):
             return (f"launch.case inclined needs a boost along the flight axis; a {pp.vehicle} take-off has "
                     "none (set launch.case aligned)")
         return ""
+
+    def _level_block_from_attitude_filter(self, block: LevellingState) -> tuple[LevellingState | None, str]:
+        """The vehicle turned since its last still block (a hand launch: picked up and held): the
+        ground levelling no longer holds at the launch. Method A then levels on the attitude
+        filter's (method C's, no heading needed) roll/pitch at the launch with its 1-sigma, and
+        keeps the block's gyro bias. Written as a levelling state whose mean is gravity at C's tilt
+        and whose spread gives the tilt noise |SEM_xy| / g = sigma_C (SEM = sigma_C g / sqrt(2) per
+        axis), so levelling_result gives back C's tilt and sigma, and refuses a sigma above its
+        max_tilt_noise_rad (None and why)."""
+        att = polar_attitude_estimate(self.polar_att)
+        g = float(np.linalg.norm(block.accel_mean_m_s2))
+        roll, pitch = att.roll_rad, att.pitch_rad
+        sigma = math.sqrt(max(att.cov_roll_pitch_rad2[0, 0], att.cov_roll_pitch_rad2[1, 1], 0.0))
+        turned = f"the vehicle turned {math.degrees(self.phase.moved_rad):.1f} deg since its last still block"
+        limit = self.phase_params.levelling.max_tilt_noise_rad
+        if sigma > limit:
+            return None, (f"{turned} and the attitude filter's tilt sigma at the launch, {math.degrees(sigma):.2f} deg, "
+                          f"is above the {math.degrees(limit):g} deg a levelling needs")
+        f_body = g * np.array([math.sin(pitch), -math.cos(pitch) * math.sin(roll), -math.cos(pitch) * math.cos(roll)])
+        n = block.n
+        sem = sigma * g / math.sqrt(2.0)
+        lev = LevellingState(n, self.C_body_from_sensor.T @ f_body, np.full(3, sem * sem * n * (n - 1)),
+                             block.gyro_mean_rad_s.copy(), block.gyro_m2.copy())
+        why = (f"{turned}: levelled on the attitude filter at the launch (roll {math.degrees(roll):.2f} deg, pitch "
+               f"{math.degrees(pitch):.2f} deg, sigma {math.degrees(sigma):.2f} deg), the gyro bias from the block")
+        return lev, why
 
     def azimuth_status(self) -> str:
         """Method A's state in one line (what the replay summary and the status topic show)."""

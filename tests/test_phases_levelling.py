@@ -12,7 +12,7 @@ import numpy as np
 
 from estimators.levelling import (LevellingParams, LevellingState, levelling_merge, levelling_result,
                                   levelling_step)
-from service.phases import FlightEvidence, PhaseParams, PhaseState, phase_step
+from service.phases import PhaseParams, PhaseState, phase_step
 
 G = 9.80665
 ROLL, PITCH = math.radians(3.0), math.radians(-2.0)

@@ -7,6 +7,7 @@ the FC's landed state), and an impact, a taxi jolt or a push while disarmed is n
 import math
 
 import numpy as np
+import pytest
 
 from estimators.levelling import LevellingParams
 from service.phases import IN_FLIGHT, LAUNCH, PRE_LAUNCH, FlightEvidence, PhaseParams, PhaseState, phase_step
@@ -103,6 +104,5 @@ def test_a_multicopter_lift_off_from_the_imu():
 
 
 def test_vehicle_validated():
-    import pytest
     with pytest.raises(ValueError, match="vehicle must be one of"):
         PhaseParams(vehicle="balloon")
