@@ -99,7 +99,7 @@ def run_web(args: list[str], timeout_s: float = 30.0) -> subprocess.CompletedPro
                           capture_output=True, text=True, timeout=timeout_s)
 
 
-def test_web_refuses_a_busy_port_and_a_bad_endpoint_in_one_line():
+def test_web_refuses_a_busy_port_a_bad_endpoint_and_an_unreachable_router_in_one_line():
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen()
@@ -113,6 +113,12 @@ def test_web_refuses_a_busy_port_and_a_bad_endpoint_in_one_line():
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
     assert bad.stderr.startswith("azimuthd web: cannot open a Zenoh peer session to localhost:7447")
     assert len(bad.stderr.strip().splitlines()) == 1
+    router = f"tcp/127.0.0.1:{free_tcp_port()}"  # nobody there: a client session cannot open
+    gone = run_web(["--mode", "client", "--connect", router, "--listen", f"127.0.0.1:{free_tcp_port()}",
+                    "--duration", "1"])
+    assert gone.returncode == 2 and gone.stderr.strip() == (
+        f"azimuthd web: cannot open a Zenoh client session to {router}: Unable to connect to any of "
+        f"[Single({router})]!")
     form = run_web(["--listen", "8765"])
     assert form.returncode == 2 and "--listen must be HOST:PORT" in form.stderr
 

@@ -44,6 +44,7 @@ function vehicle(name) {
   const after = [...main.children].find((c) => c.dataset.vehicle > name);
   main.insertBefore(el, after || null);
   vehicles.set(name, v);
+  drawTrack(v);                        // says what is missing until the geofence topic comes
   return v;
 }
 
