@@ -161,6 +161,10 @@ SPEC: dict[str, dict[str, Key]] = {
         "named_value_hz": Key(_F, 2.0, "NAMED_VALUE_FLOAT (azimuth, heading sigma, phase) rate", _range(0.1, 50)),
         "extra_mavlink_urls": Key(list, [], "more MAVLink endpoints that get our outputs (a GCS, a test client)", _url_list),
         "status_interval_s": Key(_F, 0.0, "print a status line to stdout this often; 0 = never", _range(0, 3600)),
+        "max_tilt_sigma_deg": Key(_F, 10.0, "roll/pitch 1-sigma above which no attitude (ATTITUDE, quaternion, ODOMETRY) is sent", _range(0.1, 90)),
+        "max_heading_sigma_deg": Key(_F, 15.0, "heading 1-sigma above which no heading is sent (ATTITUDE yaw NaN, no quaternion, no ODOMETRY)", _range(0.1, 180)),
+        "max_extrapolation_s": Key(_F, 0.15, "outputs go at their rates whatever the IMU rate: the last solution brought forward by its body rates, up to this age; older, nothing is sent", _range(0.001, 2)),
+        "attitude_to_fc": Key(bool, True, "send ATTITUDE / ATTITUDE_QUATERNION to the FC link too (ArduPilot forwards them to every port: ground stations see the FC's attitude and ours, components 1 and 191); false: only ODOMETRY, NAMED_VALUE_FLOAT, HEARTBEAT go to the FC, extra_mavlink_urls always get everything", None),
     },
     "zenoh": {
         "enabled": Key(bool, True, "publish state over Zenoh", None),

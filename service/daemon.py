@@ -24,15 +24,18 @@ import time
 from pymavlink.dialects.v20 import common as mavlink2
 
 from mavlink_io.commands import CommandProtocol, CommandProtocolParams, statustext_message
+from mavlink_io.decode import FcParam, FcStatusText
 from mavlink_io.link import LinkConfig, LinkEvent, MavlinkLink
 from mavlink_io.outputs import OutputScheduler, odometry_profile_for_autopilot
 from mavlink_io.outputs import encode_attitude, encode_attitude_quaternion
+from mavlink_io.output_gate import OutputLimits, extrapolate_solution, gate_solution
 from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, FcSysStatus,
                                 ImuSample, IncomingCommand, PressureSample)
 from service import state_file
 from service.calibration_keeper import CalibrationKeeper
 from service.command_server import MSG_ATTITUDE, MSG_ATTITUDE_QUATERNION, MSG_HEARTBEAT, CommandServer
 from service.config import state_dir
+from service.fc_yaw_guard import FcYawGuard
 from service.link_health import InputLossMonitor
 from service.logs import RateLimitedLog
 from service.pipeline import Pipeline
@@ -64,7 +67,7 @@ WAITING_LOG_S = 10.0
 """Period of the "waiting for heartbeat" message until the FC's first HEARTBEAT."""
 IMU_SILENCE_SHOWN_S = 1.0
 _SHOWN_RATES = ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU", "SCALED_PRESSURE", "ATTITUDE")
-_EVENT_SEVERITY = {"link_lost": "warning", "fc_reboot": "warning", "time_gap": "warning",
+_EVENT_SEVERITY = {"rates_limited": "warning", "link_lost": "warning", "fc_reboot": "warning", "time_gap": "warning",
                    "transport_error": "error", "not_still": "info", "strapdown": "warning",
                    "imu_input": "warning", "signature_rejected": "warning",
                    "unsigned_command_rejected": "warning", "input_overflow": "warning", "input_loss": "warning",
@@ -157,6 +160,17 @@ class Daemon:
         self.scheduler = OutputScheduler({"ATTITUDE": out["attitude_hz"], "ATTITUDE_QUATERNION": out["attitude_hz"],
                                           "ODOMETRY": out["odometry_hz"],
                                           "NAMED_VALUE_FLOAT": out["named_value_hz"]})
+        # outputs at their rates whatever the IMU rate: the last solution brought to the send time,
+        # cut where its sigma says it is meaningless (mavlink_io/output_gate.py)
+        self._last_solution_s = -math.inf
+        """Daemon clock when the pipeline last produced a solution."""
+        self.output_limits = OutputLimits(math.radians(out["max_tilt_sigma_deg"]),
+                                          math.radians(out["max_heading_sigma_deg"]), out["max_extrapolation_s"])
+        self.attitude_to_fc = out["attitude_to_fc"]
+        self.fc_yaw_guard = FcYawGuard()
+        if not cfg["heading"].get("use_fc_yaw", True):
+            self.fc_yaw_guard.configured_exclusion()
+        self.scheduler.odometry_allowed = False  # until the FC's parameters say the placeholder is safe
         self.status_interval_s = out["status_interval_s"]
         self.link: MavlinkLink | None = None
         self.extra_ports: list = []
@@ -394,6 +408,7 @@ class Daemon:
             self.dispatch(item)
         now = self.clock()
         self._last_step_s = now
+        self._publish_due(now)
         if self.commands is not None:
             for o in self.commands.poll(now):
                 self._command_outcome(o, now)
@@ -463,6 +478,10 @@ class Daemon:
             sol = self.pipeline.on_imu(item)
             if sol is not None:
                 self.last_solution = sol
+                self._last_solution_s = self.clock()
+                # also here, not only once per poll: a poll that returns a burst (the loop behind)
+                # would otherwise publish one message of each kind per burst
+                self._publish_due(self._last_solution_s)
                 self.publish(sol)
                 if self.geofence is not None:
                     self._geofence_step(sol)
@@ -478,8 +497,16 @@ class Daemon:
             self._event(item.kind, item.detail)
             if item.kind == "fc_reboot":
                 self.pipeline.on_fc_reboot()
+                self._fc_yaw_feed_start()  # its parameters may have changed with the reboot
             elif item.kind == "autopilot_detected":
                 self.scheduler.set_profile(odometry_profile_for_autopilot(self.link.fc_autopilot))
+                self._fc_yaw_feed_start()
+            elif item.kind == "params_read":
+                self._fc_yaw_feed(self.fc_yaw_guard.on_params(self.link.fc_params, self.link.fc_params_missing))
+        elif isinstance(item, FcParam):
+            self._fc_yaw_feed(self.fc_yaw_guard.on_params(self.link.fc_params, self.link.fc_params_missing))
+        elif isinstance(item, FcStatusText):
+            self._fc_yaw_feed(self.fc_yaw_guard.on_statustext(item.text, self.sent.get("ODOMETRY", 0) > 0))
         elif isinstance(item, FcHeartbeat):
             self.fc_heartbeat = item
             self.pipeline.on_fc_heartbeat(item)
@@ -520,7 +547,7 @@ class Daemon:
         ack = self.link.mav.command_ack_encode(cmd.command, d.result, 0, 0, cmd.source_system, cmd.source_component)
         self.link.send(ack)  # the ACK first, then what was asked for (MAVLink command protocol)
         if msg is not None:
-            self._send(msg)
+            self._send(msg, to_fc=True)
         if d.action in ("fence_enable", "fence_disable") and not d.repeat and self.geofence is not None:
             self.geofence.actions_enabled = d.action == "fence_enable"
         self._event("command", f"{d.reason}: {d.result_name}")
@@ -598,11 +625,47 @@ class Daemon:
 
     # --- outputs ------------------------------------------------------------------------------
 
-    def _send(self, msg) -> None:
-        self.link.send(msg)
-        self._send_extra(msg)
+    def _fc_yaw_feed_start(self) -> None:
+        names, events = self.fc_yaw_guard.start(self.link.fc_autopilot)
+        if names:
+            self.link.read_params(names)
+        self._fc_yaw_feed(events)
+
+    def _fc_yaw_feed(self, events: list) -> None:
+        """Apply the guard's decisions (service/fc_yaw_guard.py) and report them."""
+        self.scheduler.odometry_allowed = self.fc_yaw_guard.odometry_allowed
+        if self.fc_yaw_guard.exclude_reason is not None and self.pipeline.use_fc_yaw:
+            self.pipeline.exclude_fc_yaw(self.fc_yaw_guard.exclude_reason)
+        for kind, severity, detail in events:
+            level = {"info": logging.INFO, "warning": logging.WARNING, "error": logging.ERROR}[severity]
+            log.log(level, detail, extra={"fields": {"event": kind}})
+            if self.bus is not None:
+                from service.zenoh_bus import event_payload
+                self.bus.publish("events", event_payload(kind, severity, detail, time_rx_s=self.clock()))
+
+    def _publish_due(self, now: float) -> None:
+        """MAVLink outputs at their own rates: the last solution, brought to ``now``, without what
+        its sigma calls meaningless. Nothing once no solution was produced for max_extrapolation_s
+        (a slow IMU); a solution that was late when produced (the loop behind a burst) is sent as
+        it is, with its own time stamp, rather than pushed forward that far."""
+        sol, limit = self.last_solution, self.output_limits.max_extrapolation_s
+        if sol is None or self.link is None or now < self.scheduler.next_due_s() \
+                or now - self._last_solution_s > limit:
+            return
+        sol = extrapolate_solution(sol, now, limit) or sol
+        for msg in self.scheduler.messages(gate_solution(sol, self.output_limits), now):
+            self._send(msg)
+
+    def _send(self, msg, to_fc: bool = False) -> None:
+        """To the FC link (ATTITUDE/ATTITUDE_QUATERNION only with [outputs] attitude_to_fc, or when
+        ``to_fc``: an answer to a request) and every extra output."""
         t = msg.get_type()
-        self.sent[t] = self.sent.get(t, 0) + 1
+        to_link = to_fc or self.attitude_to_fc or t not in ("ATTITUDE", "ATTITUDE_QUATERNION")
+        if to_link:
+            self.link.send(msg)  # ArduPilot forwards what we send it to every port (docs/OUTPUTS.md 1.6)
+        self._send_extra(msg)
+        if to_link or self.extra_ports:
+            self.sent[t] = self.sent.get(t, 0) + 1
 
     def _send_extra(self, msg) -> None:
         for p in self.extra_ports:
@@ -613,9 +676,8 @@ class Daemon:
                 self.rl.log(logging.WARNING, "extra_send", "extra output send failed", error=str(exc))
 
     def publish(self, sol: NavSolution) -> None:
+        """A new solution: Zenoh at once; MAVLink from the loop at its own rates (_publish_due)."""
         now = sol.time_rx_s
-        for msg in self.scheduler.messages(sol, now):
-            self._send(msg)
         if self.bus is not None:
             arb = getattr(self.pipeline, "arb_out", None)
             self.bus.publish_solution(sol, now, arb.per_source if arb is not None else None)
@@ -651,4 +713,16 @@ class Daemon:
              **self._link_counters(),
              **{f"commands_{k.lower()}": v for k, v in self.command_server.counts.items()}},
             status=status_line(sol, self.link.stats.rates_hz(), self.link.connected).split(" | ")[0],
-            autopilot=self.link.fc_autopilot, time_rx_s=now))
+            autopilot=self.link.fc_autopilot, time_rx_s=now) | {"flags": self._health_flags()})
+
+    def _health_flags(self) -> dict:
+        """The heading feed's state and, per requested stream, asked / granted / achieved rates."""
+        flags = self.fc_yaw_guard.flags()
+        for name, r in self.link.stream_report().items():
+            g = r["granted_hz"]
+            flags[f"stream_{name}"] = (f"asked {r['asked_hz']:g} Hz, " + (f"granted {g:g} Hz" if g is not None
+                                                                         else r["result"])
+                                       + f", achieved {r['achieved_hz']:.1f} Hz")
+        if self.link.rate_advice:
+            flags["stream_advice"] = self.link.rate_advice
+        return flags

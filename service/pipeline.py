@@ -218,6 +218,8 @@ class Pipeline:
         self.arb_out = None
         """The last ArbitrationOutput: its per_source verdicts (used, or why not) go to dashboards."""
         self.use_fc_heading = heading["use_fc_when_trusted"]
+        self.use_fc_yaw = heading.get("use_fc_yaw", True)
+        """False: the FC's yaw is no heading source (``exclude_fc_yaw``: it is our own fed back)."""
         self._b1_heading_s = -math.inf
 
         self.filter_period_s = 1.0 / cfg["heading"]["filter_rate_hz"]
@@ -379,6 +381,15 @@ class Pipeline:
             self.strapdown = StrapdownState(self.strapdown.q_ref_from_sensor)
         self._unseen_pending = True
         self._event("fc_reboot", "FC time restarted; integration resumes at the next sample")
+
+    def exclude_fc_yaw(self, reason: str) -> None:
+        """From now on the FC's yaw is no heading source (the daemon found it is our own heading fed
+        back: docs/OUTPUTS.md 1.8). One event, once. [h6: minimal until the [heading] use_fc_yaw
+        work, which also keeps it out of method B, lands.]"""
+        if not self.use_fc_yaw:
+            return
+        self.use_fc_yaw = False
+        self._event("fc_yaw_excluded", f"the FC's yaw is no longer used: {reason}")
 
     def air_data(self):
         """The latest air data (estimators.air_data.AirData) from method B's air-data step, or None."""
@@ -674,7 +685,7 @@ class Pipeline:
         if mag_sources and h.initialised and math.isfinite(h.heading_rad):
             out.append(SourceReading("heading_filter", h.heading_rad, math.sqrt(h.variance_rad2), True, t, MAG_GROUP))
         fc = self.fc_attitude
-        if (self.use_fc_heading and fc is not None and b is not None and b.reference_trusted
+        if (self.use_fc_heading and self.use_fc_yaw and fc is not None and b is not None and b.reference_trusted
                 and abs(t - fc.time_fc_s) < self.arb_params.max_age_s):
             out.append(SourceReading("fc", wrap_2pi(fc.yaw_rad), self.ahrs_params.fc_sigma_yaw_rad, True,
                                      fc.time_fc_s, (MAG_GROUP, FC_REF_GROUP)))
