@@ -594,6 +594,7 @@ class FlightRecord:
     daemon_log_tail: str = ""
     daemon_events: dict = field(default_factory=dict)   # counts of the daemon's log events (event=...)
     timeline_wall_s: dict = field(default_factory=dict)  # wall seconds from the start to each step
+    latency_ms: dict = field(default_factory=dict)       # RAW_IMU at the relay -> our ATTITUDE at the relay
     rundir: str = ""
 
 
@@ -635,6 +636,8 @@ def fly(spec: FlightSpec, args, rundir: Path, log=print) -> FlightRecord:
                              "armed anyway")
         t_ready = ap.rec.fc_time_s
         while ap.rec.fc_time_s - t_ready < args.rest_s:   # on the runway before take-off (FC clock)
+            if time.monotonic() - wall0 > args.flight_wall_limit_s:
+                raise RuntimeError(f"the FC clock stopped at {ap.rec.fc_time_s:.1f} s; see {rundir}/sitl.log")
             time.sleep(0.1)
         r_mode, r_arm = ap.set_mode(PLANE_MODE["AUTO"]), ap.arm()
         if r_arm != 0:
@@ -720,6 +723,7 @@ def _collect(rec: FlightRecord, r: Recorder, tap: TcpTap | None, daemon: Daemon 
                                for t, m in sent if m.get_type() in ("COMMAND_LONG", "COMMAND_INT")]
         rec.acks_to_daemon = [(t, m.command, m.result) for t, m in tap.from_fc if m.get_type() == "COMMAND_ACK"
                               and m.target_component == OUR_COMPONENT]
+        rec.latency_ms = latency_ms(tap)
         imu = [m for _, m in tap.from_fc if m.get_type() == "RAW_IMU"]
         rec.raw_imu = {"t": np.array([m.time_usec / 1e6 for m in imu]),
                        "gyro_rad_s": np.array([[m.xgyro, m.ygyro, m.zgyro] for m in imu], float).reshape(-1, 3) / 1e3,
@@ -731,6 +735,24 @@ def _collect(rec: FlightRecord, r: Recorder, tap: TcpTap | None, daemon: Daemon 
         rec.daemon_log_tail = "\n".join(text.splitlines()[-15:])
         for ev in re.findall(r" event=([a-z_]+)", text):
             rec.daemon_events[ev] = rec.daemon_events.get(ev, 0) + 1
+
+
+def latency_ms(tap: TcpTap) -> dict:
+    """Our ATTITUDE's delay after the RAW_IMU it was computed from, both seen by the relay (one clock):
+    each ATTITUDE whose time_boot_ms equals a RAW_IMU's time_usec // 1000. A daemon that stamps its
+    output later than its IMU sample (extrapolated to the send time) has no exact match: counted."""
+    imu_rx = {}
+    for t, m in tap.from_fc:
+        if m.get_type() == "RAW_IMU":
+            imu_rx.setdefault(m.time_usec // 1000, t)
+    lat = [t - imu_rx[m.time_boot_ms] for t, m in tap.from_daemon
+           if m.get_type() == "ATTITUDE" and m.time_boot_ms in imu_rx]
+    n_att = sum(1 for _, m in tap.from_daemon if m.get_type() == "ATTITUDE")
+    if not lat:
+        return {"matched": 0, "attitude_sent": n_att}
+    ms = 1e3 * np.asarray(lat)
+    return {"matched": len(lat), "attitude_sent": n_att, "p50_ms": round(float(np.percentile(ms, 50)), 1),
+            "p95_ms": round(float(np.percentile(ms, 95)), 1)}
 
 
 def save_flight(rec: FlightRecord, path: Path) -> Path:
@@ -929,7 +951,8 @@ def flight_summary(rec: FlightRecord) -> dict:
            "gnss_cut_after_arming_s": round(rec.cut_fc_s - rec.arm_fc_s, 1), "notes": rec.notes,
            "daemon_sent_count": rec.daemon_sent, "forwarded_to_gcs_count": rec.forwarded_to_gcs,
            "modes": [[round(fc, 1), m] for fc, m in rec.modes],
-           "daemon_statustext": rec.daemon_texts[:20], "daemon_log_events_count": rec.daemon_events}
+           "daemon_statustext": rec.daemon_texts[:20], "daemon_log_events_count": rec.daemon_events,
+           "daemon_latency": rec.latency_ms}
     if rec.raw_imu.get("t") is not None and rec.raw_imu["t"].size > 1:
         span = rec.raw_imu["t"][-1] - rec.raw_imu["t"][0]
         out["raw_imu_rate_hz"] = round((rec.raw_imu["t"].size - 1) / span, 1) if span > 0 else None
