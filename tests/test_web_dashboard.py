@@ -71,7 +71,8 @@ def wait_until(cond, timeout_s: float, poll_s: float = 0.1):
 
 def test_hub_fans_out_keeps_the_track_and_drops_the_oldest_for_a_slow_browser():
     """GIVEN a browser connected to the hub WHEN more messages arrive than its queue holds THEN
-    it loses the oldest (counted), keeps the newest; geofence positions make the track."""
+    it loses the oldest (counted), keeps the newest; geofence positions make the track; events
+    and calibrations are kept for a browser that connects later."""
     hub = Hub(["tcp/127.0.0.1:1"])
     client = hub.connect()
     first = json.loads(client.queue.get_nowait())
@@ -88,6 +89,21 @@ def test_hub_fans_out_keeps_the_track_and_drops_the_oldest_for_a_slow_browser():
     kept = [json.loads(small.queue.get_nowait())["payload"]["time_fc_s"] for _ in range(3)]
     assert kept == [2.0, 3.0, 4.0]
     assert hub.snapshot()["tracks"]["uav1"] == [[47.0 + k * 1e-4, 8.0] for k in range(5)]
+    # a browser connecting later gets every vehicle's recent events and each calibration kind's last
+    for k, (kind, status) in enumerate((("levelling", "done"), ("mag_error_kf1", "started"),
+                                        ("mag_error_kf1", "saved"))):
+        hub.on_sample("azimuthd/uav1/calibration", json.dumps(
+            {"schema": "azimuthd/1", "vehicle": "uav1", "time_rx_s": float(k), "kind": kind,
+             "status": status, "detail": ""}))
+    for k in range(45):
+        hub.on_sample(f"azimuthd/uav{1 + k % 2}/events", json.dumps(
+            {"schema": "azimuthd/1", "time_rx_s": float(k), "time_unix_s": 1.8e9 + k, "kind": f"e{k}",
+             "severity": "info", "detail": ""}))
+    snap = hub.snapshot()
+    assert {(c["kind"], c["status"]) for c in snap["calibrations"]["uav1"]} == {("levelling", "done"),
+                                                                                ("mag_error_kf1", "saved")}
+    assert [e["kind"] for e in snap["events"]] == [f"e{k}" for k in range(45)]  # 23 + 22 < 40 each
+    assert {e["vehicle"] for e in snap["events"]} == {"uav1", "uav2"}
     hub.on_liveliness("azimuthd/uav1/alive", False)
     hub.state.on_liveliness("azimuthd/uav1/alive", False)
     assert hub.status()["vehicles"]["uav1"]["status"] == "GONE"
@@ -268,7 +284,7 @@ const h = card.querySelector('[data-field="heading_true_deg"]');
 return {vehicle: f("vehicle"), status: f("status"), status_reason: f("status_reason"), link: f("link"),
         phase: f("phase"), autopilot: f("autopilot"), heading: h.textContent,
         heading_time_fc_s: h.dataset.time_fc_s || null, sigma: f("heading_sigma_deg"),
-        counters: f("counters"), fences: card.querySelectorAll(".track polygon.fence").length,
+        counters: f("counters"), calibration: f("calibration"), fences: card.querySelectorAll(".track polygon.fence").length,
         events: card.querySelectorAll('[data-field="events"] li').length,
         sources: [...card.querySelectorAll('[data-field="sources"] tr[data-source]')].map(
           (r) => [r.dataset.source, ...[...r.cells].map((c) => c.textContent)])};
@@ -340,6 +356,13 @@ def test_page_shows_what_the_daemon_publishes(live):
     # no script error in the page
     errors = [e for e in d.get_log("browser") if e["level"] == "SEVERE"]
     assert not errors, errors
+
+    # a browser that connects later (a reload) is given the picture at once: the heading, the
+    # track's fence, the levelling and the events before it connected
+    d.refresh()
+    again = wait_until(lambda: (p := page(d)) and p["heading"].endswith("°") and p["fences"] >= 1
+                       and "levelling" in p["calibration"] and p["events"] >= 1 and p, 15.0)
+    assert again, page(d)
 
     d.save_screenshot(str(live["workdir"] / "dashboard.png"))
     if os.environ.get("AZIMUTHD_DASHBOARD_PNG"):  # the whole page: both vehicles

@@ -8,7 +8,8 @@ once a second) adds a ``status`` message: each vehicle alive / GONE / starting a
 no daemon was found at all.
 
 Messages (one JSON object per SSE ``data:`` line):
-    {"type": "snapshot", "vehicles": {name: {...}}, "events": [...], "tracks": {name: [[lat, lon], ...]}, ...}
+    {"type": "snapshot", "vehicles": {name: {...}}, "events": [...], "tracks": {name: [[lat, lon], ...]},
+     "calibrations": {name: [latest payload per kind]}, ...}
     {"type": "sample", "vehicle": name, "topic": topic, "payload": {...}}
     {"type": "alive", "vehicle": name, "alive": bool}
     {"type": "status", "vehicles": {name: {"status", "status_reason", "last_rx_age_s"}},
@@ -28,6 +29,8 @@ CLIENT_QUEUE_MAX = 2000
 """Messages buffered per browser (about 20 s of one vehicle's 20 Hz attitude plus the rest)."""
 TRACK_POINTS_MAX = 20_000
 """Dead-reckoned positions kept per vehicle (the geofence topic's 2 Hz: about 2.8 h)."""
+EVENTS_MAX = 40
+"""Events kept per vehicle for a browser that connects later (the page shows as many)."""
 
 
 class Client:
@@ -57,6 +60,8 @@ class Hub:
         self.lock = threading.Lock()
         self.clients: list[Client] = []
         self.tracks: dict[str, deque] = {}
+        self.events: dict[str, deque] = {}
+        self.calibrations: dict[str, dict[str, dict]] = {}
 
     # --- from Zenoh -----------------------------------------------------------------------------
 
@@ -74,13 +79,17 @@ class Hub:
             return
         if not isinstance(payload, dict):
             return
-        if topic == "geofence":
-            lat, lon = payload.get("lat_deg"), payload.get("lon_deg")
-            if isinstance(lat, (int, float)) and isinstance(lon, (int, float)):
-                with self.lock:
+        with self.lock:  # what a browser connecting later needs beyond the latest payload
+            if topic == "geofence":
+                lat, lon = payload.get("lat_deg"), payload.get("lon_deg")
+                if isinstance(lat, (int, float)) and isinstance(lon, (int, float)):
                     track = self.tracks.setdefault(name, deque(maxlen=TRACK_POINTS_MAX))
                     if not track or track[-1] != [lat, lon]:
                         track.append([lat, lon])
+            elif topic == "events":
+                self.events.setdefault(name, deque(maxlen=EVENTS_MAX)).append({"vehicle": name, **payload})
+            elif topic == "calibration":
+                self.calibrations.setdefault(name, {})[str(payload.get("kind"))] = payload
         self._broadcast({"type": "sample", "vehicle": name, "topic": topic, "payload": payload})
 
     def on_liveliness(self, key: str, alive: bool) -> None:
@@ -106,10 +115,14 @@ class Hub:
         snap = self.state.snapshot()
         with self.lock:
             tracks = {n: list(t) for n, t in self.tracks.items()}
+            events = sorted((e for q in self.events.values() for e in q),
+                            key=lambda e: e.get("time_unix_s") or 0.0)
+            calibrations = {n: list(c.values()) for n, c in self.calibrations.items()}
         return {"type": "snapshot", "endpoints": self.endpoints,
                 "vehicles": {n: {"latest": v["latest"], "alive": v["alive"]}
                              for n, v in snap["vehicles"].items()},
-                "events": snap["events"], "tracks": tracks, "status": self.status()}
+                "events": events, "tracks": tracks, "calibrations": calibrations,
+                "status": self.status()}
 
     def connect(self) -> Client:
         client = Client()

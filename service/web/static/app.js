@@ -331,9 +331,11 @@ function onSnapshot(msg) {
   for (const [name, snap] of Object.entries(msg.vehicles || {})) {
     const v = vehicle(name);
     v.track = (msg.tracks || {})[name] || [];
-    for (const topic of ["geofence", "attitude", "heading", "azimuth", "health", "air_data", "calibration"]) {
+    for (const topic of ["geofence", "attitude", "heading", "azimuth", "health", "air_data"]) {
       if (snap.latest[topic]) HANDLERS[topic](v, snap.latest[topic]);
     }
+    v.last.calibration = {};
+    for (const c of (msg.calibrations || {})[name] || []) HANDLERS.calibration(v, c);
   }
   for (const e of msg.events || []) HANDLERS.events(vehicle(e.vehicle), e);
   onStatus(msg.status);
