@@ -1,7 +1,13 @@
 """The live simulated autopilot, as users run it: `python -m sim ...` in its own process, a
-pymavlink client on the other end of UDP."""
+pymavlink client on the other end of UDP.
+
+The machine may be busy: rates are measured in the simulator's own clock (time_usec,
+time_boot_ms), counts against what the simulator says it sent (its ``sim stopped: ... sent=``
+line) with what the client's kernel dropped accounted, and waits run until a number of messages
+or an FC time is reached; the wall clock only detects a hang (conftest.HANG_S)."""
 from __future__ import annotations
 
+import json
 import math
 import os
 import socket
@@ -11,6 +17,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import HANG_S, udp_kernel_drops
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
@@ -34,7 +41,7 @@ class SimProc:
                                      cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.c = mavutil.mavlink_connection(f"udpout:127.0.0.1:{self.port}", source_system=255,
                                             source_component=190, dialect="ardupilotmega")
-        deadline = time.monotonic() + 15.0
+        deadline = time.monotonic() + HANG_S
         self.hb = None
         while self.hb is None and time.monotonic() < deadline:  # udpin: the sim waits for us to speak
             self.c.mav.heartbeat_send(18, 8, 0, 0, 0)
@@ -43,7 +50,7 @@ class SimProc:
             self.close()
             raise RuntimeError(f"simulator did not answer: {self.proc.stdout.read() if self.proc.stdout else ''}")
 
-    def command(self, cmd: int, *params: float, timeout: float = 3.0):
+    def command(self, cmd: int, *params: float, timeout: float = HANG_S):
         p = list(params) + [0.0] * (7 - len(params))
         self.c.mav.command_long_send(1, 1, cmd, 0, *p)
         end = time.monotonic() + timeout
@@ -55,6 +62,21 @@ class SimProc:
 
     def set_rate(self, msg_id: int, hz: float):
         return self.command(511, msg_id, 1e6 / hz if hz > 0 else -1)
+
+    def kernel_drops(self) -> int:
+        """Datagrams to this client the kernel dropped (its receive buffer was full)."""
+        return udp_kernel_drops(self.c.port)
+
+    def stop(self) -> dict:
+        """Stop the simulator; its own account: ``simulated_s``, ``wall_s``, ``achieved_speed``
+        and ``sent`` (messages sent, by type) from its ``sim stopped`` line."""
+        if self.proc.poll() is None:
+            self.proc.terminate()
+        out, _ = self.proc.communicate(timeout=HANG_S)
+        line = next(ln for ln in out.splitlines() if "sim stopped:" in ln)
+        vals = dict(kv.split("=", 1) for kv in line.split("sim stopped:")[1].split())
+        return {"simulated_s": float(vals["simulated_s"]), "wall_s": float(vals["wall_s"]),
+                "achieved_speed": float(vals["achieved_speed"]), "sent": json.loads(vals["sent"])}
 
     def close(self):
         if self.proc.poll() is None:
@@ -79,38 +101,55 @@ def sim_factory():
         p.close()
 
 
-def _count(c, seconds: float, types=None) -> dict:
-    out: dict[str, list] = {}
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        m = c.recv_match(blocking=True, timeout=0.05)
-        if m is None:
-            continue
-        t = m.get_type()
-        if types is None or t in types:
-            out.setdefault(t, []).append((time.monotonic(), m))
-    return out
+def _fc_s(m) -> float:
+    """The FC (simulator) time stamp of a message, s."""
+    return m.time_usec * 1e-6 if hasattr(m, "time_usec") else m.time_boot_ms * 1e-3
 
 
-def test_raw_imu_rates_50_200_400_hz_within_5_percent_real_time(sim_factory):
-    """GIVEN the real-time simulator WHEN a client requests RAW_IMU at 50, 200, 400 Hz THEN it
-    receives them within 5 % of the rate (wall clock), and time_usec advances at the same rate."""
+def _collect(c, types, done) -> dict[str, list]:
+    """Messages of ``types`` (by type, in arrival order) until ``done(got)``: a count or an FC
+    time span reached, whatever the machine's speed. The wall clock only detects a hang."""
+    got: dict[str, list] = {t: [] for t in types}
+    end = time.monotonic() + HANG_S
+    while not done(got):
+        assert time.monotonic() < end, f"hang: {({k: len(v) for k, v in got.items()})} after {HANG_S:g} s"
+        m = c.recv_match(type=list(types), blocking=True, timeout=0.2)
+        if m is not None:
+            got[m.get_type()].append(m)
+    return got
+
+
+def _fc_span_s(msgs) -> float:
+    return _fc_s(msgs[-1]) - _fc_s(msgs[0]) if len(msgs) > 1 else 0.0
+
+
+def test_raw_imu_rates_50_200_400_hz_in_fc_time_never_faster_than_real_time(sim_factory):
+    """GIVEN the real-time simulator WHEN a client requests RAW_IMU at 50, 200, 400 Hz THEN in
+    the simulator's clock the messages come exactly 1/rate apart (time_usec), every missing one is
+    a datagram the client's kernel dropped, and the simulator never ran faster than real time (its
+    own simulated vs wall time). A busy machine may slow it down: that is no failure."""
     s = sim_factory("--scenario", "inclined_rail", "--duration", "0")
     assert s.hb.autopilot == mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA and s.hb.type == 1
-    # nothing but HEARTBEAT/SIMSTATE before a request
-    pre = _count(s.c, 0.6)
-    assert "RAW_IMU" not in pre and ("HEARTBEAT" in pre or "SIMSTATE" in pre)
+    # nothing but HEARTBEAT/SIMSTATE before a request: 3 HEARTBEATs (2 s of the simulator's 1 Hz)
+    pre = _collect(s.c, ("HEARTBEAT", "RAW_IMU"), lambda g: len(g["HEARTBEAT"]) >= 3)
+    assert pre["RAW_IMU"] == []
     for hz in (50.0, 200.0, 400.0):
         assert s.set_rate(27, hz) == 0
-        _count(s.c, 0.3, {"RAW_IMU"})  # settle
-        got = _count(s.c, 1.5, {"RAW_IMU"})["RAW_IMU"]
-        wall = got[-1][0] - got[0][0]
-        rate_wall = (len(got) - 1) / wall
-        tus = [m.time_usec for _, m in got]
-        rate_fc = (len(got) - 1) / ((tus[-1] - tus[0]) * 1e-6)
-        assert rate_wall == pytest.approx(hz, rel=0.05), (hz, rate_wall)
-        assert rate_fc == pytest.approx(hz, rel=0.01)
-        assert np.all(np.diff(tus) > 0)
+        t_asked = _collect(s.c, ("RAW_IMU",), lambda g: len(g["RAW_IMU"]) >= 1)["RAW_IMU"][0]
+        settle_s = _fc_s(t_asked) + 0.1  # the request lands between two messages of the old rate
+        drops0 = s.kernel_drops()
+        got = _collect(s.c, ("RAW_IMU",), lambda g: bool(g["RAW_IMU"]) and _fc_s(g["RAW_IMU"][-1]) >= settle_s + 1.5)
+        drops = s.kernel_drops() - drops0
+        tus = np.array([m.time_usec for m in got["RAW_IMU"] if _fc_s(m) >= settle_s], dtype=np.int64)
+        interval_us = 1e6 / hz
+        steps = np.diff(tus) / interval_us
+        assert np.all(np.abs(steps - np.round(steps)) * interval_us <= 1.0), (hz, np.unique(np.diff(tus)))
+        assert np.all(np.round(steps) >= 1) and np.median(np.diff(tus)) == pytest.approx(interval_us, abs=1.0)
+        missing = int(np.sum(np.round(steps) - 1))
+        assert missing <= drops, (hz, missing, drops)  # each one lost is counted by the kernel
+        assert len(tus) - 1 + missing == round((tus[-1] - tus[0]) / interval_us)
+    own = s.stop()
+    assert own["achieved_speed"] <= 1.0 + 1e-3, own  # paced: never ahead of the wall clock
 
 
 def test_live_raw_imu_matches_truth_within_configured_errors(sim_factory, tmp_path):
@@ -131,12 +170,15 @@ def test_live_raw_imu_matches_truth_within_configured_errors(sim_factory, tmp_pa
                     "--set", "imu.mag_noise_gauss=0.0")
     assert s.set_rate(27, 50) == 0
     msgs = []
-    end = time.monotonic() + 30
-    while s.proc.poll() is None and time.monotonic() < end:
+    end = time.monotonic() + HANG_S
+    while s.proc.poll() is None:  # the whole 30 s flight, however long the machine takes
+        assert time.monotonic() < end, "hang"
         m = s.c.recv_match(type="RAW_IMU", blocking=True, timeout=0.2)
         if m is not None:
             msgs.append(m)
-    s.proc.wait(10)
+    while (m := s.c.recv_match(type="RAW_IMU", blocking=True, timeout=0.5)) is not None:
+        msgs.append(m)  # what was still queued when it exited
+    own = s.stop()
     z = np.load(log)
     t = z["time_s"]
     C_sb = z["site_C_body_from_sensor"].T
@@ -144,7 +186,10 @@ def test_live_raw_imu_matches_truth_within_configured_errors(sim_factory, tmp_pa
     w_b = np.column_stack([z["omega_x_rad_s"], z["omega_y_rad_s"], z["omega_z_rad_s"]])
     f_b = np.column_stack([z["f_x_m_s2"], z["f_y_m_s2"], z["f_z_m_s2"]])
     B_n = np.column_stack([z["field_n_gauss"], z["field_e_gauss"], z["field_d_gauss"]])
-    assert len(msgs) > 1200
+    sent = own["sent"]["RAW_IMU"]
+    assert sent >= 1450  # 50 Hz for the 30 s of its own clock, less the time before our request
+    assert sent - s.kernel_drops() <= len(msgs) <= sent  # any not received: dropped by our kernel
+    n_compared = 0
     base_hz, n_avg = 250, 5  # a 50 Hz message averages 5 base samples
     tact_gyro_sigma = 0.15 * math.pi / 180 / 60 * math.sqrt(base_hz)  # per base sample
     tact_acc_sigma = 30e-6 * G0 * math.sqrt(base_hz)
@@ -172,7 +217,9 @@ def test_live_raw_imu_matches_truth_within_configured_errors(sim_factory, tmp_pa
         assert np.all(np.abs(m_err) < 0.5e-3 + 1e-6), (m.time_usec, m_err)
         worst = np.maximum(worst, [np.abs(g_err).max(), np.abs(a_err).max(), np.abs(m_err).max()])
         moved |= np.linalg.norm(f_s) > 20.0
+        n_compared += 1
     assert moved  # the boost was inside the compared window
+    assert n_compared >= 100
 
 
 def test_rtl_turns_true_heading_toward_home(sim_factory):
@@ -185,8 +232,8 @@ def test_rtl_turns_true_heading_toward_home(sim_factory):
     home = None
     t_boot = 0.0
     while t_boot < 40.0:  # launched at 5 s, climbing out toward 060
-        m = s.c.recv_match(type=["SIMSTATE", "ATTITUDE"], blocking=True, timeout=1.0)
-        assert m is not None
+        m = s.c.recv_match(type=["SIMSTATE", "ATTITUDE"], blocking=True, timeout=HANG_S)
+        assert m is not None, "hang"
         if m.get_type() == "SIMSTATE" and home is None:
             home = (m.lat * 1e-7, m.lng * 1e-7)
         if m.get_type() == "ATTITUDE":
@@ -196,8 +243,8 @@ def test_rtl_turns_true_heading_toward_home(sim_factory):
     track = []
     mode = None
     while t_boot < t_cmd + 30.0:
-        m = s.c.recv_match(type=["SIMSTATE", "ATTITUDE", "HEARTBEAT"], blocking=True, timeout=1.0)
-        assert m is not None
+        m = s.c.recv_match(type=["SIMSTATE", "ATTITUDE", "HEARTBEAT"], blocking=True, timeout=HANG_S)
+        assert m is not None, "hang"
         if m.get_type() == "ATTITUDE":
             t_boot = m.time_boot_ms / 1000.0
         elif m.get_type() == "HEARTBEAT":
@@ -232,10 +279,10 @@ def test_px4_personality_sends_highres_imu_and_no_raw_imu(sim_factory):
     assert s.hb.autopilot == mavutil.mavlink.MAV_AUTOPILOT_PX4
     assert s.set_rate(27, 100) == 4  # RAW_IMU: FAILED, this autopilot does not have it
     assert s.set_rate(105, 100) == 0
-    got = _count(s.c, 1.5)
-    assert "RAW_IMU" not in got
-    hr = [m for _, m in got["HIGHRES_IMU"]]
-    assert len(hr) > 100
+    got = _collect(s.c, ("HIGHRES_IMU", "RAW_IMU"), lambda g: _fc_span_s(g["HIGHRES_IMU"]) >= 1.0)
+    assert got["RAW_IMU"] == []  # none in a second of its clock
+    hr = got["HIGHRES_IMU"]
+    assert np.median(np.diff([m.time_usec for m in hr])) == pytest.approx(10_000, abs=1)  # 100 Hz, FC clock
     m = hr[-1]
     # nose-up on the tube at rest: x axis up -> specific force +g along x
     assert m.xacc == pytest.approx(9.81, abs=0.3) and abs(m.zacc) < 0.5
@@ -248,16 +295,27 @@ def test_reboot_fault_restarts_time_boot_and_forgets_stream_rates(sim_factory):
     s = sim_factory("--scenario", "inclined_rail", "--duration", "0", "--speed", "2",
                     "--set", "faults.reboot_at_s=5.0", "--set", "faults.reboot_silence_s=1.0")
     assert s.set_rate(27, 50) == 0
+    # HEARTBEAT (1 Hz) is sent at whole seconds of the FC clock: of the three after a RAW_IMU from
+    # 4.5 s on, the first is at 5 s (sent with the last RAW_IMU, or not at all: the reboot), the
+    # second and third are the new boot's (after the 5-6 s silence). Between those two, nothing
+    # from the stream requested before the reboot.
+    after: list = []  # messages in arrival order once a RAW_IMU from 4.5 s on was seen
     before = 0
-    last_rx = time.monotonic()
-    end = time.monotonic() + 6.0
-    while time.monotonic() < end and time.monotonic() - last_rx < 0.6:
-        m = s.c.recv_match(type="RAW_IMU", blocking=True, timeout=0.1)
-        if m is not None:
-            before, last_rx = max(before, m.time_usec), time.monotonic()
-    assert before > 4.5e6  # we saw the pre-reboot clock, then the stream stopped
+    end = time.monotonic() + HANG_S
+    while sum(m.get_type() == "HEARTBEAT" for m in after) < 3:
+        assert time.monotonic() < end, ("hang", before, [m.get_type() for m in after])
+        m = s.c.recv_match(type=["RAW_IMU", "HEARTBEAT"], blocking=True, timeout=0.2)
+        if m is None:
+            continue
+        if before > 4.5e6:
+            after.append(m)
+        elif m.get_type() == "RAW_IMU":
+            before = max(before, m.time_usec)
+    hb = [i for i, m in enumerate(after) if m.get_type() == "HEARTBEAT"]
+    assert all(m.time_usec <= 5_000_000 for m in after[:hb[1]] if m.get_type() == "RAW_IMU")
+    assert [m.get_type() for m in after[hb[1]:]] == ["HEARTBEAT"] * 2  # stopped: rates back to defaults
     assert s.set_rate(27, 50) == 0
-    m = s.c.recv_match(type="RAW_IMU", blocking=True, timeout=2.0)
+    m = s.c.recv_match(type="RAW_IMU", blocking=True, timeout=HANG_S)
     assert m is not None and m.time_usec < 3.0e6  # time_boot restarted near zero
 
 
@@ -265,16 +323,14 @@ def test_gnss_loss_is_signalled_in_sys_status_and_ekf_flags(sim_factory):
     s = sim_factory("--scenario", "runway_gnss_denied", "--duration", "0", "--speed", "5",
                     "--set", "gnss.lost_at_s=4.0")
     assert s.set_rate(1, 5) == 0 and s.set_rate(193, 5) == 0
+    # 8 s of the simulator's clock at 5 Hz: GNSS lost at 4 s
+    got = _collect(s.c, ("SYS_STATUS", "EKF_STATUS_REPORT"),
+                   lambda g: min(len(g["SYS_STATUS"]), len(g["EKF_STATUS_REPORT"])) >= 40)
     seen = {"gps_ok": False, "gps_lost": False, "ekf_ok": False, "ekf_degraded": False}
-    end = time.monotonic() + 3.0
-    while time.monotonic() < end:
-        m = s.c.recv_match(type=["SYS_STATUS", "EKF_STATUS_REPORT"], blocking=True, timeout=0.2)
-        if m is None:
-            continue
-        if m.get_type() == "SYS_STATUS":
-            seen["gps_ok" if m.onboard_control_sensors_health & 32 else "gps_lost"] = True
-        else:
-            seen["ekf_ok" if m.flags & 16 else "ekf_degraded"] = True
+    for m in got["SYS_STATUS"]:
+        seen["gps_ok" if m.onboard_control_sensors_health & 32 else "gps_lost"] = True
+    for m in got["EKF_STATUS_REPORT"]:
+        seen["ekf_ok" if m.flags & 16 else "ekf_degraded"] = True
     assert all(seen.values()), seen
 
 
@@ -354,16 +410,18 @@ def test_link_faults_drop_duplicate_corrupt_and_request_data_stream(sim_factory)
                     "--set", "faults.corrupt_rate=0.05", "--set", "faults.nan_rate=0.1")
     s.c.mav.request_data_stream_send(1, 1, 1, 100, 1)
     s.c.mav.request_data_stream_send(1, 1, 10, 50, 1)
-    _count(s.c, 0.3, {"RAW_IMU"})
-    both = _count(s.c, 3.0, {"RAW_IMU", "ATTITUDE"})
-    got = both["RAW_IMU"]
-    att = [m for _, m in both["ATTITUDE"]]
+    _collect(s.c, ("RAW_IMU",), lambda g: len(g["RAW_IMU"]) >= 10)  # the requested rate is on
+    drops0 = s.kernel_drops()
+    both = _collect(s.c, ("RAW_IMU", "ATTITUDE"),  # 6 s of the simulator's clock
+                    lambda g: min(_fc_span_s(g["RAW_IMU"]), _fc_span_s(g["ATTITUDE"])) >= 6.0)
+    drops = s.kernel_drops() - drops0
+    att = both["ATTITUDE"]
     n_nan = sum(not all(math.isfinite(v) for v in (m.roll, m.pitch, m.yaw)) for m in att)
     assert 0.04 * len(att) < n_nan < 0.2 * len(att), (n_nan, len(att))
-    tus = [m.time_usec for _, m in got]
+    tus = [m.time_usec for m in both["RAW_IMU"]]
     span_samples = (tus[-1] - tus[0]) * 1e-6 * 100 + 1
     ratio = len(tus) / span_samples
-    assert 0.70 < ratio < 0.97, ratio
+    assert 0.70 < (len(tus) + drops) / span_samples and ratio < 0.97, (ratio, drops)  # our kernel's drops are not the fault's
     assert len(tus) - len(set(tus)) > 5  # duplicates
     assert s.c.mav.total_receive_errors > 0  # corrupted packets were rejected by CRC
 
@@ -372,10 +430,10 @@ def test_mag_dropout_sends_zero_mag_and_clears_health(sim_factory):
     s = sim_factory("--scenario", "inclined_rail", "--duration", "0", "--speed", "2",
                     "--set", 'faults.sensor_dropouts=[{sensor="mag", start_s=0.0, end_s=100.0}]')
     assert s.set_rate(27, 50) == 0 and s.set_rate(1, 5) == 0
-    got = _count(s.c, 1.0, {"RAW_IMU", "SYS_STATUS"})
-    assert all((m.xmag, m.ymag, m.zmag) == (0, 0, 0) for _, m in got["RAW_IMU"])
-    assert all(m.zacc < -900 for _, m in got["RAW_IMU"])  # the rest of the IMU still flows
-    assert all(not m.onboard_control_sensors_health & 4 for _, m in got["SYS_STATUS"])
+    got = _collect(s.c, ("RAW_IMU", "SYS_STATUS"), lambda g: len(g["RAW_IMU"]) >= 50 and len(g["SYS_STATUS"]) >= 5)
+    assert all((m.xmag, m.ymag, m.zmag) == (0, 0, 0) for m in got["RAW_IMU"])
+    assert all(m.zacc < -900 for m in got["RAW_IMU"])  # the rest of the IMU still flows
+    assert all(not m.onboard_control_sensors_health & 4 for m in got["SYS_STATUS"])
 
 
 def test_ground_station_basics_params_scaled_imu_vfr_hud(sim_factory):
@@ -384,7 +442,7 @@ def test_ground_station_basics_params_scaled_imu_vfr_hud(sim_factory):
     s = sim_factory("--scenario", "inclined_rail", "--duration", "0")
     s.c.mav.param_request_list_send(1, 1)
     vals = {}
-    end = time.monotonic() + 3.0
+    end = time.monotonic() + HANG_S
     count = None
     while time.monotonic() < end and (count is None or len(vals) < count):
         m = s.c.recv_match(type="PARAM_VALUE", blocking=True, timeout=0.3)
@@ -396,8 +454,11 @@ def test_ground_station_basics_params_scaled_imu_vfr_hud(sim_factory):
     m = s.c.recv_match(type="PARAM_VALUE", blocking=True, timeout=2.0)
     assert m is not None and m.param_id == "EK3_SRC1_YAW" and m.param_value == 6.0
     assert s.set_rate(26, 20) == 0 and s.set_rate(74, 5) == 0
-    assert s.command(512, 148) == 0
-    got = _count(s.c, 1.0, {"SCALED_IMU", "VFR_HUD", "AUTOPILOT_VERSION"})
-    assert len(got["SCALED_IMU"]) >= 15 and len(got["VFR_HUD"]) >= 3 and "AUTOPILOT_VERSION" in got
-    m = got["SCALED_IMU"][-1][1]
+    s.c.mav.command_long_send(1, 1, 512, 0, 148, 0, 0, 0, 0, 0, 0)  # REQUEST_MESSAGE AUTOPILOT_VERSION
+    got = _collect(s.c, ("SCALED_IMU", "VFR_HUD", "AUTOPILOT_VERSION", "COMMAND_ACK"),
+                   lambda g: len(g["SCALED_IMU"]) >= 15 and len(g["VFR_HUD"]) >= 3 and g["AUTOPILOT_VERSION"]
+                   and any(a.command == 512 for a in g["COMMAND_ACK"]))
+    assert next(a.result for a in got["COMMAND_ACK"] if a.command == 512) == 0
+    assert np.median(np.diff([x.time_boot_ms for x in got["SCALED_IMU"]])) == 50  # 20 Hz in the FC clock
+    m = got["SCALED_IMU"][-1]
     assert m.zacc < -900 and m.xacc > 200  # at rest on the 15 deg rail
