@@ -30,6 +30,7 @@ DEFAULTS: dict[str, Any] = {
         "ground_pitch_deg": 0.0,     # runway: pitch of the airframe on its wheels
         "spinup_s": 0.0,             # the motors run this long before rest_s (vibration from then)
         "pickup_s": 4.0,             # hand: picked up this long before the throw
+        "hand_sway_scale": 1.0,      # hand: the hand's sway and tremor, times this (0: held still)
         "liftoff_accel_m_s2": 2.0,   # multicopter/vtol: vertical acceleration at lift-off ...
         "climb_rate_m_s": 2.0,       # ... up to this climb rate ...
         "hover_alt_m": 10.0,         # ... braking into a hover at this height above the site ...
@@ -190,6 +191,7 @@ def validate(s: dict) -> dict:
     _num(s, "launcher", "ground_pitch_deg", -20.0, 20.0)
     _num(s, "launcher", "spinup_s", 0.0, 86400.0)
     _num(s, "launcher", "pickup_s", 1.5, 600.0)
+    _num(s, "launcher", "hand_sway_scale", 0.0, 10.0)
     _num(s, "launcher", "liftoff_accel_m_s2", 0.0, 20.0, lo_open=True)
     _num(s, "launcher", "climb_rate_m_s", 0.0, 20.0, lo_open=True)
     _num(s, "launcher", "hover_alt_m", 0.0, 1000.0, lo_open=True)

@@ -18,7 +18,7 @@ The sensors-side truth (angular rate, specific force) is derived from the sample
 Take-offs besides the rail/tube boost and the runway roll (``launcher.type``):
 - ``hand``: on the ground until ``pickup_s`` before the throw; picked up (lifted 0.6 m in 1 s, peak 3.8 m/s^2, while
   pitched to ``elevation_deg``), held with a sway of the hand (pitch 1 deg at 0.7 Hz + 0.15 deg
-  tremor at 8 Hz, yaw 1.5 deg at 0.4 Hz), then thrown: ``boost_accel_m_s2`` for ``boost_time_s``
+  tremor at 8 Hz, yaw 1.5 deg at 0.4 Hz; all times ``hand_sway_scale``), then thrown: ``boost_accel_m_s2`` for ``boost_time_s``
   along the flight axis. A vertical velocity uses gamma = +-90 deg with alpha = pitch - gamma, so
   the body attitude qy(gamma) qy(alpha) = qy(pitch) is independent of where the vehicle moves.
 - ``multicopter`` / ``vtol``: a vertical lift-off at ``rest_s`` (the same gamma/alpha pairing with
@@ -311,9 +311,10 @@ class Flight:
             self._set_vertical(v_up, pitch)
             return
         w = u - HAND_LIFT_S  # held: the hand's sway and tremor (they start from zero)
-        pitch = elev + math.radians(1.0) * math.sin(2 * math.pi * 0.7 * w) \
-            + math.radians(0.15) * math.sin(2 * math.pi * 8.0 * w)
-        self.psi = self.psi0 + math.radians(1.5) * math.sin(2 * math.pi * 0.4 * w)
+        k = L["hand_sway_scale"]
+        pitch = elev + k * (math.radians(1.0) * math.sin(2 * math.pi * 0.7 * w)
+                            + math.radians(0.15) * math.sin(2 * math.pi * 8.0 * w))
+        self.psi = self.psi0 + k * math.radians(1.5) * math.sin(2 * math.pi * 0.4 * w)
         self._set_vertical(0.0, pitch)
 
     def _liftoff_step(self, L: dict) -> None:

@@ -10,6 +10,7 @@ not. The Pipeline never sees the truth.
 import math
 
 import numpy as np
+import pytest
 
 from mavlink_io.samples import FcAttitude, FcHeartbeat, ImuSample, PressureSample
 from service.config import validate
@@ -17,10 +18,10 @@ from service.pipeline import Pipeline
 from sim.offline import simulate
 
 
-def fly(scenario, rate_hz, vehicle, case="aligned", duration_s=None, seed=2):
+def fly(scenario, rate_hz, vehicle, case="aligned", duration_s=None, seed=2, overrides=None):
     """Simulate, feed everything to a Pipeline (HEARTBEAT armed at 1 Hz from the first sample).
     Returns (run, pipeline, [(time_s, kind, detail)])."""
-    run = simulate(scenario, seed=seed, imu_rate_hz=rate_hz, duration_s=duration_s)
+    run = simulate(scenario, seed=seed, imu_rate_hz=rate_hz, duration_s=duration_s, overrides=overrides)
     items = [(t, 2, ImuSample(t, t, g.copy(), a.copy(), m.copy(), "RAW_IMU", 0))
              for t, g, a, m in zip(run.time_s.tolist(), run.gyro_rad_s, run.accel_m_s2, run.mag_gauss)]
     items += [(t, 1, PressureSample(t, t, p, d, k)) for t, p, d, k in
@@ -118,3 +119,41 @@ def test_hand_launch_detects_the_throw_and_says_why_method_a_does_not_run():
     assert why and why[0].startswith("not run: the vehicle turned") and "since its last still block" in why[0]
     assert "the attitude filter's tilt sigma at the launch" in why[0]
     assert p.azimuth_status() == why[0]
+
+
+def test_the_attitude_filter_tilt_becomes_a_levelling_that_gives_it_back(monkeypatch):
+    """GIVEN the attitude filter's roll 3 deg, pitch 9 deg, sigma 0.3 deg at a launch after a
+    pick-up, and a still block on the ground (its gyro bias) WHEN it is written as method A's
+    levelling THEN levelling_result gives back that roll, pitch and sigma (the accelerometer-bias
+    allowance added), and the block's gyro bias; a sigma above the limit is refused with why."""
+    import service.pipeline as pl
+    from estimators.levelling import LevellingState, levelling_result, levelling_step
+    from estimators.polar_attitude import AttitudeEstimate
+    from service.phases import PhaseState
+    p = Pipeline(validate({"site": {"lat_deg": 47.0, "lon_deg": 8.0}, "imu": {"mount_yaw_deg": 90.0}}))
+    block = LevellingState()
+    rng = np.random.default_rng(4)
+    for k in range(100):
+        block = levelling_step(block, np.array([0.001, -0.002, 0.0005]) + rng.normal(0, 1e-3, 3),
+                               np.array([0.0, 0.0, -9.80665]) + rng.normal(0, 0.02, 3), 0.02 * k)
+    roll, pitch = math.radians(3.0), math.radians(9.0)
+    for sigma_deg, ok in ((0.3, True), (1.2, False)):
+        s2 = math.radians(sigma_deg) ** 2
+        monkeypatch.setattr(pl, "polar_attitude_estimate",
+                            lambda _st: AttitudeEstimate(roll_rad=roll, pitch_rad=pitch,
+                                                         cov_roll_pitch_rad2=np.diag([s2, 0.5 * s2]),
+                                                         gyro_bias_rad_s=np.zeros(3), q_P_from_body=np.array([1.0, 0, 0, 0])))
+        p.phase = PhaseState(moved_rad=math.radians(10.0))
+        lev, why = p._level_block_from_attitude_filter(block)
+        if not ok:
+            assert lev is None and "tilt sigma at the launch, 1.20 deg, is above the 0.5 deg" in why
+            continue
+        res = levelling_result(lev, p.phase_params.levelling)
+        # the levelling is of the SENSOR axes: the 90 deg mount turns body roll/pitch into sensor pitch/-roll
+        C_sb = p.C_body_from_sensor.T
+        f_body = C_sb.T @ res.accel_mean_m_s2
+        assert math.atan2(-f_body[1], -f_body[2]) == pytest.approx(roll, abs=1e-12)
+        assert math.atan2(f_body[0], math.hypot(f_body[1], f_body[2])) == pytest.approx(pitch, abs=1e-12)
+        assert res.ok and res.tilt_noise_rad == pytest.approx(math.radians(0.3), rel=1e-9)
+        np.testing.assert_array_equal(res.gyro_bias_rad_s, block.gyro_mean_rad_s)
+        assert "levelled on the attitude filter at the launch (roll 3.00 deg, pitch 9.00 deg, sigma 0.30 deg)" in why
