@@ -1,6 +1,6 @@
 """Levelling and take-off of the vehicles people fly, through the daemon's own Pipeline.
 
-    python bench/takeoff_phases.py [--seeds N] [--json PATH]
+    python bench/takeoff_phases.py [--seeds N] [--json PATH]   (default bench/results/takeoff_phases.json)
 
 Per shipped take-off scenario (sim/scenarios: multicopter_takeoff, vtol_takeoff, hand_launch,
 runway_takeoff) at the rate an FC streams it (50 Hz; the VTOL at 25 Hz as well) and per seed:
@@ -41,7 +41,7 @@ CASES = (  # scenario, IMU rate (Hz), vehicle, method A case, seconds fed after 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=3)
-    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--json", type=Path, default=Path(__file__).resolve().parent / "results" / "takeoff_phases.json")
     a = ap.parse_args()
     out = {"seeds": a.seeds, "cases": {}}
     for scenario, rate, vehicle, case, after_s in CASES:
@@ -73,6 +73,7 @@ def main() -> int:
               f"{r['takeoff_error_mean_s']:+.2f} s  started-in-flight {sif}  A running "
               f"{r['azimuth_running_fraction']:.2f}  ({status[:70]})", flush=True)
     if a.json:
+        a.json.parent.mkdir(parents=True, exist_ok=True)
         clean = json.loads(json.dumps(out), parse_constant=lambda _c: None)  # NaN -> null
         a.json.write_text(json.dumps(clean, indent=1))
     return 0

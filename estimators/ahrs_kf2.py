@@ -135,6 +135,9 @@ class Kf2State:
     """Sum of |omega|^2 dt since cov_time_s (scale-factor noise)."""
     n_mag_fused: int = 0
     n_mag_rejected: int = 0
+    n_mag_gated: int = 0
+    """Of n_mag_rejected: by the innovation gate (the filter disagrees with its measurement), not
+    by the field-magnitude or rate gates (the sample was judged disturbed)."""
     n_air_fused: int = 0
     n_air_rejected: int = 0
     n_ref_fused: int = 0
@@ -347,7 +350,7 @@ def kf2_update_mag(state: Kf2State, mag_body_gauss: np.ndarray, field_nav_gauss:
     new, diag = _update(state, z, H, params.mag_sigma ** 2 * np.eye(3), params.mag_gate_sigma, params)
     if diag.fused:
         return _upd(new, n_mag_fused=new.n_mag_fused + 1), diag
-    return _upd(new, n_mag_rejected=new.n_mag_rejected + 1), diag
+    return _upd(new, n_mag_rejected=new.n_mag_rejected + 1, n_mag_gated=new.n_mag_gated + 1), diag
 
 
 def kf2_update_mag_heading(state: Kf2State, mag_body_gauss: np.ndarray, field_nav_gauss: np.ndarray,
@@ -385,7 +388,7 @@ def kf2_update_mag_heading(state: Kf2State, mag_body_gauss: np.ndarray, field_na
     new, diag = _update(state, z, H, R, params.mag_gate_sigma, params)
     if diag.fused:
         return replace(new, n_mag_fused=new.n_mag_fused + 1), diag
-    return replace(new, n_mag_rejected=new.n_mag_rejected + 1), diag
+    return replace(new, n_mag_rejected=new.n_mag_rejected + 1, n_mag_gated=new.n_mag_gated + 1), diag
 
 
 def kf2_update_air(state: Kf2State, roll_ref_rad: float, pitch_ref_rad: float,
@@ -414,11 +417,12 @@ def kf2_update_air(state: Kf2State, roll_ref_rad: float, pitch_ref_rad: float,
 
 def kf2_update_reference(state: Kf2State, euler_ref_rad: np.ndarray, time_ref_s: float,
                          sigma_tilt_rad: float, sigma_yaw_rad: float,
-                         params: Kf2Params = Kf2Params()) -> tuple[Kf2State, Kf2Diag]:
+                         params: Kf2Params = Kf2Params(), use_yaw: bool = True) -> tuple[Kf2State, Kf2Diag]:
     """Trusted reference attitude (the FC's ATTITUDE) as a measurement: z = euler_ref - euler_hat.
 
     Our attitude is carried back to the reference's time with the last body rate. A residual
     beyond ``ref_reset_rad`` re-initialises the attitude to the reference (e.g. at start-up).
+    ``use_yaw`` False: roll and pitch only (rows 1-2 of z, H, R; a reset keeps our heading).
     """
     q = state.q_nav_from_body
     if state.time_s is not None and state.omega_prev_rad_s is not None:
@@ -426,20 +430,24 @@ def kf2_update_reference(state: Kf2State, euler_ref_rad: np.ndarray, time_ref_s:
     roll, pitch, yaw = euler_from_dcm(dcm_from_quat(q))
     e = np.asarray(euler_ref_rad, dtype=float)
     z = np.array([wrap_pi(e[0] - roll), e[1] - pitch, wrap_pi(e[2] - yaw)])
-    if float(np.max(np.abs(z))) > params.ref_reset_rad:
+    n = 3 if use_yaw else 2
+    if not use_yaw:
+        e = np.array([e[0], e[1], yaw])
+    if float(np.max(np.abs(z[:n]))) > params.ref_reset_rad:
         q_ref = quat_from_euler(*e)
         if state.time_s is not None and state.omega_prev_rad_s is not None:
             q_ref = quat_mul(q_ref, quat_from_rotvec(state.omega_prev_rad_s * (state.time_s - time_ref_s)))
         P = state.P.copy()
         P[0:3, :] = 0.0
         P[:, 0:3] = 0.0
-        P[0:3, 0:3] = _gamma_cov_from_euler_sigmas(q_ref, sigma_tilt_rad, sigma_yaw_rad)
+        P[0:3, 0:3] = _gamma_cov_from_euler_sigmas(
+            q_ref, sigma_tilt_rad, sigma_yaw_rad if use_yaw else math.sqrt(kf2_heading_var(state)))
         return (_upd(state, q_nav_from_body=q_ref / math.sqrt(float(q_ref @ q_ref)), P=P,
                         n_resets=state.n_resets + 1), Kf2Diag(True, "reset to reference", z))
     H = np.zeros((3, N))
     H[:, 0:3] = euler_rate_matrix(roll, pitch)
     R = np.diag([sigma_tilt_rad ** 2, sigma_tilt_rad ** 2, sigma_yaw_rad ** 2])
-    new, diag = _update(state, z, H, R, params.ref_gate_sigma, params)
+    new, diag = _update(state, z[:n], H[:n], R[:n, :n], params.ref_gate_sigma, params)
     if diag.fused:
         return _upd(new, n_ref_fused=new.n_ref_fused + 1), diag
     return _upd(new, n_ref_rejected=new.n_ref_rejected + 1), diag

@@ -151,6 +151,11 @@ class SyntheticAhrsParams:
     fc_sigma_tilt_rad: float = math.radians(0.5)
     """1-sigma of the trusted FC roll/pitch as a KF2 measurement."""
     fc_sigma_yaw_rad: float = math.radians(1.5)
+    use_fc_yaw: bool = True
+    """False: the FC's yaw is used nowhere (e.g. it is our own heading fed back): the reference
+    update fuses the FC's roll/pitch only, KF1 (which needs the FC's full attitude) does not learn,
+    the heading starts from the magnetometer levelled with the FC's roll/pitch, and B never
+    inherits the FC's yaw error (its consider sensitivity stays 0)."""
     ref_update_interval_s: float = 0.1
     mag_update_interval_s: float = 0.1
     air_update_interval_s: float = 1.0
@@ -268,6 +273,8 @@ class SyntheticAhrsOutput:
     gyro_bias_rad_s: np.ndarray
     mag_fused: int = 0
     mag_rejected: int = 0
+    mag_gated: int = 0
+    """Of mag_rejected: by KF2's innovation gate (B disagrees with its own magnetometer)."""
     air_fused: int = 0
     air_rejected: int = 0
     ref_fused: int = 0
@@ -454,9 +461,9 @@ def _on_imu(state: SyntheticAhrsState, ev: ImuEvent, params: SyntheticAhrsParams
         return state
     mag_b = C_bs @ m_s
     Bn = np.array(params.field_nav_gauss)
-    kf1_learning = bool(state.trusted and state.fc_last is not None)
+    kf1_learning = bool(state.trusted and state.fc_last is not None and params.use_fc_yaw)
     k1t = state.kf1_learn.time_s
-    if (state.trusted and state.fc_last is not None
+    if (kf1_learning
             and (k1t is None or t - k1t >= params.kf1.min_update_interval_s - 1e-6)):
         C_fc = dcm_from_euler(*state.fc_last[1])
         kf1, d1 = kf1_step(state.kf1_learn, mag_b, C_fc, Bn, wlp, t, params.kf1)
@@ -483,22 +490,29 @@ def _on_imu(state: SyntheticAhrsState, ev: ImuEvent, params: SyntheticAhrsParams
 
 def _init_without_reference(state: SyntheticAhrsState, ev: ImuEvent, C_bs: np.ndarray, t: float,
                             params: SyntheticAhrsParams) -> SyntheticAhrsState:
-    """No trusted reference ``init_without_reference_s`` after the first IMU sample (e.g. a
-    restart after the GNSS loss): start KF2 level, heading from the magnetometer (level:
-    m_x = cos(psi) B_N + sin(psi) B_E, m_y = -sin(psi) B_N + cos(psi) B_E, so
-    psi = atan2(B_E, B_N) - atan2(m_y, m_x)), with wide sigmas; air data and the magnetometer
-    then pull it in."""
-    if (state.trusted or ev.mag_sensor_gauss is None
-            or t - state.first_imu_time_s < params.init_without_reference_s):
+    """Start KF2 with its heading from the magnetometer: at once when the FC is trusted but its yaw
+    is not to be used (``use_fc_yaw`` False: roll/pitch from the FC, their sigma the FC's), else
+    after ``init_without_reference_s`` with no trusted reference (e.g. a restart after the GNSS
+    loss), level with wide sigmas. The field levelled with (roll, pitch), m_lev = C(roll, pitch, 0) m,
+    is R3(psi)^T-rotated from the model's horizontal field, so psi = atan2(B_E, B_N) -
+    atan2(m_lev_y, m_lev_x); air data, the FC's roll/pitch and the magnetometer then pull it in."""
+    fc_tilt = state.trusted and not params.use_fc_yaw and state.fc_last is not None
+    if (state.trusted and not fc_tilt) or ev.mag_sensor_gauss is None or (
+            not fc_tilt and t - state.first_imu_time_s < params.init_without_reference_s):
         return state
     m = C_bs @ np.asarray(ev.mag_sensor_gauss, dtype=float)
-    if not np.isfinite(m).all() or math.hypot(m[0], m[1]) <= 0.0:
+    if not np.isfinite(m).all():
         return state
     if state.kf1_applied is not None and state.kf1_applied.field_norm_gauss is not None:
         m = kf1_correct_mag(state.kf1_applied, m)
+    roll, pitch = (float(state.fc_last[1][0]), float(state.fc_last[1][1])) if fc_tilt else (0.0, 0.0)
+    m_lev = dcm_from_euler(roll, pitch, 0.0) @ m
+    if math.hypot(m_lev[0], m_lev[1]) <= 0.0:
+        return state
     Bn = params.field_nav_gauss
-    psi = math.atan2(Bn[1], Bn[0]) - math.atan2(m[1], m[0])
-    kf2 = kf2_init(quat_from_euler(0.0, 0.0, psi), params.kf2, sigma_tilt_rad=params.init_sigma_tilt_rad,
+    psi = math.atan2(Bn[1], Bn[0]) - math.atan2(m_lev[1], m_lev[0])
+    kf2 = kf2_init(quat_from_euler(roll, pitch, psi), params.kf2,
+                   sigma_tilt_rad=params.fc_sigma_tilt_rad if fc_tilt else params.init_sigma_tilt_rad,
                    sigma_heading_rad=params.init_sigma_heading_rad)
     return _upd(state, kf2=kf2, ref_heading_sens=0.0)
 
@@ -608,7 +622,7 @@ def _on_fc_attitude(state: SyntheticAhrsState, ev: FcAttitudeEvent, params: Synt
     dt = 0.0 if prev is None else t - prev[0]
     state = _upd(state, k_alpha_pa=_learn_alpha(state.k_alpha_pa, e, state.air_last, dt, params))
     if state.kf2 is None:
-        if state.time_s is None:
+        if state.time_s is None or not params.use_fc_yaw:   # (no FC yaw: started from the magnetometer)
             return state
         kf2 = kf2_init(quat_from_euler(*e), params.kf2, sigma_tilt_rad=params.fc_sigma_tilt_rad,
                        sigma_heading_rad=params.fc_sigma_yaw_rad)
@@ -617,8 +631,11 @@ def _on_fc_attitude(state: SyntheticAhrsState, ev: FcAttitudeEvent, params: Synt
         return state        # (behind an IMU gap: KF2 first accounts for the gap at the next sample)
     kf2 = kf2_propagate(state.kf2, params.kf2)
     v0 = kf2_heading_var(kf2)
-    kf2, d = kf2_update_reference(kf2, e, t, params.fc_sigma_tilt_rad, params.fc_sigma_yaw_rad, params.kf2)
+    kf2, d = kf2_update_reference(kf2, e, t, params.fc_sigma_tilt_rad, params.fc_sigma_yaw_rad, params.kf2,
+                                  use_yaw=params.use_fc_yaw)
     sens = state.ref_heading_sens
+    if not params.use_fc_yaw:                                    # roll/pitch only: no FC yaw error inherited
+        return _upd(state, kf2=kf2, last_ref_update_s=t)
     if d.fused:                                                  # the FC gave the heading back
         state = _upd(state, reacquire_heading=False)
     if d.reason == "reset to reference":
@@ -654,7 +671,7 @@ def synthetic_ahrs_output(state: SyntheticAhrsState, params: SyntheticAhrsParams
     return SyntheticAhrsOutput(valid=True, roll_rad=float(e[0]), pitch_rad=float(e[1]), heading_rad=float(e[2]),
                                roll_sigma_rad=math.sqrt(cov[0, 0]), pitch_sigma_rad=math.sqrt(cov[1, 1]),
                                heading_sigma_rad=math.sqrt(var_h), mag_fused=k.n_mag_fused,
-                               mag_rejected=k.n_mag_rejected, air_fused=k.n_air_fused,
+                               mag_rejected=k.n_mag_rejected, mag_gated=k.n_mag_gated, air_fused=k.n_air_fused,
                                air_rejected=k.n_air_rejected, ref_fused=k.n_ref_fused, **common)
 
 

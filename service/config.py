@@ -149,6 +149,7 @@ SPEC: dict[str, dict[str, Key]] = {
         "uncalibrated_hard_iron_gauss": Key(_F, 0.013, "per-axis 1-sigma of the magnetometer hard iron nobody has compensated yet (before method D's coefficients apply): widens the heading filter's sigma", _range(0.0, 0.5)),
         "fc_yaw_sigma_deg": Key(_F, 1.5, "1-sigma error of the FC's own yaw while trusted (its reading in the fusion and what method B copies from it)", _range(0.1, 20)),
         "use_fc_when_trusted": Key(bool, True, "fuse the FC's own yaw while its estimator is trusted (GNSS healthy, agrees with our gyros)", None),
+        "use_fc_yaw": Key(bool, True, "false: the FC's yaw is used nowhere (not a heading source, not method B's reference yaw or magnetometer-calibration reference); its roll/pitch may still be used", None),
     },
     "deviation": {
         "calibrate": Key(bool, False, "fit the magnetometer deviation model (method D) in flight, while a trusted heading exists: fly a calibration manoeuvre", None),

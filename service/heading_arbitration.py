@@ -41,6 +41,19 @@ The rule
    "coast") for up to ``reinit_after_s``; then it re-anchors on the best candidate: a 'reset'
    event with the jump, blended like any other change.
 8. No candidates: the output is invalid (heading None), event 'lost'.
+
+Why this cannot lock onto a wrong source (issue 18: the output followed a diverged B, and the
+correct C then failed the gate against the published heading for good):
+- a reading says whether it is fit to be a candidate at all (``valid`` False with ``why_not``:
+  a source that lost its reference, e.g. method B with neither a trusted FC nor air data) and
+  whether its own filter agrees with its own measurements (``consistent`` False with
+  ``why_not``: e.g. its recent magnetometer updates were gated out); neither kind is a candidate;
+- candidates are also checked against EACH OTHER, not only against the published heading: the
+  largest set of mutually consistent candidates (pairwise NIS <= ``gate_chi2``), counted by
+  independent evidence (readings that share a group count once), is the majority. If the
+  published heading's passing set is smaller (in independent evidence) than a majority it does
+  not belong to, the output re-anchors on that majority at once (a 'reset' event: "re-acquired
+  from a consistent majority", blended like any change), instead of coasting on the wrong value.
 """
 from __future__ import annotations
 
@@ -72,6 +85,10 @@ class SourceReading:
     """Name(s) of the error sources or references this reading shares with others (a str, or a
     tuple of str for several): readings with a group in common are treated as correlated with an
     unknown coefficient (covariance intersection: only the better one is fused)."""
+    consistent: bool = True
+    """False: the source's own filter disagrees with its own measurements (not a candidate)."""
+    why_not: str = ""
+    """Why the reading is not valid or not consistent (reported in ``per_source``)."""
 
     @property
     def groups(self) -> tuple:
@@ -110,7 +127,7 @@ class ArbitrationParams:
 class ArbitrationEvent:
     time_s: float
     kind: str
-    """'acquired' | 'source_change' | 'reset' | 'lost'."""
+    """'acquired' | 'source_change' | 'reset' | 'majority' (the reset that follows it says the jump) | 'lost'."""
     from_sources: tuple
     to_sources: tuple
     jump_rad: float
@@ -164,6 +181,45 @@ def _fuse(readings: list, ref: float) -> tuple[float, float]:
     return _wrap_2pi(ref + s / sw), 1.0 / sw
 
 
+def _evidence(readings: list) -> int:
+    """Independent evidence in a set of readings: readings that share a group count once
+    (connected components of the 'shares a group' relation)."""
+    rs = list(readings)
+    seen, n = set(), 0
+    for i in range(len(rs)):
+        if i in seen:
+            continue
+        n += 1
+        stack = [i]
+        seen.add(i)
+        while stack:
+            j = stack.pop()
+            for k in range(len(rs)):
+                if k not in seen and set(rs[j].groups) & set(rs[k].groups):
+                    seen.add(k)
+                    stack.append(k)
+    return n
+
+
+def _majority(cands: list, params: ArbitrationParams) -> list:
+    """The largest set (by independent evidence, then size) of candidates that are pairwise
+    consistent: wrap(h_i - h_j)^2 / (s_i^2 + s_j^2) <= gate_chi2. Brute force over subsets (a
+    handful of sources)."""
+    n = len(cands)
+    ok = [[i == j or _wrap_pi(cands[i].heading_rad - cands[j].heading_rad) ** 2
+           / (cands[i].sigma_rad ** 2 + cands[j].sigma_rad ** 2) <= params.gate_chi2 for j in range(n)]
+          for i in range(n)]
+    best, best_key = [], (0, 0)
+    for mask in range(1, 1 << min(n, 8)):
+        idx = [i for i in range(n) if mask >> i & 1]
+        if all(ok[i][j] for i in idx for j in idx):
+            sub = [cands[i] for i in idx]
+            key = (_evidence(sub), len(sub))
+            if key > best_key:
+                best, best_key = sub, key
+    return best
+
+
 def _decorrelate(readings: list, params: ArbitrationParams) -> list:
     """Covariance intersection for scalar readings that share a group (docstring step 4): in rank
     order, keep a reading only if it shares no group with a reading already kept."""
@@ -188,7 +244,9 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
     for r in readings:
         reason = ""
         if not r.valid:
-            reason = "not valid"
+            reason = f"not valid: {r.why_not}" if r.why_not else "not valid"
+        elif not r.consistent:
+            reason = f"inconsistent: {r.why_not}" if r.why_not else "inconsistent with its own measurements"
         elif not (math.isfinite(r.heading_rad) and math.isfinite(r.sigma_rad) and math.isfinite(r.time_s)):
             reason = "non-finite"
         elif not 0.0 < r.sigma_rad <= params.max_sigma_rad:
@@ -239,7 +297,20 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
     passing = gate(ref, ref_var, best.name if anchored else None)
     gated_since = None
     kind = "source_change"
-    if not passing:
+    majority = _majority(cands, params)
+    if (not anchored and len(majority) >= 2 and not set(majority) & set(passing)
+            and _evidence(majority) > _evidence(passing)):
+        # the published heading disagrees with a consistent majority it is no part of: re-anchor
+        best = min(majority, key=lambda r: _rank(r, params))
+        for r in cands:
+            per[r.name]["reason"] = ""
+        passing = gate(best.heading_rad, best.sigma_rad ** 2, best.name)
+        kind = "reset"
+        events.append(ArbitrationEvent(
+            time_s, "majority", state.sources, tuple(sorted(r.name for r in majority)), 0.0,
+            f"published heading disagrees with a consistent majority "
+            f"({'+'.join(sorted(r.name for r in majority))}): re-acquired from it"))
+    elif not passing:
         gated_since = state.gated_since_s if state.gated_since_s is not None else time_s
         if time_s - gated_since < params.reinit_after_s:
             # coast on the propagated reference

@@ -40,6 +40,8 @@ from estimators.levelling import LevellingParams, LevellingState
 from estimators.mag_deviation import (DeviationParams, DeviationState, corrected_mag, deviation_coverage,
                                       deviation_init, deviation_step, residual_sigma_gauss)
 from estimators.mag_error_kf import Kf1State
+from estimators.mag_usability import (MagUsabilityState, mag_usability_params_for_field, mag_usability_stale,
+                                      mag_usability_step)
 from estimators.polar_attitude import (PolarAttitudeParams, polar_attitude_estimate,
                                        polar_attitude_init, polar_attitude_init_at, polar_attitude_step,
                                        polar_attitude_unseen)
@@ -74,6 +76,14 @@ MAG_GROUP = "magnetometer"
 """Sources that share the magnetometer's errors (B, C and the FC's compass yaw): fused as one."""
 FC_REF_GROUP = "fc_reference"
 """Sources tied to the FC's yaw (the FC itself; B, whose alignment and KF1 are learnt against it)."""
+B_REFERENCE_MAX_AGE_S = 30.0
+"""Method B with no trusted FC attitude and no air-data fusion for this long (s) lost its reference."""
+B_CONSISTENCY_WINDOW_S = 5.0
+"""Window (s) over which method B's gated-out magnetometer updates are counted."""
+SOURCE_INCONSISTENT_AFTER_S = 2.0
+"""Method C's magnetometer innovations gated out this long (s): not a heading candidate."""
+FC_TILT_MAX_AGE_S = 0.2
+"""The FC's roll/pitch older than this (FC time, s) does not level C's magnetometer."""
 
 AIR_EVIDENCE_MAX_AGE_S = 1.0
 """Air data older than this (FC time, s) is no evidence for the started-in-flight rule."""
@@ -195,7 +205,8 @@ class Pipeline:
         self.ahrs_params = SyntheticAhrsParams(variant=cfg["ahrs"]["variant"],
                                                C_body_from_sensor=self.C_body_from_sensor,
                                                field_nav_gauss=self.field.e_ned_gauss,
-                                               fc_sigma_yaw_rad=math.radians(heading["fc_yaw_sigma_deg"]))
+                                               fc_sigma_yaw_rad=math.radians(heading["fc_yaw_sigma_deg"]),
+                                               use_fc_yaw=heading.get("use_fc_yaw", True))
         self.ahrs = synthetic_ahrs_init(self.ahrs_params, kf1_learn=kf1_learn, kf1_applied=kf1_applied)
         self.ahrs_out: SyntheticAhrsOutput | None = None
         self._ahrs_trusted: bool | None = None
@@ -212,6 +223,13 @@ class Pipeline:
         self.polar_hdg = polar_heading_init(params=self.polar_hdg_params)
         self._hdg_available: bool | None = None
 
+        # is the magnetometer fit for a heading at all (estimators/mag_usability): B and C get no
+        # magnetometer while it is not, and coast on the gyros with a growing sigma
+        self.mag_usability_params = mag_usability_params_for_field(self.field.e_ned_gauss)
+        self.mag_usability = MagUsabilityState()
+        self.mag_status = "no magnetometer sample yet"
+        """'usable', or why not ('rejected: field norm 0.870 G vs ...'): published on health."""
+
         # arbitration
         self.arb_params = ArbitrationParams()
         self.arb = ArbitrationState()
@@ -219,8 +237,11 @@ class Pipeline:
         """The last ArbitrationOutput: its per_source verdicts (used, or why not) go to dashboards."""
         self.use_fc_heading = heading["use_fc_when_trusted"]
         self.use_fc_yaw = heading.get("use_fc_yaw", True)
+        """False: the FC's yaw is used nowhere ([heading] use_fc_yaw, or ``exclude_fc_yaw``)."""
+        self.use_fc_yaw = heading.get("use_fc_yaw", True)
         """False: the FC's yaw is no heading source (``exclude_fc_yaw``: it is our own fed back)."""
         self._b1_heading_s = -math.inf
+        self._b_air_fused, self._b_air_fused_s, self._b_mag_hist = 0, -math.inf, []
 
         self.filter_period_s = 1.0 / cfg["heading"]["filter_rate_hz"]
         self._filter_due_s = -math.inf
@@ -315,14 +336,17 @@ class Pipeline:
         C = self.C_body_from_sensor
         gyro_b, accel_b = C @ gyro_s, C @ accel_s
         mag_b = C @ mag_s if mag_s is not None else None
+        self.polar_att, _ = polar_attitude_step(self.polar_att, t, gyro_b, accel_b, self.polar_att_params)
+        att = polar_attitude_estimate(self.polar_att)
+        tilt = self._heading_tilt(t, att, gyro_b)
+        if not self._mag_usable(mag_b, t, tilt):
+            mag_b = mag_s = None
         mag_b_raw = mag_b
         if mag_b is not None:
             mag_b = self._deviation_corrected(mag_b)
-        self.polar_att, _ = polar_attitude_step(self.polar_att, t, gyro_b, accel_b, self.polar_att_params)
-        att = polar_attitude_estimate(self.polar_att)
-        if att is not None:
+        if tilt is not None:
             self.polar_hdg, hdiag = polar_heading_step(
-                self.polar_hdg, HeadingInputs(t, gyro_b, att.roll_rad, att.pitch_rad, att.cov_roll_pitch_rad2,
+                self.polar_hdg, HeadingInputs(t, gyro_b, tilt[0], tilt[1], tilt[2],
                                               mag_b, self.declination_rad, self.declination_sigma_rad,
                                               # D applied: its residual; else C's uncalibrated model
                                               float(np.max(residual_sigma_gauss(self.deviation)))
@@ -389,6 +413,15 @@ class Pipeline:
         if not self.use_fc_yaw:
             return
         self.use_fc_yaw = False
+        self._event("fc_yaw_excluded", f"the FC's yaw is no longer used: {reason}")
+
+    def exclude_fc_yaw(self, reason: str) -> None:
+        """From now on the FC's yaw is used nowhere (e.g. it is our own heading fed back to us):
+        not a heading source, not method B's reference yaw or KF1 reference. One event, once."""
+        if not self.use_fc_yaw:
+            return
+        self.use_fc_yaw = False
+        self.ahrs_params = dc_replace(self.ahrs_params, use_fc_yaw=False)
         self._event("fc_yaw_excluded", f"the FC's yaw is no longer used: {reason}")
 
     def air_data(self):
@@ -590,6 +623,42 @@ class Pipeline:
             return "waiting: not levelled yet"
         return "waiting for the take-off"
 
+    def _heading_tilt(self, t: float, att, gyro_body_rad_s: np.ndarray):
+        """(roll, pitch, 2x2 covariance) that level the magnetometer for C's heading filter: the
+        FC's roll/pitch while its attitude is trusted and fresh (its yaw is not used: this holds with
+        ``use_fc_yaw`` false too), else C's own attitude filter (None before it has one).
+        Why: C's accelerometer-based tilt is biased by sustained accelerations (a multicopter's
+        specific force stays along its thrust axis, whatever its tilt), and at a dip of 60-70 deg a
+        tilt error e turns the magnetic heading by up to ~tan(dip) e (2-3 e); the GNSS-aided FC
+        observes its tilt. Covariance: the FC tilt sigma plus the turn over the sample's age,
+        (|omega| age)^2, per axis."""
+        fc, b = self.fc_attitude, self.ahrs_out
+        if fc is not None and b is not None and b.reference_trusted and 0.0 <= t - fc.time_fc_s <= FC_TILT_MAX_AGE_S:
+            age = t - fc.time_fc_s
+            var = self.ahrs_params.fc_sigma_tilt_rad ** 2 + (float(np.linalg.norm(gyro_body_rad_s[:2])) * age) ** 2
+            return fc.roll_rad, fc.pitch_rad, np.diag([var, var])
+        if att is None:
+            return None
+        return att.roll_rad, att.pitch_rad, att.cov_roll_pitch_rad2
+
+    def _mag_usable(self, mag_body_gauss: np.ndarray | None, t: float, tilt) -> bool:
+        """The magnetometer usability verdict for this filter step (estimators/mag_usability, on the
+        raw body-axes field levelled with C's roll/pitch); one 'magnetometer' event per change."""
+        p = self.mag_usability_params
+        if mag_body_gauss is None:
+            self.mag_usability, v = mag_usability_stale(self.mag_usability, t, p)
+        else:
+            self.mag_usability, v = mag_usability_step(
+                self.mag_usability, t, mag_body_gauss, tilt[0] if tilt is not None else None,
+                tilt[1] if tilt is not None else None, p)
+        if v is not None:
+            pending = self.mag_usability.usable is None
+            self.mag_status = "usable" if v.usable else (v.reason if pending else f"rejected: {v.reason}")
+        if v is not None and v.changed:
+            self._event("magnetometer", "usable" if v.usable else
+                        f"rejected ({v.reason}): the heading coasts on the gyros, its sigma growing")
+        return mag_body_gauss is not None and bool(self.mag_usability.usable)
+
     def _deviation_corrected(self, mag_body_gauss: np.ndarray) -> np.ndarray:
         """Method D's correction of the magnetometer (body axes) for C, once it covers enough
         headings, rolls and pitches; the raw field otherwise."""
@@ -679,17 +748,41 @@ class Pipeline:
         # distortions with psi_s, and a biased magnetometer heading would drag the fusion.
         mag_sources = not (az is not None and az.valid)
         if mag_sources and b is not None and b.valid and math.isfinite(b.heading_rad):
-            out.append(SourceReading("synthetic_ahrs", b.heading_rad, b.heading_sigma_rad, True, t,
-                                     (MAG_GROUP, FC_REF_GROUP)))
+            has_ref, consistent, why = self._b_health(b, t)
+            out.append(SourceReading("synthetic_ahrs", b.heading_rad, b.heading_sigma_rad, has_ref, t,
+                                     (MAG_GROUP, FC_REF_GROUP) if self.use_fc_yaw else MAG_GROUP, consistent, why))
         h = polar_heading_estimate(self.polar_hdg)
         if mag_sources and h.initialised and math.isfinite(h.heading_rad):
-            out.append(SourceReading("heading_filter", h.heading_rad, math.sqrt(h.variance_rad2), True, t, MAG_GROUP))
+            rej = self.polar_hdg.rejected_since_s
+            consistent = rej is None or t - rej < SOURCE_INCONSISTENT_AFTER_S
+            out.append(SourceReading("heading_filter", h.heading_rad, math.sqrt(h.variance_rad2), True, t, MAG_GROUP,
+                                     consistent, "" if consistent else
+                                     f"its magnetometer innovations gated out for {t - rej:.1f} s"))
         fc = self.fc_attitude
         if (self.use_fc_heading and self.use_fc_yaw and fc is not None and b is not None and b.reference_trusted
                 and abs(t - fc.time_fc_s) < self.arb_params.max_age_s):
             out.append(SourceReading("fc", wrap_2pi(fc.yaw_rad), self.ahrs_params.fc_sigma_yaw_rad, True,
                                      fc.time_fc_s, (MAG_GROUP, FC_REF_GROUP)))
         return out
+
+    def _b_health(self, b: SyntheticAhrsOutput, t: float) -> tuple[bool, bool, str]:
+        """Method B as a heading source: (has a reference, consistent, why not). B integrates the
+        gyros and corrects roll/pitch only from the trusted FC attitude or from air data; with
+        neither for ``B_REFERENCE_MAX_AGE_S`` its tilt (and so its levelled magnetometer heading)
+        drifts with nothing to say so: not a candidate. Inconsistent: most of its magnetometer
+        updates over the last ``B_CONSISTENCY_WINDOW_S`` were gated out (it disagrees with its
+        own measurements)."""
+        if b.air_fused != self._b_air_fused:
+            self._b_air_fused, self._b_air_fused_s = b.air_fused, t
+        hist = [x for x in self._b_mag_hist if t - x[0] <= B_CONSISTENCY_WINDOW_S] + [(t, b.mag_fused, b.mag_gated)]
+        self._b_mag_hist = hist
+        if not b.reference_trusted and t - self._b_air_fused_s > B_REFERENCE_MAX_AGE_S:
+            return False, True, "lost its reference (no trusted FC attitude, no air data)"
+        fused, rejected = hist[-1][1] - hist[0][1], hist[-1][2] - hist[0][2]   # (gated: innovation gate only)
+        if rejected >= 10 and rejected > 4 * fused:
+            return True, False, f"its magnetometer updates gated out ({rejected} of {fused + rejected} in " \
+                                f"{B_CONSISTENCY_WINDOW_S:.0f} s)"
+        return True, True, ""
 
     def _feed_b1_heading(self, readings: list[SourceReading], t: float) -> None:
         """Variant B1 takes its heading from another source (METHODS.md B1): the most certain
@@ -743,6 +836,7 @@ class Pipeline:
             flags["fc_reference"] = "trusted" if self.ahrs_out.reference_trusted else self.ahrs_out.reference_reason
         if self._hdg_available is False:
             flags["magnetometer_heading"] = "unavailable (horizontal field too weak)"
+        flags["magnetometer"] = self.mag_status
         valid = arb_out.valid and arb_out.heading_rad is not None
         heading = arb_out.heading_rad if valid else None
         q_nb = quat_from_euler(roll, pitch, heading if valid else 0.0)
