@@ -36,7 +36,8 @@ Messages (docs/OUTPUTS.md has the user's view, the FC parameters and the sources
 - NAMED_VALUE_FLOAT: ``az_deg`` (flight azimuth, deg), ``hdg_deg`` (heading, deg),
   ``hdg_sd_deg`` (heading 1-sigma, deg), ``phase`` (PHASE_CODES) for ground stations.
 
-Time stamps are the FC clock of the IMU sample the solution is for (``time_fc_s``), so the FC
+Time stamps are the FC clock of the solution (``time_fc_s``: its IMU sample's, plus the age it was
+brought forward by, mavlink_io/output_gate.py), so the FC
 can match our output to its own data without TIMESYNC (PX4's sync_stamp passes an unsynced
 time through; ArduPilot's offboard jitter correction estimates any offset).
 """
