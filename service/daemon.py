@@ -725,4 +725,6 @@ class Daemon:
                                        + f", achieved {r['achieved_hz']:.1f} Hz")
         if self.link.rate_advice:
             flags["stream_advice"] = self.link.rate_advice
+        # 'usable', or why the magnetometer is rejected (estimators/mag_usability via the Pipeline)
+        flags["magnetometer"] = self.pipeline.mag_status
         return flags
