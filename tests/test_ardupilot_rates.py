@@ -77,13 +77,15 @@ def stock_loop():
 
 
 def test_refused_rates_are_asked_again_lower_and_granted(stock_loop):
-    # THEN each refused rate is halved until accepted: 200 -> 100 -> 50 -> 25 Hz, 50 -> 25 Hz
+    # THEN each refused rate is halved until accepted (200 -> 100 -> 50 -> 25 Hz), then two steps
+    # halfway back up: 37.5 accepted, 43.75 refused (above 0.8 x 50 = 40 Hz): 37.5 Hz stands
     asked = [(int(m.param1), 1e6 / m.param2) for m in stock_loop.requests
              if m.get_type() == "COMMAND_LONG" and m.command == 511]
-    assert asked[:4] == [(27, 200.0), (27, 100.0), (27, 50.0), (27, 25.0)]
+    assert [i for i, _ in asked[:6]] == [27] * 6  # param2 travels as float32: compare the rates closely
+    assert [hz for _, hz in asked[:6]] == pytest.approx([200.0, 100.0, 50.0, 25.0, 37.5, 43.75], rel=1e-6)
     report = stock_loop.link.stream_report()
-    assert {n: r["granted_hz"] for n, r in report.items()} == {"RAW_IMU": 25.0, "SCALED_PRESSURE": 25.0,
-                                                                "ATTITUDE": 25.0}
+    assert {n: r["granted_hz"] for n, r in report.items()} == {"RAW_IMU": 37.5, "SCALED_PRESSURE": 37.5,
+                                                                "ATTITUDE": 37.5}
     assert all(r["result"] == "accepted" for r in report.values())
     # the FC's two STATUSTEXT chunks are read as one text
     assert stock_loop.link.rate_refusal_text == "Requested rate for message ID 30 too fast. Increase SCHED_LOOP_RATE"
@@ -91,10 +93,10 @@ def test_refused_rates_are_asked_again_lower_and_granted(stock_loop):
 
 def test_achieved_rates_are_measured_and_the_parameter_named(stock_loop):
     report = stock_loop.link.stream_report()
-    for name in WANTED:  # 25 Hz streamed on the simulator's clock, measured over the 2 s window
-        assert report[name]["achieved_hz"] == pytest.approx(25.0, abs=1.0), name
+    for name in WANTED:  # 37.5 Hz streamed on the simulator's clock, measured over the 2 s window
+        assert report[name]["achieved_hz"] == pytest.approx(37.5, abs=1.0), name
     (ev,) = stock_loop.events("rates_limited")  # one line, naming the parameter and the value
-    assert "RAW_IMU asked 200 Hz, granted 25 Hz" in ev.detail
+    assert "RAW_IMU asked 200 Hz, granted 37.5 Hz" in ev.detail
     assert "SCHED_LOOP_RATE >= 300" in ev.detail  # 200 Hz / 0.8 = 250 -> the next loop rate, 300
     assert "Increase SCHED_LOOP_RATE" in ev.detail  # what the FC said
     assert stock_loop.link.rate_advice is not None
@@ -140,6 +142,17 @@ def test_accepted_but_not_delivered_falls_back_to_request_data_stream():
 
 
 # --- the pieces -----------------------------------------------------------------------------
+
+def test_rate_requester_bisects_back_up_after_an_acceptance():
+    r = RateRequester(ack_timeout_s=0.5, max_tries=2, floor_hz=1.0)
+    r.start([("ATTITUDE", 30, 100.0)], 0.0)
+    assert r.on_ack(511, 2, 0.1) == [SendInterval("ATTITUDE", 30, 20000.0, 0)]  # 100 refused: 50
+    assert r.on_ack(511, 0, 0.2) == [SendInterval("ATTITUDE", 30, 1e6 / 75.0, 0)]  # 50 accepted: 75
+    assert r.on_ack(511, 2, 0.3) == [SendInterval("ATTITUDE", 30, 1e6 / 62.5, 0)]  # 75 refused: 62.5
+    assert r.poll(0.8) == [SendInterval("ATTITUDE", 30, 1e6 / 62.5, 1)]  # no answer: resent
+    assert r.poll(1.3) == [Finished({"ATTITUDE": "accepted"})]  # still none: the accepted 50 Hz stands
+    assert r.granted_hz == {"ATTITUDE": 50.0}
+
 
 def test_rate_requester_halves_a_refusal_down_to_the_floor():
     r = RateRequester(ack_timeout_s=0.5, max_tries=3, floor_hz=10.0)
