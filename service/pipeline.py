@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -238,10 +239,8 @@ class Pipeline:
         self.use_fc_heading = heading["use_fc_when_trusted"]
         self.use_fc_yaw = heading.get("use_fc_yaw", True)
         """False: the FC's yaw is used nowhere ([heading] use_fc_yaw, or ``exclude_fc_yaw``)."""
-        self.use_fc_yaw = heading.get("use_fc_yaw", True)
-        """False: the FC's yaw is no heading source (``exclude_fc_yaw``: it is our own fed back)."""
         self._b1_heading_s = -math.inf
-        self._b_air_fused, self._b_air_fused_s, self._b_mag_hist = 0, -math.inf, []
+        self._b_air_fused, self._b_air_fused_s, self._b_mag_hist = 0, -math.inf, deque()
 
         self.filter_period_s = 1.0 / cfg["heading"]["filter_rate_hz"]
         self._filter_due_s = -math.inf
@@ -405,15 +404,6 @@ class Pipeline:
             self.strapdown = StrapdownState(self.strapdown.q_ref_from_sensor)
         self._unseen_pending = True
         self._event("fc_reboot", "FC time restarted; integration resumes at the next sample")
-
-    def exclude_fc_yaw(self, reason: str) -> None:
-        """From now on the FC's yaw is no heading source (the daemon found it is our own heading fed
-        back: docs/OUTPUTS.md 1.8). One event, once. [h6: minimal until the [heading] use_fc_yaw
-        work, which also keeps it out of method B, lands.]"""
-        if not self.use_fc_yaw:
-            return
-        self.use_fc_yaw = False
-        self._event("fc_yaw_excluded", f"the FC's yaw is no longer used: {reason}")
 
     def exclude_fc_yaw(self, reason: str) -> None:
         """From now on the FC's yaw is used nowhere (e.g. it is our own heading fed back to us):
@@ -774,8 +764,10 @@ class Pipeline:
         own measurements)."""
         if b.air_fused != self._b_air_fused:
             self._b_air_fused, self._b_air_fused_s = b.air_fused, t
-        hist = [x for x in self._b_mag_hist if t - x[0] <= B_CONSISTENCY_WINDOW_S] + [(t, b.mag_fused, b.mag_gated)]
-        self._b_mag_hist = hist
+        hist = self._b_mag_hist
+        hist.append((t, b.mag_fused, b.mag_gated))
+        while t - hist[0][0] > B_CONSISTENCY_WINDOW_S:
+            hist.popleft()
         if not b.reference_trusted and t - self._b_air_fused_s > B_REFERENCE_MAX_AGE_S:
             return False, True, "lost its reference (no trusted FC attitude, no air data)"
         fused, rejected = hist[-1][1] - hist[0][1], hist[-1][2] - hist[0][2]   # (gated: innovation gate only)
