@@ -145,8 +145,9 @@ class PhaseParams:
     filter_tau_s: float = 0.2
     """Low-pass time constant of the specific force the runway and lift-off rules judge (s):
     averages out the motor vibration (0.06 of a 13 Hz vibration's amplitude)."""
-    runway_accel_m_s2: float = 1.0
-    """Runway: forward specific force (levelled frame) that means the take-off roll ..."""
+    runway_accel_m_s2: float = 1.5
+    """Runway: forward specific force (levelled frame) that means the take-off roll (a full-throttle
+    roll gives 2-4 m/s^2; taxiing starts and stops stay below) ..."""
     runway_hold_s: float = 1.0
     """... held this long (s): a taxi jolt is shorter."""
     runway_max_roll_s: float = 60.0
