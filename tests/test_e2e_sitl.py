@@ -5,7 +5,13 @@ WHEN the daemon runs against the simulator
 THEN the daemon's HEARTBEAT reaches the autopilot, it requests its streams with
      SET_MESSAGE_INTERVAL, and the ATTITUDE it sends stays within 2 deg of the truth in roll and
      pitch over the first 60 s of the flight after launch (and on the launcher before it).
+
+The machine may be busy (the simulator then flies slower than SPEED and the daemon may fall
+behind): the flight is waited for to its end (a wall-clock deadline only detects a hang), and
+nothing is counted per wall-clock second.
 """
+import json
+import re
 import sys
 from pathlib import Path
 
@@ -17,19 +23,40 @@ from sitl import Sitl, angle_diff_rad  # noqa: E402
 
 SPEED = 4.0
 FLIGHT_S = 130.0   # 60 s at rest + 70 s of flight
+HANG_S = 900.0
+"""Only a hang detector: the flight takes what the machine gives it (32 s idle, minutes busy)."""
 
 
 @pytest.fixture(scope="module")
 def flight():
     with Sitl(scenario="inclined_rail", speed=SPEED, seed=3, tap=True,
               sim_args=["--duration", str(FLIGHT_S)]) as s:
-        s.wait_for(lambda: s.sim.poll() is not None, FLIGHT_S / SPEED + 60)
+        finished = s.wait_for(lambda: s.sim.poll() is not None, HANG_S)
+    assert finished and s.sim.returncode == 0, f"simulator hung or failed; see {s.workdir}"
     return s
 
 
+def _sim_account(flight) -> dict:
+    """The simulator's own account of the flight (its ``sim stopped`` line)."""
+    m = re.search(r"sim stopped: simulated_s=([\d.]+) .* sent=(\{.*\})", flight.log("sim"))
+    assert m, "no 'sim stopped' line in the simulator's log"
+    return {"simulated_s": float(m.group(1)), "sent": json.loads(m.group(2))}
+
+
+def test_the_whole_flight_was_flown(flight):
+    own = _sim_account(flight)
+    assert own["simulated_s"] == pytest.approx(FLIGHT_S, abs=0.05)
+    # 200 Hz of its clock from the daemon's request (within its first seconds) to the end
+    assert 200 * (FLIGHT_S - 10.0) <= own["sent"]["RAW_IMU"] <= 200 * FLIGHT_S + 1
+
+
 def test_daemon_heartbeat_reaches_the_autopilot(flight):
+    times = [t for t, m in flight.tap.from_daemon if m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 191]
     hb = [m for m in flight.tap.sent_by_daemon("HEARTBEAT") if m.get_srcComponent() == 191]
-    assert len(hb) >= 0.7 * FLIGHT_S / SPEED  # 1 Hz in wall time
+    assert len(hb) >= 3
+    # 1 Hz of the daemon's clock: never faster (a late loop only makes it slower; the rate itself
+    # is tests/test_mavlink_link.py's); one interval of slack for the tap's own receive delays
+    assert len(hb) - 1 <= times[-1] - times[0] + 1.0
     assert hb[0].type == 18 and hb[0].autopilot == 8  # ONBOARD_CONTROLLER, INVALID
     assert hb[0].get_srcSystem() == 1  # the vehicle's system id, learned from the FC
 
@@ -44,8 +71,8 @@ def test_daemon_requested_its_streams(flight):
 
 def test_attitude_within_2_deg_of_truth(flight):
     truth = flight.truth()
-    att = np.array([row[:4] for row in flight.listener.attitude])
-    assert len(att) > 0.5 * 50 * FLIGHT_S / SPEED, "too few ATTITUDE messages received"
+    att = np.array([row[:4] for row in flight.listener.attitude]).reshape(-1, 4)
+    assert len(att) > 0, "no ATTITUDE from the daemon reached the ground-station listener"
     t = att[:, 0]
     idx = np.clip(np.searchsorted(truth["time_boot_s"], t), 0, len(truth["time_boot_s"]) - 1)
     launch = truth["launch_time_boot_s"]
@@ -53,7 +80,8 @@ def test_attitude_within_2_deg_of_truth(flight):
     d_roll = np.degrees(np.abs(angle_diff_rad(att[:, 1], truth["roll_rad"][idx])))
     d_pitch = np.degrees(np.abs(angle_diff_rad(att[:, 2], truth["pitch_rad"][idx])))
     for window in [(t >= t[0]) & (t < launch), (t >= launch) & (t <= launch + 60.0)]:
-        assert np.count_nonzero(window) > 100
+        # enough to compare (ATTITUDE goes out at [outputs] attitude_hz of the daemon's clock)
+        assert np.count_nonzero(window) > 100, f"{np.count_nonzero(window)} ATTITUDE in the window"
         assert np.max(d_roll[window]) < 2.0
         assert np.max(d_pitch[window]) < 2.0
     # the attitude really moved: the climb-out pitch differs from the rail's 15 deg
