@@ -9,9 +9,9 @@ by its start.sh in a fresh run directory with an extra defaults file this script
 the ground station on SERIAL0 (tcp 5760+10N): it sets parameters, uploads the mission, arms in
 AUTO, cuts GNSS in flight (PARAM_SET SIM_GPS1_ENABLE 0) and records ArduPilot's own ATTITUDE, its
 STATUSTEXT, EKF_STATUS_REPORT, HEARTBEAT and SIMSTATE. The daemon (`azimuthd run --config`, its own
-process, the example config with [site] and [mavlink] url set) connects by TCP to SERIAL1
-(5762+10N) through `TcpTap`, a transparent relay that records every message the daemon SENT and
-what ArduPilot sent it (RAW_IMU, COMMAND_ACK).
+process, the example config with [site] and [mavlink] url set; see ``daemon_config`` for the bench's
+other three keys) connects by TCP to SERIAL1 (5762+10N) through `TcpTap`, a transparent relay that
+records every message the daemon SENT and what ArduPilot sent it (RAW_IMU, COMMAND_ACK).
 
 Truth: SIMSTATE (roll, pitch, yaw, lat, lng) is ArduPilot's simulated vehicle. It only SCORES:
 nothing the daemon or the harness decides comes from it (the GNSS cut and the end of the flight
@@ -504,15 +504,57 @@ class TcpTap:
         self.decode()
 
 
+class UdpRecorder:
+    """A ground station's UDP port for the daemon's ``[outputs] extra_mavlink_urls``: keeps every
+    datagram with its receive time, decoded after the flight into ``messages`` (receive s, message).
+    The daemon's ATTITUDE is scored from here when it sends none to the FC (attitude_to_fc false)."""
+
+    def __init__(self):
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.2)
+        self.port = self.sock.getsockname()[1]
+        self.datagrams: list[tuple[float, bytes]] = []
+        self.messages: list[tuple[float, object]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def start(self) -> "UdpRecorder":
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data, _ = self.sock.recvfrom(65536)
+            except (TimeoutError, socket.timeout):
+                continue
+            except OSError:
+                return
+            self.datagrams.append((time.monotonic(), data))
+
+    def stop(self) -> None:
+        from pymavlink.dialects.v20 import ardupilotmega
+        self._stop.set()
+        self._thread.join(2.0)
+        self.sock.close()
+        parser = ardupilotmega.MAVLink(None)
+        parser.robust_parsing = True
+        self.messages = [(t, m) for t, d in self.datagrams for m in parser.parse_buffer(d) or []]
+
+
 # --- the daemon, as a user runs it -----------------------------------------------------------------
 
 def daemon_config(path: Path, home: tuple, url: str, state_dir: Path, geofence: dict | None = None,
-                  src: Path = ROOT) -> Path:
+                  src: Path = ROOT, extra_url: str | None = None) -> Path:
     """The example config with [site] and [mavlink] url set. Also, for the bench only: Zenoh off
     (its default listen port would collide with other daemons on this machine), a fresh state_dir
-    (no calibration learnt in an earlier flight), and the [geofence] of the divert flights."""
+    (no calibration learnt in an earlier flight), a ground-station output (``extra_url``) and the
+    [geofence] of the divert flights."""
     over = {"site": {"lat_deg": home[0], "lon_deg": home[1], "alt_m": home[2]},
             "mavlink": {"url": url}, "zenoh": {"enabled": False}, "service": {"state_dir": str(state_dir)}}
+    if extra_url is not None:
+        over["outputs"] = {"extra_mavlink_urls": [extra_url]}
     if geofence is not None:
         over["geofence"] = geofence
     return write_config(path, over, src / "systemd" / "azimuthd.toml")
@@ -595,6 +637,7 @@ class FlightRecord:
     daemon_events: dict = field(default_factory=dict)   # counts of the daemon's log events (event=...)
     timeline_wall_s: dict = field(default_factory=dict)  # wall seconds from the start to each step
     latency_ms: dict = field(default_factory=dict)       # RAW_IMU at the relay -> our ATTITUDE at the relay
+    daemon_attitude_source: str = "none"                 # fc_link (the relay) | extra_output (UdpRecorder)
     rundir: str = ""
 
 
@@ -616,7 +659,7 @@ def fly(spec: FlightSpec, args, rundir: Path, log=print) -> FlightRecord:
         rec.fence = fence_square(home, spec.fence_half_size_m)
         fence_cfg = {"enabled": True, "inclusion": [rec.fence]}
     ap = ArduPlane(rundir, args.sitl_dir, args.instance, args.model, args.speedup, home, params)
-    tap = daemon = None
+    tap = daemon = gcs_out = None
     wall0 = time.monotonic()
     try:
         ap.start()
@@ -624,8 +667,9 @@ def fly(spec: FlightSpec, args, rundir: Path, log=print) -> FlightRecord:
         if not ap.wait_serial1():
             raise RuntimeError(f"SERIAL1 tcp:{ap.ports['serial1']} never listened; see {rundir}/sitl.log")
         tap = TcpTap(ap.ports["serial1"]).start()
+        gcs_out = UdpRecorder().start()
         cfg = daemon_config(rundir / "azimuthd.toml", home, f"tcp:127.0.0.1:{tap.port}", rundir / "state", fence_cfg,
-                            args.daemon_src)
+                            args.daemon_src, f"udpout:127.0.0.1:{gcs_out.port}")
         daemon = Daemon(cfg, rundir / "daemon.log", args.daemon_src).start()
         ap.upload_mission(mission(args.model, spec.mission, home, args.seed))
         rec.timeline_wall_s["mission_uploaded"] = time.monotonic() - wall0
@@ -673,17 +717,19 @@ def fly(spec: FlightSpec, args, rundir: Path, log=print) -> FlightRecord:
         rec.timeline_wall_s["flight_end"] = time.monotonic() - wall0
     finally:
         rc = daemon.stop() if daemon is not None else None
-        if tap is not None:
-            tap.stop()
+        for rx in (tap, gcs_out):
+            if rx is not None:
+                rx.stop()
         ap.stop()
         rec.wall_s = time.monotonic() - wall0
     if rc not in (None, 0):
         rec.notes.append(f"daemon exit code {rc}")
-    _collect(rec, ap.rec, tap, daemon)
+    _collect(rec, ap.rec, tap, daemon, gcs_out)
     return rec
 
 
-def _collect(rec: FlightRecord, r: Recorder, tap: TcpTap | None, daemon: Daemon | None) -> None:
+def _collect(rec: FlightRecord, r: Recorder, tap: TcpTap | None, daemon: Daemon | None,
+             gcs_out: UdpRecorder | None = None) -> None:
     """Turn the recorded messages into arrays (SI inside, degrees only in the JSON)."""
     sim = r.msgs["SIMSTATE"]
     # SIMSTATE without a stamp: the FC time of the ATTITUDE just before it on this link (same tick)
@@ -710,6 +756,10 @@ def _collect(rec: FlightRecord, r: Recorder, tap: TcpTap | None, daemon: Daemon 
         for _, m in sent:
             rec.daemon_sent[m.get_type()] = rec.daemon_sent.get(m.get_type(), 0) + 1
         da = [m for _, m in sent if m.get_type() == "ATTITUDE"]
+        rec.daemon_attitude_source = "fc_link"
+        if not da and gcs_out is not None:   # attitude_to_fc false: ATTITUDE only on the extra output
+            da = [m for _, m in gcs_out.messages if m.get_type() == "ATTITUDE"]
+            rec.daemon_attitude_source = "extra_output"
         rec.daemon_att = {"t": np.array([m.time_boot_ms / 1e3 for m in da]), "roll": np.array([m.roll for m in da]),
                           "pitch": np.array([m.pitch for m in da]), "yaw": np.array([m.yaw for m in da])}
         do = [m for _, m in sent if m.get_type() == "ODOMETRY"]
@@ -740,7 +790,8 @@ def _collect(rec: FlightRecord, r: Recorder, tap: TcpTap | None, daemon: Daemon 
 def latency_ms(tap: TcpTap) -> dict:
     """Our ATTITUDE's delay after the RAW_IMU it was computed from, both seen by the relay (one clock):
     each ATTITUDE whose time_boot_ms equals a RAW_IMU's time_usec // 1000. A daemon that stamps its
-    output later than its IMU sample (extrapolated to the send time) has no exact match: counted."""
+    output with the send time (brought forward from its IMU sample) has no such pairs: fewer than
+    half matched (the rest coincidences, even negative) gives no figure."""
     imu_rx = {}
     for t, m in tap.from_fc:
         if m.get_type() == "RAW_IMU":
@@ -748,8 +799,9 @@ def latency_ms(tap: TcpTap) -> dict:
     lat = [t - imu_rx[m.time_boot_ms] for t, m in tap.from_daemon
            if m.get_type() == "ATTITUDE" and m.time_boot_ms in imu_rx]
     n_att = sum(1 for _, m in tap.from_daemon if m.get_type() == "ATTITUDE")
-    if not lat:
-        return {"matched": 0, "attitude_sent": n_att}
+    if len(lat) < 0.5 * n_att:   # stamps brought forward to the send time: a match is a coincidence
+        return {"matched": len(lat), "attitude_sent": n_att,
+                "note": "most ATTITUDE are not stamped with an IMU sample's time: latency not measurable"}
     ms = 1e3 * np.asarray(lat)
     return {"matched": len(lat), "attitude_sent": n_att, "p50_ms": round(float(np.percentile(ms, 50)), 1),
             "p95_ms": round(float(np.percentile(ms, 95)), 1)}
@@ -952,7 +1004,7 @@ def flight_summary(rec: FlightRecord) -> dict:
            "daemon_sent_count": rec.daemon_sent, "forwarded_to_gcs_count": rec.forwarded_to_gcs,
            "modes": [[round(fc, 1), m] for fc, m in rec.modes],
            "daemon_statustext": rec.daemon_texts[:20], "daemon_log_events_count": rec.daemon_events,
-           "daemon_latency": rec.latency_ms}
+           "daemon_latency": rec.latency_ms, "daemon_attitude_source": rec.daemon_attitude_source}
     if rec.raw_imu.get("t") is not None and rec.raw_imu["t"].size > 1:
         span = rec.raw_imu["t"][-1] - rec.raw_imu["t"][0]
         out["raw_imu_rate_hz"] = round((rec.raw_imu["t"].size - 1) / span, 1) if span > 0 else None
