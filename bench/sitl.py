@@ -62,7 +62,12 @@ def write_config(path: Path, overrides: dict[str, dict], example: Path = EXAMPLE
     return path
 
 
-LAUNCH_CASE = {"rail": "inclined", "tube": "vertical", "runway": "aligned"}
+LAUNCH_CASE = {"rail": "inclined", "tube": "vertical", "runway": "aligned", "hand": "aligned",
+               "multicopter": "aligned", "vtol": "aligned"}
+"""[launch] case an operator configures for the scenario's launcher type (flight direction, METHODS.md A.3)."""
+LAUNCH_VEHICLE = {"rail": "launcher", "tube": "launcher", "runway": "runway", "hand": "hand",
+                  "multicopter": "multicopter", "vtol": "vtol"}
+"""[launch] vehicle an operator configures for it (how it takes off: service/phases.py)."""
 
 
 def scenario_site(scenario: str) -> dict:
@@ -80,11 +85,7 @@ def scenario_site(scenario: str) -> dict:
                     "alt_m": float(sc["site"]["alt_m"]),
                     "decimal_year": float(decimal_year_from_date(sc["scenario"]["date"]))},
            "imu": {"mount_roll_deg": float(roll), "mount_pitch_deg": float(pitch), "mount_yaw_deg": float(yaw)},
-           "launch": {"case": LAUNCH_CASE[launcher]}}
-    if launcher == "runway":
-        # a take-off roll accelerates at a few m/s^2, not a boost
-        out["launch"].update({"detect_accel_m_s2": 0.3 * float(sc["launcher"]["takeoff_accel_m_s2"]),
-                              "detect_hold_s": 0.5})
+           "launch": {"case": LAUNCH_CASE[launcher], "vehicle": LAUNCH_VEHICLE[launcher]}}
     return out
 
 

@@ -8,6 +8,7 @@ to the truth with sigmas that cover the error (|err| < 3 sigma for >= 95 % of th
 The launcher case (armed and still) still levels and launches.
 """
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -89,7 +90,12 @@ def test_started_60_s_after_launch_reports_no_launch_and_an_honest_attitude(with
     assert "levelled" not in kinds and "launch_unlevelled" not in kinds
     assert ("phase", "launch") not in events
     sif = [d for k, d in events if k == "started_in_flight"]
-    assert len(sif) == 1 and sif[0].startswith("FC armed, ") and "airspeed 21.6 m/s" in sif[0]  # the level leg
+    assert len(sif) == 1 and sif[0].startswith("FC armed, ")
+    # the level leg's airspeed as the pipeline measured it: the scenario's cruise 22 m/s within what
+    # the simulator's non-ISA atmosphere (sim/earth.py: temperature and QNH drawn per seed) moves ISA
+    # density by (a few %, so < 1 m/s)
+    tas = float(re.search(r"airspeed ([0-9.]+) m/s", sif[0]).group(1))
+    assert abs(tas - 22.0) < 1.0, sif[0]
     assert p.phase.started_in_flight and p.phase.launch_time_s is None and p.phase.level is None
     src = "the trusted FC attitude" if with_fc else "the accelerometer"
     assert any(k == "attitude" and src in d for k, d in events)
