@@ -86,7 +86,8 @@ kernel drop counter is read (poll's timers)."""
 _MAGIC_BYTES = (0xFD, 0xFE)
 
 DEFAULT_STREAM_RATES_HZ = {"RAW_IMU": 200.0, "SCALED_PRESSURE": 50.0, "ATTITUDE": 50.0,
-                           "EKF_STATUS_REPORT": 2.0, "SYS_STATUS": 2.0, "HIGHRES_IMU": 200.0}
+                           "EKF_STATUS_REPORT": 2.0, "SYS_STATUS": 2.0, "HIGHRES_IMU": 200.0,
+                           "EXTENDED_SYS_STATE": 2.0}
 
 IMU_SOURCES = ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU")
 _IMU_PRIORITY = {"ardupilot": ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU"),

@@ -130,7 +130,8 @@ class Daemon:
         m = cfg["mavlink"]
         rates = {"RAW_IMU": m["imu_rate_hz"], "HIGHRES_IMU": m["imu_rate_hz"],
                  "SCALED_PRESSURE": m["pressure_rate_hz"], "ATTITUDE": m["attitude_rate_hz"],
-                 "EKF_STATUS_REPORT": 2.0, "SYS_STATUS": 2.0}
+                 "EKF_STATUS_REPORT": 2.0, "SYS_STATUS": 2.0,
+                 "EXTENDED_SYS_STATE": 2.0}  # the FC's land detector: take-off evidence (service/phases.py)
         self.geofence_cfg = cfg.get("geofence")
         if self.geofence_cfg is not None:
             rates["GLOBAL_POSITION_INT"] = 5.0  # the FC's position while GNSS is healthy (DR start)

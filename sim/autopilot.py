@@ -41,6 +41,7 @@ IMU_AVG_MAX_S = 0.1
 # message ids
 HEARTBEAT, SYS_STATUS, RAW_IMU, SCALED_PRESSURE, ATTITUDE, ATTITUDE_QUATERNION = 0, 1, 27, 29, 30, 31
 GLOBAL_POSITION_INT, HIGHRES_IMU, AUTOPILOT_VERSION, SIMSTATE, EKF_STATUS_REPORT = 33, 105, 148, 164, 193
+EXTENDED_SYS_STATE = 245
 ESTIMATOR_STATUS, SCALED_IMU, VFR_HUD = 230, 26, 74
 
 # MAV_CMD / MAV_RESULT
@@ -133,7 +134,7 @@ class Autopilot:
     # ---- streams -------------------------------------------------------------------------
     def supported(self, msg_id: int) -> bool:
         common = {HEARTBEAT, SYS_STATUS, SCALED_IMU, SCALED_PRESSURE, ATTITUDE, ATTITUDE_QUATERNION,
-                  GLOBAL_POSITION_INT, VFR_HUD, SIMSTATE}
+                  GLOBAL_POSITION_INT, VFR_HUD, SIMSTATE, EXTENDED_SYS_STATE}
         own = {HIGHRES_IMU, ESTIMATOR_STATUS} if self.px4 else {RAW_IMU, EKF_STATUS_REPORT}
         return msg_id in common | own
 
@@ -234,9 +235,12 @@ class Autopilot:
         tb_ms = int(round(self.time_boot_s * 1e3))
         if msg_id == HEARTBEAT:
             flight = self.eng.flight
-            status = 3 if flight.phase == "rest" else 4  # STANDBY / ACTIVE
+            status = 4 if flight.airborne else 3  # ACTIVE / STANDBY: ArduPlane's is_flying()
             base = 1 | 16 | 8 | 4 | (128 if self.armed else 0)
             return m.heartbeat_encode(1, 12 if self.px4 else 3, base, self._custom_mode(), status)
+        if msg_id == EXTENDED_SYS_STATE:
+            # the autopilot's land detector: MAV_LANDED_STATE_ON_GROUND 1 / IN_AIR 2; VTOL state undefined
+            return m.extended_sys_state_encode(0, 2 if self.eng.flight.airborne else 1)
         if msg_id in (RAW_IMU, HIGHRES_IMU, SCALED_IMU):
             if self._dropped("imu", t):
                 return None
