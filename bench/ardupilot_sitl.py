@@ -73,10 +73,13 @@ G0_M_S2 = 9.80665
 GCS_STREAM_HZ = {"ATTITUDE": 25.0, "SIMSTATE": 25.0, "EKF_STATUS_REPORT": 2.0, "GLOBAL_POSITION_INT": 2.0}
 """What this ground station asks for on SERIAL0 (truth and ArduPilot's own attitude, FC clock)."""
 EXTERNAL_YAW_PARAMS = {"VISO_TYPE": 1, "EK3_SRC1_YAW": 6, "EK3_SRC1_POSXY": 3, "EK3_SRC1_VELXY": 3,
-                       "EK3_SRC1_POSZ": 1, "EK3_SRC1_VELZ": 3, "EK2_ENABLE": 0, "AHRS_EKF_TYPE": 3}
+                       "EK3_SRC1_POSZ": 1, "EK3_SRC1_VELZ": 3, "EK2_ENABLE": 0, "AHRS_EKF_TYPE": 3,
+                       "VISO_YAW_M_NSE": 0.05, "VISO_DELAY_MS": 30}
 """docs/OUTPUTS.md 1.2: EKF3's yaw from our ODOMETRY, its position/velocity never from it; EKF2 off
 (it has no source selection: with EK2_ENABLE 1, ArduPlane's default, it fuses any external-nav
-position, our placeholder included). The ``ek2_stock`` flight keeps EK2_ENABLE 1 to check that."""
+position, our placeholder included). The ``ek2_stock`` flight keeps EK2_ENABLE 1 to check that.
+VISO_YAW_M_NSE 0.05 rad and VISO_DELAY_MS 30 as 1.2 says: with the default 0.2 rad the FC logged
+VISP AErr 0.2 (11.5 deg) for our ~1.4 deg heading and its yaw drifted to +6.8 deg after the cut."""
 BEFORE_CUT_S = 40.0
 AFTER_CUT_S = 80.0
 FENCE_HALF_SIZE_M = 2000.0
@@ -986,6 +989,15 @@ def quick_flight(gnss_cut_s: float = 20.0, duration_s: float = 110.0, rtl_hold_s
 def flights(args) -> list[FlightSpec]:
     if args.quick:
         return [quick_flight(args.gnss_cut_s, args.duration_s)]
+    every = _all_flights(args)
+    wanted = [f for f in getattr(args, "flights", "").split(",") if f]
+    unknown = set(wanted) - {f.name for f in every}
+    if unknown:
+        raise ValueError(f"--flights: unknown {sorted(unknown)}; choose from {[f.name for f in every]}")
+    return [f for f in every if not wanted or f.name in wanted]
+
+
+def _all_flights(args) -> list[FlightSpec]:
     return [FlightSpec("compass", gnss_cut_s=args.gnss_cut_s, duration_s=args.duration_s),
             FlightSpec("ours", external_yaw=True, gnss_cut_s=args.gnss_cut_s, duration_s=args.duration_s),
             FlightSpec("divert", "outbound", fence="cross", gnss_cut_s=min(args.gnss_cut_s, 35.0),
@@ -1131,6 +1143,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--flight-wall-limit-s", type=float, default=400.0, help="wall-clock bound of one flight")
     ap.add_argument("--keep", action="store_true", help="keep the run directories (logs, daemon config)")
     ap.add_argument("--quick", action="store_true", help="one flight: external yaw + the divert fence")
+    ap.add_argument("--flights", default="", help="comma-separated subset of compass,ours,divert,inside,ek2_stock")
     ap.add_argument("--json", type=Path, default=ROOT / "bench" / "results" / "ardupilot_sitl.json")
     return ap
 
@@ -1147,11 +1160,16 @@ def main(argv=None) -> int:
     if not 0 < args.gnss_cut_s < args.duration_s:
         print("ardupilot_sitl: --gnss-cut-s must be in (0, --duration-s)", file=sys.stderr)
         return 2
+    try:
+        specs = flights(args)
+    except ValueError as exc:
+        print(f"ardupilot_sitl: {exc}", file=sys.stderr)
+        return 2
     base = Path(tempfile.mkdtemp(prefix="azimuthd-ardupilot-"))
     recs: dict[str, FlightRecord] = {}
     vqf_by: dict = {}
     try:
-        for spec in flights(args):
+        for spec in specs:
             print(f"flight {spec.name}: {args.model}, mission {spec.mission}, external yaw {spec.external_yaw}, "
                   f"fence {spec.fence}, GNSS cut {spec.gnss_cut_s:.0f} s, {spec.duration_s:.0f} s, "
                   f"speedup {args.speedup:g}, -I {args.instance}", flush=True)
@@ -1159,7 +1177,7 @@ def main(argv=None) -> int:
             recs[spec.name] = rec
             if args.keep:
                 save_flight(rec, base / spec.name / "flight")
-            if spec.name in ("compass",) or len(flights(args)) == 1:
+            if spec.name == "compass" or len(specs) == 1:
                 vqf_by[spec.name] = run_vqf(rec.raw_imu, args.home)
             for n in rec.notes:
                 print(f"  note: {n}")
