@@ -17,11 +17,18 @@ fusing a field that is not the Earth's:
                    ~8 deg; a few deg of tilt error add to it). A wrong axis mapping or a strong
                    local source passes the norm test but not this one. Skipped when the caller
                    has no roll/pitch.
-- ``frozen``       the vector identical for ``frozen_s`` (a hung driver repeats its last sample;
-                   noise changes a live sensor's reading every sample).
-- ``saturated``    one axis stuck at the same value for ``frozen_s`` while the others change (a
-                   clipped axis at its full scale), or |axis| >= ``full_scale_gauss`` when known.
-- ``too slow``     fewer than ``min_rate_hz`` new samples per second over ``rate_window_s``.
+- ``frozen``       the vector identical for ``frozen_s`` WHILE the body turned enough that a live
+                   sensor must have changed: the change the gyros predict, integral |m x w| dt
+                   (dm/dt = -w x m for a fixed field), exceeds ``min_expected_change_gauss``. At
+                   rest a quiet or noise-free sensor (ArduPilot's 1 mG RAW_IMU resolution, SITL's
+                   compass without SIM_MAG_RND) repeats its reading: that is no fault.
+- ``saturated``    one axis stuck at the same value for ``frozen_s`` while the gyros predict a
+                   change of that axis (integral |(m x w)_i| dt > ``min_expected_change_gauss``; a
+                   yaw turn leaves m_z unchanged) and the others change (a clipped axis at its full
+                   scale), or |axis| >= ``full_scale_gauss`` when known.
+- ``too slow``     fewer than ``min_rate_hz`` new samples per second over ``rate_window_s`` while
+                   the body turned (>= ``motion_step_rad`` within that window): repeats at rest
+                   cannot tell a slow sensor from a quiet one.
                    Decided: 1 Hz. A 2 Hz magnetometer (PX4's default logging) is slow but usable
                    for a heading filter: between samples the gyros carry the heading (0.01-0.2 deg/s
                    of bias), and the heading filter counts its correlated measurement errors once per
@@ -32,8 +39,9 @@ fusing a field that is not the Earth's:
 A repeat of the previous vector (the same sample held onto several IMU samples by the link or a
 log reader) is not a new sample: only changes count for the rate and frozen tests.
 
-Pure: ``mag_usability_step(state, time_s, mag_body_gauss, roll_rad, pitch_rad, params) ->
-(state, verdict)``; ``mag_usability_stale(state, time_s, params)`` when no sample came at all.
+Pure: ``mag_usability_step(state, time_s, mag_body_gauss, roll_rad, pitch_rad, params,
+gyro_body_rad_s) -> (state, verdict)`` (gyro None: motion unknown, the frozen, stuck-axis and rate
+tests are not judged); ``mag_usability_stale(state, time_s, params)`` when no sample came at all.
 """
 from __future__ import annotations
 
@@ -59,10 +67,19 @@ class MagUsabilityParams:
     rate_window_s: float = 5.0
     full_scale_gauss: float | None = None
     """The sensor's full scale when known (|axis| >= this: saturated); None: only the stuck-axis test."""
+    min_expected_change_gauss: float = 0.03
+    """A reading (an axis) that stays identical while the gyros predict this much change is frozen
+    (stuck): 0.03 G is ~3.5 deg of turn on a 0.5 G field, 30x ArduPilot's 1 mG resolution."""
+    motion_step_rad: float = math.radians(5.0)
+    """The rate test is judged only when the body turned this much within ``rate_window_s``."""
+    motion_rate_floor_rad_s: float = math.radians(3.0)
+    """Only rates above this count as turning: an uncalibrated MEMS gyro bias (0.1-1 deg/s) and its
+    noise, integrated over minutes at rest, must not predict a change of a still vehicle's field."""
 
     def __post_init__(self) -> None:
         for name in ("field_norm_gauss", "norm_tolerance_fraction", "dip_tolerance_rad", "window_s",
-                     "frozen_s", "min_rate_hz", "rate_window_s"):
+                     "frozen_s", "min_rate_hz", "rate_window_s", "min_expected_change_gauss", "motion_step_rad",
+                     "motion_rate_floor_rad_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
@@ -93,6 +110,14 @@ class MagUsabilityState:
     window: tuple = ()
     """(time_s, norm_ratio, dip_rad or nan) of the new samples within window_s."""
     first_s: float | None = None
+    last_call_s: float | None = None
+    expected_change_gauss: float = 0.0
+    """The change the gyros predict for the vector since it last changed (integral |m x w| dt)."""
+    axis_expected_change_gauss: tuple = (0.0, 0.0, 0.0)
+    """Per axis, since that axis last changed (integral |(m x w)_i| dt)."""
+    turned_rad: float = 0.0
+    """Total turn angle (integral |w| dt) and the times it crossed successive motion steps."""
+    motion_marks: tuple = ()
     usable: bool | None = None
     reason: str = "no magnetometer sample yet"
 
@@ -119,11 +144,34 @@ def _median(v) -> float:
     return float(np.median(v)) if v else math.nan
 
 
+def _motion(state: MagUsabilityState, t: float, m: np.ndarray, gyro_body_rad_s, params: MagUsabilityParams):
+    """The change the gyros predict for the field since the previous call, dm = -(w x m) dt (a fixed
+    Earth field seen from a turning body), added to the running totals; and the turn angle with its
+    motion marks. An interval longer than ``rate_window_s`` (a gap) adds nothing."""
+    exp_all, exp_axis = state.expected_change_gauss, state.axis_expected_change_gauss
+    turned, marks = state.turned_rad, state.motion_marks
+    if gyro_body_rad_s is None or state.last_call_s is None:
+        return exp_all, exp_axis, turned, marks
+    w = np.asarray(gyro_body_rad_s, float)
+    dt = t - state.last_call_s
+    if (w.shape == (3,) and np.all(np.isfinite(w)) and 0.0 < dt <= params.rate_window_s
+            and float(np.linalg.norm(w)) >= params.motion_rate_floor_rad_s):
+        dm = np.abs(np.cross(m, w)) * dt
+        exp_all += float(np.linalg.norm(dm))
+        exp_axis = tuple(exp_axis[i] + float(dm[i]) for i in range(3))
+        step = float(np.linalg.norm(w)) * dt
+        if math.floor((turned + step) / params.motion_step_rad) > math.floor(turned / params.motion_step_rad):
+            marks = tuple(x for x in marks if t - x < params.rate_window_s) + (t,)
+        turned += step
+    return exp_all, exp_axis, turned, marks
+
+
 def mag_usability_step(state: MagUsabilityState, time_s: float, mag_body_gauss, roll_rad: float | None,
-                       pitch_rad: float | None, params: MagUsabilityParams
+                       pitch_rad: float | None, params: MagUsabilityParams, gyro_body_rad_s=None
                        ) -> tuple[MagUsabilityState, MagVerdict]:
     """One magnetometer sample (body axes, gauss) with the roll/pitch it is levelled with (None:
-    no dip test). Non-finite input is the caller's to reject (ValueError)."""
+    no dip test) and the body rate since the previous call (rad/s, body axes; None: motion unknown).
+    Non-finite input is the caller's to reject (ValueError)."""
     m = np.asarray(mag_body_gauss, float)
     if m.shape != (3,) or not np.all(np.isfinite(m)) or not math.isfinite(time_s):
         raise ValueError(f"mag_body_gauss must be 3 finite values and time_s finite, got {mag_body_gauss!r}, {time_s!r}")
@@ -131,6 +179,13 @@ def mag_usability_step(state: MagUsabilityState, time_s: float, mag_body_gauss, 
     mt = tuple(float(x) for x in m)
     first = state.first_s if state.first_s is not None else t
     new = state.last_mag is None or mt != state.last_mag
+    motion_known = gyro_body_rad_s is not None
+    exp_all, exp_axis, turned, marks = _motion(state, t, m, gyro_body_rad_s, params)
+    if new:
+        exp_all = 0.0
+    if state.last_mag is not None:
+        exp_axis = tuple(0.0 if mt[i] != state.last_mag[i] else exp_axis[i] for i in range(3))
+    moving = motion_known and any(t - x < params.rate_window_s for x in marks)
     axis_changed = tuple(t if (state.last_mag is None or mt[i] != state.last_mag[i] or state.axis_changed_s[i] is None)
                          else state.axis_changed_s[i] for i in range(3))
     changed_s = t if new else state.changed_s
@@ -156,14 +211,16 @@ def mag_usability_step(state: MagUsabilityState, time_s: float, mag_body_gauss, 
     reason = ""
     if params.full_scale_gauss is not None and float(np.max(np.abs(m))) >= params.full_scale_gauss:
         reason = f"saturated: |axis| {float(np.max(np.abs(m))):.2f} G >= full scale {params.full_scale_gauss:.2f} G"
-    elif t - changed_s >= params.frozen_s:
-        reason = f"frozen: identical samples for {t - changed_s:.1f} s"
-    else:
-        stuck = [i for i in range(3) if t - axis_changed[i] >= params.frozen_s]
+    elif motion_known and t - changed_s >= params.frozen_s and exp_all >= params.min_expected_change_gauss:
+        reason = (f"frozen: identical samples for {t - changed_s:.1f} s while the gyros predict a "
+                  f"{exp_all:.3f} G change")
+    elif motion_known:
+        stuck = [i for i in range(3) if t - axis_changed[i] >= params.frozen_s
+                 and exp_axis[i] >= params.min_expected_change_gauss and t - changed_s < params.frozen_s]
         if stuck:
             reason = (f"saturated: axis {'xyz'[stuck[0]]} stuck at {mt[stuck[0]]:+.3f} G for "
                       f"{t - axis_changed[stuck[0]]:.1f} s while the others change")
-    if not reason and t - first >= params.rate_window_s and not (len(new_times) / params.rate_window_s >= params.min_rate_hz):
+    if not reason and moving and t - first >= params.rate_window_s and not (len(new_times) / params.rate_window_s >= params.min_rate_hz):
         reason = (f"too slow: {len(new_times) / params.rate_window_s:.2f} new samples/s < "
                   f"{params.min_rate_hz:.1f} Hz")
     if not reason and math.isfinite(norm_ratio) and abs(norm_ratio - 1.0) > params.norm_tolerance_fraction:
@@ -177,20 +234,28 @@ def mag_usability_step(state: MagUsabilityState, time_s: float, mag_body_gauss, 
         # not judged yet: a first sample may be anything (a wrong axis mapping initialised a heading
         # before the dip test saw it): no verdict until a window of samples exists
         st = replace(state, last_mag=mt, changed_s=changed_s, axis_changed_s=axis_changed, new_times=new_times,
-                     window=window, first_s=first, usable=None,
+                     window=window, first_s=first, last_call_s=t, expected_change_gauss=exp_all,
+                     axis_expected_change_gauss=exp_axis, turned_rad=turned, motion_marks=marks, usable=None,
                      reason=f"being checked ({t - first:.1f} of {params.window_s:.1f} s of samples)")
         return st, MagVerdict(False, st.reason, new, False, norm_ratio, dip_med, rate)
     usable = not reason
     changed = usable != state.usable
     st = replace(state, last_mag=mt, changed_s=changed_s, axis_changed_s=axis_changed, new_times=new_times,
-                 window=window, first_s=first, usable=usable, reason=reason)
+                 window=window, first_s=first, last_call_s=t, expected_change_gauss=exp_all,
+                 axis_expected_change_gauss=exp_axis, turned_rad=turned, motion_marks=marks, usable=usable,
+                 reason=reason)
     return st, MagVerdict(usable, reason, new, changed, norm_ratio, dip_med, rate)
 
 
-def mag_usability_stale(state: MagUsabilityState, time_s: float, params: MagUsabilityParams
-                        ) -> tuple[MagUsabilityState, MagVerdict | None]:
+def mag_usability_stale(state: MagUsabilityState, time_s: float, params: MagUsabilityParams,
+                        gyro_body_rad_s=None) -> tuple[MagUsabilityState, MagVerdict | None]:
     """No magnetometer sample at ``time_s``: after ``frozen_s`` without one the magnetometer is
-    'no samples' (a verdict only when that changes the state, else None)."""
+    'no samples' (a verdict only when that changes the state, else None). The body's turn is still
+    counted (against the last vector) for the frozen and rate tests of the next sample."""
+    if state.last_mag is not None and gyro_body_rad_s is not None:
+        exp_all, exp_axis, turned, marks = _motion(state, time_s, np.asarray(state.last_mag), gyro_body_rad_s, params)
+        state = replace(state, last_call_s=time_s, expected_change_gauss=exp_all,
+                        axis_expected_change_gauss=exp_axis, turned_rad=turned, motion_marks=marks)
     if state.changed_s is None or time_s - state.changed_s < params.frozen_s or state.reason.startswith("no samples"):
         return state, None
     reason = f"no samples for {time_s - state.changed_s:.1f} s"

@@ -338,7 +338,7 @@ class Pipeline:
         self.polar_att, _ = polar_attitude_step(self.polar_att, t, gyro_b, accel_b, self.polar_att_params)
         att = polar_attitude_estimate(self.polar_att)
         tilt = self._heading_tilt(t, att, gyro_b)
-        if not self._mag_usable(mag_b, t, tilt):
+        if not self._mag_usable(mag_b, t, tilt, gyro_b):
             mag_b = mag_s = None
         mag_b_raw = mag_b
         if mag_b is not None:
@@ -631,16 +631,16 @@ class Pipeline:
             return None
         return att.roll_rad, att.pitch_rad, att.cov_roll_pitch_rad2
 
-    def _mag_usable(self, mag_body_gauss: np.ndarray | None, t: float, tilt) -> bool:
+    def _mag_usable(self, mag_body_gauss: np.ndarray | None, t: float, tilt, gyro_body_rad_s: np.ndarray) -> bool:
         """The magnetometer usability verdict for this filter step (estimators/mag_usability, on the
         raw body-axes field levelled with C's roll/pitch); one 'magnetometer' event per change."""
         p = self.mag_usability_params
         if mag_body_gauss is None:
-            self.mag_usability, v = mag_usability_stale(self.mag_usability, t, p)
+            self.mag_usability, v = mag_usability_stale(self.mag_usability, t, p, gyro_body_rad_s)
         else:
             self.mag_usability, v = mag_usability_step(
                 self.mag_usability, t, mag_body_gauss, tilt[0] if tilt is not None else None,
-                tilt[1] if tilt is not None else None, p)
+                tilt[1] if tilt is not None else None, p, gyro_body_rad_s)
         if v is not None:
             pending = self.mag_usability.usable is None
             self.mag_status = "usable" if v.usable else (v.reason if pending else f"rejected: {v.reason}")

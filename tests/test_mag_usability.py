@@ -24,17 +24,20 @@ def body_field(heading_rad, roll_rad=0.0, pitch_rad=0.0):
     return (Rz @ Ry @ Rx).T @ FIELD_NED_GAUSS
 
 
-def run(samples, rate_hz, duration_s, roll=0.1, pitch=-0.05, seed=1, noise_gauss=0.002, repeat_every=1):
+def run(samples, rate_hz, duration_s, roll=0.1, pitch=-0.05, seed=1, noise_gauss=0.002, repeat_every=1,
+        yaw_rate_rad_s=0.3):
     """Feed ``samples(t) -> body field`` with noise at ``rate_hz`` for ``duration_s``; each sample
-    is also repeated ``repeat_every`` - 1 times (held onto the IMU samples in between)."""
+    is also repeated ``repeat_every`` - 1 times (held onto the IMU samples in between); the gyros
+    say the body yaws at ``yaw_rate_rad_s`` (the rate the samples' headings turn at)."""
     rng = np.random.default_rng(seed)
     st, verdicts = MagUsabilityState(), []
     dt = 1.0 / rate_hz
+    w = np.array([0.0, 0.0, yaw_rate_rad_s])
     for k in range(int(duration_s * rate_hz)):
         t = k * dt
         m = samples(t) + rng.normal(0.0, noise_gauss, 3)
         for j in range(repeat_every):
-            st, v = mag_usability_step(st, t + j * dt / repeat_every, m, roll, pitch, P)
+            st, v = mag_usability_step(st, t + j * dt / repeat_every, m, roll, pitch, P, w)
             verdicts.append(v)
     return st, verdicts
 
@@ -73,12 +76,28 @@ def test_wrong_axis_mapping_is_rejected_by_dip():
     assert not vs[-1].usable and vs[-1].reason.startswith("dip ")
 
 
-def test_frozen_sensor_is_rejected():
+def test_frozen_sensor_is_rejected_while_the_body_turns():
     m = body_field(1.0)
     st = MagUsabilityState()
+    w = np.array([0.0, 0.0, 0.3])                      # yawing at 17 deg/s: a live sensor changes
     for k in range(50):
-        st, v = mag_usability_step(st, 0.1 * k, m, 0.0, 0.0, P)
-    assert not v.usable and v.reason == "frozen: identical samples for 4.9 s"
+        st, v = mag_usability_step(st, 0.1 * k, m, 0.0, 0.0, P, w)
+    assert not v.usable and v.reason.startswith("frozen: identical samples for 4.9 s while the gyros predict")
+
+
+def test_given_a_noise_free_quantised_sensor_at_rest_then_it_is_not_called_frozen_or_slow():
+    # ArduPilot's RAW_IMU (1 mG steps) from a quiet compass, or SITL's without SIM_MAG_RND: the
+    # same reading for minutes while the vehicle sits still is no fault
+    m = np.round(body_field(1.0) * 1000.0) / 1000.0
+    rng = np.random.default_rng(4)
+    st = MagUsabilityState()
+    for k in range(600):                               # 60 s at 10 Hz, gyro noise only
+        st, v = mag_usability_step(st, 0.1 * k, m, 0.0, 0.0, P, rng.normal(0.0, 0.002, 3))
+    assert v.usable, v.reason
+    # WHEN it then turns and the reading still does not change THEN frozen
+    for k in range(600, 650):
+        st, v = mag_usability_step(st, 0.1 * k, m, 0.0, 0.0, P, np.array([0.0, 0.0, 0.3]))
+    assert not v.usable and v.reason.startswith("frozen")
 
 
 def test_stuck_axis_is_reported_as_saturated():
@@ -88,7 +107,8 @@ def test_stuck_axis_is_reported_as_saturated():
         t = 0.1 * k
         m = body_field(0.3 * t) + rng.normal(0.0, 0.002, 3)
         m[2] = 0.8                                     # z clipped at the sensor's full scale
-        st, v = mag_usability_step(st, t, m, 0.0, 0.0, P)
+        # rolling (a yaw turn alone leaves m_z unchanged, so it cannot show a stuck z)
+        st, v = mag_usability_step(st, t, m, 0.0, 0.0, P, np.array([0.3, 0.0, 0.3]))
     assert not v.usable and v.reason.startswith("saturated: axis z stuck at +0.800 G")
 
 
