@@ -176,7 +176,11 @@ class MainField:
 
     def at_points_nt(self, lat_deg, lon_deg, alt_m) -> np.ndarray:
         """IGRF-14 exactly (no lattice), shape (n, 3) NED nT; latitudes clamped off the poles."""
-        import ppigrf  # imported on first use: it loads pandas (~0.7 s)
+        try:
+            import ppigrf  # imported on first use: it loads pandas (~0.7 s)
+        except ImportError:
+            raise SystemExit("azimuthd sim: the simulator's Earth field needs the 'sim' extra: "
+                             "pip install 'azimuthd[sim]' (ppigrf, IGRF-14)") from None
         lat = np.clip(np.atleast_1d(np.asarray(lat_deg, float)), -89.999, 89.999)
         lon = np.atleast_1d(np.asarray(lon_deg, float))
         h_km = np.atleast_1d(np.asarray(alt_m, float)) / 1000.0
