@@ -297,3 +297,51 @@ def test_new_params_validated():
         TimebaseParams(restart_margin_s=-1.0)
     with pytest.raises(ValueError, match="backlog_report_s"):
         TimebaseParams(backlog_report_s=0.0)
+
+
+# --- through the link: what the daemon sees ------------------------------------------------------
+
+def test_link_reports_a_stalled_sender_as_a_backlog_not_a_reboot():
+    """GIVEN a MavlinkLink on an in-memory transport and a fake clock, an FC streaming RAW_IMU at
+    200 Hz (60 s since boot) WHEN the sender stalls 5.35 s and goes on where it stopped THEN the
+    link yields every sample 5 ms apart in FC time, one input_backlog event with the lag, counts
+    it (stats.input_backlogs), no fc_reboot, no reboot count, no rates re-requested for a reboot."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+    from mavlink_io.link import LinkConfig, LinkEvent, MavlinkLink
+    from mavlink_io.samples import ImuSample
+    from mem_transport import MemTransport
+
+    class Clock:
+        t = 10.0
+
+        def __call__(self):
+            return self.t
+
+    clock, tr = Clock(), MemTransport()
+    link = MavlinkLink(LinkConfig(url="udpin:127.0.0.1:0", system_id=1), clock=clock, transport=tr)
+    fc = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+
+    def frame(msg) -> bytes:
+        buf = bytes(msg.pack(fc))
+        fc.seq = (fc.seq + 1) % 256
+        return buf
+
+    items: list = []
+    tr.inbox.append(frame(mavlink2.MAVLink_heartbeat_message(1, 3, 0, 0, 4, 3)))
+    items += link.poll(0.0)
+    for k in range(400):
+        if k == 200:
+            clock.t += 5.35  # the sender's clock pauses; ours does not
+        tr.inbox.append(frame(mavlink2.MAVLink_raw_imu_message(60_000_000 + 5000 * k, 0, 0, -1000, 0, 0, 0,
+                                                               200, 0, 400, 0, 0)))
+        items += link.poll(0.0)
+        clock.t += 0.005
+    t = [i.time_fc_s for i in items if isinstance(i, ImuSample)]
+    kinds = [i.kind for i in items if isinstance(i, LinkEvent)]
+    assert len(t) == 400 and np.allclose(np.diff(t), 0.005, atol=1e-9)
+    assert "fc_reboot" not in kinds and kinds.count("input_backlog") == 1
+    backlog = next(i for i in items if isinstance(i, LinkEvent) and i.kind == "input_backlog")
+    assert "by 5.350 s" in backlog.detail
+    assert link.stats.input_backlogs == 1 and link.stats.fc_reboots == 0
+    assert not any("FC rebooted" in i.detail for i in items if isinstance(i, LinkEvent) and i.kind == "rates_requested")
