@@ -54,6 +54,7 @@ DEFAULTS: dict[str, Any] = {
         "alt_gain_1_s": 0.3,         # altitude error -> climb-rate command
     },
     "legs": [],
+    "motion": {"segments": []},      # launcher.type "rig": [{duration_s, by_deg = [droll, dpitch, dyaw]}]
     "wind": {"north_m_s": 0.0, "east_m_s": 0.0, "down_m_s": 0.0, "gust_sigma_m_s": 0.0, "gust_tau_s": 4.0},
     "gnss": {"lost_at_s": None},
     "imu": {"mount_euler_deg": [0.0, 0.0, 0.0]},
@@ -63,6 +64,7 @@ DEFAULTS: dict[str, Any] = {
         "site_distortion_ned_gauss": [0.0, 0.0, 0.0],
         "site_distortion_fade_m": 15.0,
         "anomalies": [],
+        "disturbances": [],          # [{start_s, end_s?, field_ned_gauss | hard_iron_gauss}] (sim/sensors.py)
     },
     "earth": {                       # the simulator's Earth is not the estimators' WMM (sim/earth.py)
         "model_error": True,         # draw the WMM-2025 error budget per seed (IGRF-14 + the draw)
@@ -104,7 +106,7 @@ DEFAULTS: dict[str, Any] = {
                   "base_rate_hz": 1000.0, "simstate_rate_hz": 10.0},
 }
 
-LAUNCHER_TYPES = ("rail", "tube", "runway", "hand", "multicopter", "vtol")
+LAUNCHER_TYPES = ("rail", "tube", "runway", "hand", "multicopter", "vtol", "rig")
 LEG_TYPES = ("climb", "descend", "level", "turn", "figure8", "loiter", "goto", "rtl")
 
 
@@ -222,6 +224,22 @@ def validate(s: dict) -> dict:
         for k in ("north_m", "east_m", "radius_m", "field_ned_gauss"):
             if k not in a:
                 raise ValueError(f"mag.anomalies[{i}] needs key {k!r}")
+    for i, d in enumerate(s["mag"]["disturbances"]):
+        kinds = [k for k in ("field_ned_gauss", "hard_iron_gauss") if k in d]
+        if not isinstance(d, dict) or len(kinds) != 1 or "start_s" not in d \
+                or set(d) - {"start_s", "end_s", "field_ned_gauss", "hard_iron_gauss"}:
+            raise ValueError(f"mag.disturbances[{i}] needs start_s, optional end_s and exactly one of "
+                             f"field_ned_gauss (a magnet nearby) or hard_iron_gauss (a magnet attached); got {d!r}")
+        if not (isinstance(d[kinds[0]], list) and len(d[kinds[0]]) == 3):
+            raise ValueError(f"mag.disturbances[{i}].{kinds[0]} must be a list of 3 numbers (gauss)")
+    segs = s["motion"]["segments"]
+    for i, seg in enumerate(segs):
+        if not isinstance(seg, dict) or set(seg) != {"duration_s", "by_deg"} or not (
+                isinstance(seg["duration_s"], (int, float)) and seg["duration_s"] > 0
+                and isinstance(seg["by_deg"], list) and len(seg["by_deg"]) == 3):
+            raise ValueError(f"motion.segments[{i}] needs duration_s > 0 and by_deg = [droll, dpitch, dyaw]; got {seg!r}")
+    if segs and L["type"] != "rig":
+        raise ValueError("motion.segments are only used with launcher.type = 'rig'")
     if not isinstance(s["earth"]["model_error"], bool):
         raise ValueError(f"earth.model_error must be true or false, got {s['earth']['model_error']!r}")
     _num(s, "earth", "crustal_sigma_nt", 0.0, 5000.0)

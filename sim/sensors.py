@@ -9,7 +9,9 @@ IMU error model per triad (sensor frame, x = C_sensor_from_body x_body):
 Magnetometer: m = W (C_sensor_from_nav B_nav) + h + n, B_nav = sim.earth's field (IGRF + model error
   + crustal field, not the estimators' WMM) + launch-site distortion
   (B_site exp(-d/d0), d = distance from the launcher) + anomalies (B_a exp(-(d_a/r_a)^2));
-  W soft iron (3x3), h hard iron (gauss), both in the sensor frame.
+  W soft iron (3x3), h hard iron (gauss), both in the sensor frame. ``mag.disturbances`` add, over
+  [start_s, end_s): a magnet nearby (``field_ned_gauss``, a constant NED field added to B_nav: it
+  stays put while the body turns) or a magnet attached (``hard_iron_gauss``, added to h).
 Barometer: p = p_atm(h) + bias + n; T = T_atm(h) + offset + n (sim.earth.Atmosphere, not ISA).
 Differential pressure: q = 1/2 rho_atm(h) max(u, 0)^2 + offset + n, u = air-relative velocity along
   the body x axis.
@@ -205,6 +207,7 @@ class SensorSuite:
         self.site_field = np.asarray(M["site_distortion_ned_gauss"], float)
         self.site_fade = float(M["site_distortion_fade_m"])
         self.anomalies = M["anomalies"]
+        self.disturbances = M.get("disturbances", [])
         self.year = scenario["scenario"]["decimal_year"]
         S = scenario["site"]
         self.lat0, self.lon0, self.h0 = math.radians(S["lat_deg"]), math.radians(S["lon_deg"]), S["alt_m"]
@@ -249,11 +252,21 @@ class SensorSuite:
         f_s = tr["f_body_m_s2"] @ C_sb.T
         w_s, f_s = self.vibration.add(st["time_s"], w_s, f_s)
         main, total = self.field_ned_gauss(st)
+        t = st["time_s"]
+        hard = self.hard_iron
+        if self.disturbances:
+            total, hard = total.copy(), np.broadcast_to(hard, (len(t), 3)).copy()
+            for d in self.disturbances:
+                on = ((t >= d["start_s"]) & (t < d.get("end_s", math.inf)))[:, None]
+                if "field_ned_gauss" in d:
+                    total += on * np.asarray(d["field_ned_gauss"], float)
+                else:
+                    hard += on * np.asarray(d["hard_iron_gauss"], float)
         b_s = np.einsum("nji,nj->ni", C_ns, total)
         n = len(w_s)
         gyro = self.gyro.measure(w_s)
         accel = self.accel.measure(f_s)
-        mag = b_s @ self.W.T + self.hard_iron + self.rng_mag.standard_normal((n, 3)) * self.mag_sigma
+        mag = b_s @ self.W.T + hard + self.rng_mag.standard_normal((n, 3)) * self.mag_sigma
         t = st["time_s"]
         B = self.sc["baro"]
         atm = self.earth.atmosphere

@@ -26,6 +26,15 @@ Take-offs besides the rail/tube boost and the runway roll (``launcher.type``):
   ``hover_alt_m``, a hover of ``hover_s``, then the legs in forward flight from zero airspeed
   (vtol: the transition; multicopter: the same forward-flight kinematics, an approximation).
 The motors (vibration, sim.sensors) start ``spinup_s`` before ``rest_s``.
+- ``rig``: an IMU moved by hand or on a rig (or a hovering vehicle's attitude alone): the position stays
+  at the site (V = 0) and from ``rest_s`` the attitude follows ``[[motion.segments]]`` (below).
+
+Motion segments (``rig``): the attitude is the ZYX Euler triple (roll phi, pitch gamma, yaw psi; alpha = 0,
+so q = qz(psi) qy(gamma) qx(phi), valid through pitch +-90 deg because the angles are smooth in time, not
+derived from an attitude). Segment i changes them by ``by_deg`` = [droll, dpitch, dyaw] over ``duration_s``
+with the smooth step s(u) = (1 - cos(pi u)) / 2, u = time in segment / duration (zero rate at both ends;
+peak Euler rate = pi |d| / (2 duration)); ``by_deg`` = [0, 0, 0] is a still pause. After the last segment
+the IMU holds still. The body rates the gyro sees come from differencing q (sim.truth), as for flights.
 """
 from __future__ import annotations
 
@@ -37,8 +46,8 @@ import numpy as np
 from sim.earth import gravity_m_s2, radii_m
 
 PHASES = ("rest", "boost", "ground_roll", "climb", "descend", "level", "turn", "figure8", "loiter",
-          "goto", "rtl", "hand", "liftoff", "hover")
-ON_GROUND_PHASES = ("rest", "boost", "ground_roll", "hand")
+          "goto", "rtl", "hand", "liftoff", "hover", "rig")
+ON_GROUND_PHASES = ("rest", "boost", "ground_roll", "hand", "rig")
 HAND_LIFT_S, HAND_LIFT_M = 1.0, 0.6
 """The hand launch's pick-up: lifted this high (m) in this long (s)."""
 PHASE_CODE = {p: i for i, p in enumerate(PHASES)}
@@ -112,6 +121,21 @@ def expand_legs(legs: list[dict]) -> list[Leg]:
     return out
 
 
+def _rig_table(segments: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Motion segments as arrays: start (s after rest_s), duration (s), change and start angles
+    ([roll, pitch, yaw] rad, the start from 0 = level, facing launcher.azimuth_deg, added later)."""
+    starts, durs, bys, base = [], [], [], []
+    t, ang = 0.0, np.zeros(3)
+    for seg in segments:
+        d = np.radians(np.asarray(seg["by_deg"], float))
+        starts.append(t), durs.append(float(seg["duration_s"])), bys.append(d), base.append(ang.copy())
+        t += float(seg["duration_s"])
+        ang = ang + d
+    if not segments:
+        starts, durs, bys, base = [0.0], [1.0], [np.zeros(3)], [np.zeros(3)]
+    return np.array(starts), np.array(durs), np.array(bys), np.array(base)
+
+
 class Flight:
     """The truth vehicle. ``run(n)`` steps n samples of ``dt_s`` and returns the sampled states."""
 
@@ -134,7 +158,7 @@ class Flight:
         self.gamma = math.radians(L["elevation_deg"])
         self.phi = math.radians(L["roll_deg"])
         self.alpha = math.radians(L["ground_pitch_deg"]) if L["type"] == "runway" else 0.0
-        if L["type"] in ("hand", "multicopter", "vtol"):  # on the ground, level
+        if L["type"] in ("hand", "multicopter", "vtol", "rig"):  # on the ground, level
             self.gamma = self.phi = self.alpha = 0.0
         self.psi0 = self.psi
         self._t_phase = 0.0
@@ -154,6 +178,7 @@ class Flight:
         self.vel = (0.0, 0.0, 0.0)
         self.air = (0.0, 0.0, 0.0)
         self._radii = radii_m(self.lat0)
+        self._rig = _rig_table(scenario.get("motion", {}).get("segments", [])) if L["type"] == "rig" else None
 
     # ---- commands from the autopilot side ------------------------------------------------
     def command_rtl(self) -> None:
@@ -330,6 +355,21 @@ class Flight:
             v = min(vc, v + a * self.dt)
         self._set_vertical(v, 0.0)
 
+    def _rig_step(self, L: dict) -> None:
+        """The attitude of the next sample from the motion segments (module docstring)."""
+        u = self.t + self.dt - L["rest_s"]
+        starts, durs, bys, base = self._rig
+        i = int(np.searchsorted(starts, u, side="right")) - 1
+        if i < 0:
+            ang = base[0]
+        elif u >= starts[i] + durs[i]:
+            ang = base[i] + bys[i]
+        else:
+            x = (u - starts[i]) / durs[i]
+            ang = base[i] + bys[i] * (0.5 - 0.5 * math.cos(math.pi * x))
+        self.phi, self.gamma, self.psi = float(ang[0]), float(ang[1]), self.psi0 + float(ang[2])
+        self.alpha, self.V = 0.0, 0.0
+
     # ---- stepping --------------------------------------------------------------------------
     def run(self, n: int) -> dict[str, np.ndarray]:
         """Sample the state at the current time, then step; n times. Returns arrays of length n:
@@ -378,12 +418,17 @@ class Flight:
                     self.launch_time_s = self.t
                     self.phase = "liftoff"
                     self.gamma, self.alpha = math.pi / 2, -math.pi / 2  # moving up, body level
-                elif L["type"] != "hand" and self.t + 1e-9 >= L["rest_s"]:
+                elif L["type"] == "rig" and self.t + 1e-9 >= L["rest_s"]:
+                    self.phase = "rig"
+                    self._rig_step(L)
+                elif L["type"] not in ("hand", "rig") and self.t + 1e-9 >= L["rest_s"]:
                     self.launch_time_s = self.t
                     self.phase = "ground_roll" if L["type"] == "runway" else "boost"
                     self.boost_end_s = self.t + L["boost_time_s"]
             elif ph == "hand":
                 self._hand_step(L)
+            elif ph == "rig":
+                self._rig_step(L)
             elif ph == "liftoff":
                 self._liftoff_step(L)
             elif ph == "hover":
