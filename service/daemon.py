@@ -164,6 +164,8 @@ class Daemon:
         # outputs at their rates whatever the IMU rate: the last solution brought to the send time,
         # cut where its sigma says it is meaningless (mavlink_io/output_gate.py)
         self._last_solution_s = -math.inf
+        self._last_sent_fc_s = -math.inf
+        """FC time stamp of the last MAVLink output: a stamp never goes back (until an FC reboot)."""
         """Daemon clock when the pipeline last produced a solution."""
         self.output_limits = OutputLimits(math.radians(out["max_tilt_sigma_deg"]),
                                           math.radians(out["max_heading_sigma_deg"]), out["max_extrapolation_s"])
@@ -497,6 +499,7 @@ class Daemon:
         elif isinstance(item, LinkEvent):
             self._event(item.kind, item.detail)
             if item.kind == "fc_reboot":
+                self._last_sent_fc_s = -math.inf  # the FC clock restarted: stamps start again
                 self.pipeline.on_fc_reboot()
                 self._fc_yaw_feed_start()  # its parameters may have changed with the reboot
             elif item.kind == "autopilot_detected":
@@ -654,7 +657,15 @@ class Daemon:
                 or now - self._last_solution_s > limit:
             return
         sol = extrapolate_solution(sol, now, limit) or sol
-        for msg in self.scheduler.messages(gate_solution(sol, self.output_limits), now):
+        # A stamp brought forward by the local age runs ahead of the FC clock when the sender stalled
+        # and then resumes (its next samples are older than our prediction): send nothing until the
+        # FC time passes what was already sent, so receivers never see time go back.
+        if sol.time_fc_s < self._last_sent_fc_s:
+            return
+        msgs = self.scheduler.messages(gate_solution(sol, self.output_limits), now)
+        if msgs:
+            self._last_sent_fc_s = sol.time_fc_s
+        for msg in msgs:
             self._send(msg)
 
     def _send(self, msg, to_fc: bool = False) -> None:

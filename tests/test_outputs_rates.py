@@ -110,6 +110,7 @@ def _fly(d, imu_hz: float, seconds: float = 2.0, loop_s: float = 0.005, lag_s: f
     d.scheduler = OutputScheduler(dict(d.scheduler.rates_hz))
     d.scheduler.odometry_allowed = True
     d.last_solution = None
+    d._last_sent_fc_s = -math.inf  # each flight here starts its FC clock anew (as after an FC reboot)
     n_loop = int(round(seconds / loop_s))
     every = int(round(1.0 / imu_hz / loop_s))
     for k in range(n_loop):
@@ -194,3 +195,24 @@ def test_a_burst_of_solutions_in_one_poll_is_published_at_the_rates(daemon):
         daemon.pipeline, daemon.clock = real, __import__("time").monotonic
     sent = [m.get_type() for m in daemon.link.sent]
     assert sent.count("ATTITUDE") == 25 and sent.count("ODOMETRY") == 10  # every 40 ms slot; 10 Hz
+
+
+def test_given_a_sender_that_stalls_then_resumes_when_outputs_go_on_then_their_time_never_goes_back(daemon):
+    """The last solution is brought forward by its local age while the sender is silent; when it
+    resumes, its samples are older than that prediction: nothing is sent until the FC time passes
+    what was already sent (receivers such as the FC's EKF must never see time go back)."""
+    d = daemon
+    d.link = _Link()
+    d.scheduler = OutputScheduler(dict(d.scheduler.rates_hz))
+    d.scheduler.odometry_allowed = True
+    d._last_sent_fc_s = -math.inf
+    t_fc, loop_s = 10.0, 0.005
+    for k in range(400):                      # 2 s of loop; samples every 20 ms, none in 0.5-1.0 s
+        now = 1000.0 + k * loop_s
+        if k % 4 == 0 and not 100 <= k < 200:
+            d.last_solution = solution(t_fc=t_fc, t_rx=now, rates=(0.0, 0.0, 0.2))
+            d._last_solution_s = now
+            t_fc += 0.02                      # the FC clock paused with the sender: it resumes at 10.5 s
+        d._publish_due(now)
+    t_ms = [m.time_boot_ms for m in d.link.sent if m.get_type() == "ATTITUDE"]
+    assert len(t_ms) > 50 and all(b >= a for a, b in zip(t_ms, t_ms[1:])), t_ms
