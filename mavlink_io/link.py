@@ -89,6 +89,18 @@ DEFAULT_STREAM_RATES_HZ = {"RAW_IMU": 200.0, "SCALED_PRESSURE": 50.0, "ATTITUDE"
                            "EKF_STATUS_REPORT": 2.0, "SYS_STATUS": 2.0, "HIGHRES_IMU": 200.0,
                            "EXTENDED_SYS_STATE": 2.0}
 
+def _fc_stamp_s(msg) -> float | None:
+    """A message's FC time stamp in seconds (time_usec, else time_boot_ms), None when it has none:
+    the link's rates are measured in the sender's clock (stats.FcRateWindow)."""
+    us = getattr(msg, "time_usec", None)
+    if isinstance(us, int) and us > 0:
+        return us * 1e-6
+    ms = getattr(msg, "time_boot_ms", None)
+    if isinstance(ms, int) and ms > 0:
+        return ms * 1e-3
+    return None
+
+
 IMU_SOURCES = ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU")
 _IMU_PRIORITY = {"ardupilot": ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU"),
                  None: ("HIGHRES_IMU", "RAW_IMU", "SCALED_IMU")}
@@ -960,7 +972,7 @@ class MavlinkLink:
         self._track_seq(src, msg.get_seq())
         self._transport.set_peer(peer)
         self._mark_alive(rx_s, items)
-        self.stats.count_message(mtype, rx_s)
+        self.stats.count_message(mtype, rx_s, _fc_stamp_s(msg))
         self._source_seen_s[mtype] = rx_s
         try:
             self._decode(mtype, msg, rx_s, items)

@@ -35,9 +35,34 @@ class RateWindow:
 
 
 @dataclass(slots=True)
+class FcRateWindow:
+    """Message rate in the SENDER's clock: rate = (n - 1) / (t_newest - t_oldest) over the FC time
+    stamps within ``window_s`` of the newest. A daemon that reads a burst late (the machine busy)
+    gives one receive time to many messages; their FC stamps still say how fast the FC sends.
+    A stamp that goes back (an FC reboot) starts the window again."""
+    window_s: float
+    times_s: deque = field(default_factory=deque)
+
+    def add(self, t_fc_s: float) -> None:
+        if self.times_s and t_fc_s < self.times_s[-1]:
+            self.times_s.clear()
+        self.times_s.append(t_fc_s)
+        lo = t_fc_s - self.window_s
+        while self.times_s and self.times_s[0] < lo:
+            self.times_s.popleft()
+
+    def rate_hz(self) -> float:
+        n = len(self.times_s)
+        span = self.times_s[-1] - self.times_s[0] if n >= 2 else 0.0
+        return (n - 1) / span if span > 0 else 0.0
+
+
+@dataclass(slots=True)
 class LinkStats:
     """Counters of one MavlinkLink. ``as_dict()`` gives a JSON-ready copy; ``rates_hz()`` the
-    per-message rates over the last ``rate_window_s`` seconds (of local receive time)."""
+    per-message rates: in the FC's clock for messages that carry a time stamp (over the last
+    ``rate_window_s`` of FC time, while the stream is alive in local time), else over the last
+    ``rate_window_s`` seconds of local receive time."""
     rate_window_s: float = 2.0
     bytes_received: int = 0
     messages_received: int = 0
@@ -110,15 +135,22 @@ class LinkStats:
     """Last SET_MESSAGE_INTERVAL outcome per message: accepted, denied, unsupported, failed,
     no_ack, data_stream (fallback REQUEST_DATA_STREAM)."""
     _rates: dict[str, RateWindow] = field(default_factory=dict)
+    _fc_rates: dict[str, FcRateWindow] = field(default_factory=dict)
     _now_s: float = 0.0
 
-    def count_message(self, msg_type: str, rx_s: float) -> None:
+    def count_message(self, msg_type: str, rx_s: float, fc_s: float | None = None) -> None:
+        """One accepted message received at local ``rx_s``; ``fc_s`` its FC time stamp (s) if it has one."""
         self.accepted += 1
         self.messages_by_type[msg_type] = self.messages_by_type.get(msg_type, 0) + 1
         w = self._rates.get(msg_type)
         if w is None:
             w = self._rates[msg_type] = RateWindow(self.rate_window_s)
         w.add(rx_s)
+        if fc_s is not None and fc_s == fc_s:
+            f = self._fc_rates.get(msg_type)
+            if f is None:
+                f = self._fc_rates[msg_type] = FcRateWindow(self.rate_window_s)
+            f.add(fc_s)
         self._now_s = max(self._now_s, rx_s)
 
     def set_now(self, now_s: float) -> None:
@@ -126,8 +158,15 @@ class LinkStats:
         self._now_s = max(self._now_s, now_s)
 
     def rates_hz(self) -> dict[str, float]:
-        """Message rates (Hz) over the sliding window, by type."""
-        return {k: w.rate_hz(self._now_s) for k, w in self._rates.items()}
+        """Message rates (Hz) by type: the FC-clock rate where the messages carry a stamp, else the
+        local one; 0 once nothing has arrived for ``rate_window_s`` of local time."""
+        out = {}
+        for k, w in self._rates.items():
+            local = w.rate_hz(self._now_s)
+            f = self._fc_rates.get(k)
+            alive = bool(w.times_s) and self._now_s - w.times_s[-1] <= self.rate_window_s
+            out[k] = (f.rate_hz() if alive else 0.0) if f is not None and len(f.times_s) >= 2 else local
+        return out
 
     def count_non_finite(self, msg_type: str) -> None:
         self.non_finite_rejects[msg_type] = self.non_finite_rejects.get(msg_type, 0) + 1
