@@ -54,7 +54,7 @@ DEFAULTS: dict[str, Any] = {
         "alt_gain_1_s": 0.3,         # altitude error -> climb-rate command
     },
     "legs": [],
-    "motion": {"segments": []},      # launcher.type "rig": [{duration_s, by_deg = [droll, dpitch, dyaw]}]
+    "motion": {"segments": []},      # launcher.type "rig": [{duration_s, by_deg = [droll, dpitch, dyaw], move_m?}]
     "wind": {"north_m_s": 0.0, "east_m_s": 0.0, "down_m_s": 0.0, "gust_sigma_m_s": 0.0, "gust_tau_s": 4.0},
     "gnss": {"lost_at_s": None},
     "imu": {"mount_euler_deg": [0.0, 0.0, 0.0]},
@@ -234,10 +234,12 @@ def validate(s: dict) -> dict:
             raise ValueError(f"mag.disturbances[{i}].{kinds[0]} must be a list of 3 numbers (gauss)")
     segs = s["motion"]["segments"]
     for i, seg in enumerate(segs):
-        if not isinstance(seg, dict) or set(seg) != {"duration_s", "by_deg"} or not (
-                isinstance(seg["duration_s"], (int, float)) and seg["duration_s"] > 0
-                and isinstance(seg["by_deg"], list) and len(seg["by_deg"]) == 3):
-            raise ValueError(f"motion.segments[{i}] needs duration_s > 0 and by_deg = [droll, dpitch, dyaw]; got {seg!r}")
+        if not isinstance(seg, dict) or not {"duration_s", "by_deg"} <= set(seg) <= {"duration_s", "by_deg", "move_m"} \
+                or not (isinstance(seg["duration_s"], (int, float)) and seg["duration_s"] > 0
+                        and isinstance(seg["by_deg"], list) and len(seg["by_deg"]) == 3
+                        and len(seg.get("move_m", [0, 0, 0])) == 3):
+            raise ValueError(f"motion.segments[{i}] needs duration_s > 0, by_deg = [droll, dpitch, dyaw] and "
+                             f"optionally move_m = [dn, de, dd]; got {seg!r}")
     if segs and L["type"] != "rig":
         raise ValueError("motion.segments are only used with launcher.type = 'rig'")
     if not isinstance(s["earth"]["model_error"], bool):

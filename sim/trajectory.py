@@ -33,7 +33,8 @@ Motion segments (``rig``): the attitude is the ZYX Euler triple (roll phi, pitch
 so q = qz(psi) qy(gamma) qx(phi), valid through pitch +-90 deg because the angles are smooth in time, not
 derived from an attitude). Segment i changes them by ``by_deg`` = [droll, dpitch, dyaw] over ``duration_s``
 with the smooth step s(u) = (1 - cos(pi u)) / 2, u = time in segment / duration (zero rate at both ends;
-peak Euler rate = pi |d| / (2 duration)); ``by_deg`` = [0, 0, 0] is a still pause. After the last segment
+peak Euler rate = pi |d| / (2 duration)); ``by_deg`` = [0, 0, 0] is a still pause. An optional
+``move_m`` = [dn, de, dd] translates the IMU with the same step (peak acceleration pi^2 |d| / (2 T^2)). After the last segment
 the IMU holds still. The body rates the gyro sees come from differencing q (sim.truth), as for flights.
 """
 from __future__ import annotations
@@ -121,19 +122,21 @@ def expand_legs(legs: list[dict]) -> list[Leg]:
     return out
 
 
-def _rig_table(segments: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _rig_table(segments: list[dict]) -> tuple[np.ndarray, ...]:
     """Motion segments as arrays: start (s after rest_s), duration (s), change and start angles
-    ([roll, pitch, yaw] rad, the start from 0 = level, facing launcher.azimuth_deg, added later)."""
-    starts, durs, bys, base = [], [], [], []
+    ([roll, pitch, yaw] rad, the start from 0 = level, facing launcher.azimuth_deg, added later),
+    and the translation of each (NED m)."""
+    starts, durs, bys, base, moves = [], [], [], [], []
     t, ang = 0.0, np.zeros(3)
     for seg in segments:
         d = np.radians(np.asarray(seg["by_deg"], float))
         starts.append(t), durs.append(float(seg["duration_s"])), bys.append(d), base.append(ang.copy())
+        moves.append(np.asarray(seg.get("move_m", [0.0, 0.0, 0.0]), float))
         t += float(seg["duration_s"])
         ang = ang + d
     if not segments:
-        starts, durs, bys, base = [0.0], [1.0], [np.zeros(3)], [np.zeros(3)]
-    return np.array(starts), np.array(durs), np.array(bys), np.array(base)
+        starts, durs, bys, base, moves = [0.0], [1.0], [np.zeros(3)], [np.zeros(3)], [np.zeros(3)]
+    return np.array(starts), np.array(durs), np.array(bys), np.array(base), np.array(moves)
 
 
 class Flight:
@@ -179,6 +182,7 @@ class Flight:
         self.air = (0.0, 0.0, 0.0)
         self._radii = radii_m(self.lat0)
         self._rig = _rig_table(scenario.get("motion", {}).get("segments", [])) if L["type"] == "rig" else None
+        self._rig_vel = (0.0, 0.0, 0.0)
 
     # ---- commands from the autopilot side ------------------------------------------------
     def command_rtl(self) -> None:
@@ -358,8 +362,9 @@ class Flight:
     def _rig_step(self, L: dict) -> None:
         """The attitude of the next sample from the motion segments (module docstring)."""
         u = self.t + self.dt - L["rest_s"]
-        starts, durs, bys, base = self._rig
+        starts, durs, bys, base, moves = self._rig
         i = int(np.searchsorted(starts, u, side="right")) - 1
+        self._rig_vel = (0.0, 0.0, 0.0)
         if i < 0:
             ang = base[0]
         elif u >= starts[i] + durs[i]:
@@ -367,6 +372,9 @@ class Flight:
         else:
             x = (u - starts[i]) / durs[i]
             ang = base[i] + bys[i] * (0.5 - 0.5 * math.cos(math.pi * x))
+            # the translation's velocity: d/dt of move * (1 - cos(pi x)) / 2
+            v = moves[i] * (0.5 * math.pi / durs[i] * math.sin(math.pi * x))
+            self._rig_vel = (float(v[0]), float(v[1]), float(v[2]))
         self.phi, self.gamma, self.psi = float(ang[0]), float(ang[1]), self.psi0 + float(ang[2])
         self.alpha, self.V = 0.0, 0.0
 
@@ -400,6 +408,8 @@ class Flight:
             vn = self.V * cg * cp + wg * (wm[0] + gf[0])
             ve = self.V * cg * sp + wg * (wm[1] + gf[1])
             vd = -self.V * sg + wg * (wm[2] + gf[2])
+            if self._rig is not None:  # the rig's translation (V = 0)
+                vn, ve, vd = self._rig_vel
             self.vel = (vn, ve, vd)
             an, ae, ad = vn - wm[0] - gu[0], ve - wm[1] - gu[1], vd - wm[2] - gu[2]
             self.air = (an, ae, ad)

@@ -130,6 +130,11 @@ def test_rig_segments_and_magnet_disturbances_in_the_simulator():
     m_before = simulate({**sc, "mag": {"disturbances": []}}, seed=0, imu_rate_hz=100.0).mag_gauss
     shift = (r.mag_gauss - m_before)[still].mean(axis=0)
     np.testing.assert_allclose(shift, [0.3, 0.0, 0.0], atol=1e-3)
+    # a translation segment: the IMU moves by move_m, its accelerometer feels pi^2 d / (2 T^2) at the peak
+    mv = {**sc, "motion": {"segments": [{"duration_s": 0.5, "by_deg": [0.0, 0.0, 0.0], "move_m": [0.2, 0.0, 0.0]}]}}
+    rm = simulate(mv, seed=0, imu_rate_hz=100.0)
+    assert rm.truth.vel_ned_m_s[:, 0].sum() * 0.01 == pytest.approx(0.2, abs=2e-3)
+    assert np.max(np.hypot(*rm.truth.f_body_m_s2[:, :2].T)) == pytest.approx(math.pi ** 2 * 0.2 / (2 * 0.25), rel=0.01)
     # and a bad entry is refused with a named error
     with pytest.raises(ValueError, match=r"mag.disturbances\[0\]"):
         simulate({**sc, "mag": {"disturbances": [{"start_s": 1.0}]}}, seed=0)
