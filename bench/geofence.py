@@ -496,7 +496,7 @@ class CpuHogs:
             p.wait(5)
 
 
-def run_daemon(kind: str, seed: int, raw: dict | None = None, speed: float = 3.0, flight_s: float = 200.0) -> dict:
+def run_daemon(kind: str, seed: int, raw: dict | None = None, speed: float = 1.0, flight_s: float = 200.0) -> dict:
     """One flight with the real daemon (``azimuthd sim`` + ``azimuthd run`` processes over UDP,
     bench/sitl.py). The daemon gets only the operator's config (site, launcher case, IMU mount,
     [geofence]) and MAVLink; its own heading and phases drive its monitor. The UDP tap between
@@ -504,8 +504,9 @@ def run_daemon(kind: str, seed: int, raw: dict | None = None, speed: float = 3.0
     its "stopped" log line gives the samples it processed. Truth (the simulator's truth log)
     only scores: the true track's clearance to the fence.
 
-    ``speed`` 3: the pure-Python daemon keeps up with ~300 IMU messages/s of wall time on an idle
-    machine; faster, or on a busy machine, it may fall behind: the bench reports the loss."""
+    ``speed`` 1 (real time, as an FC runs): measured at load 4-8, niced, outbound seed 1: 0 of
+    30801 RAW_IMU lost, RTL, true track 605 m inside; at speed 2 the same flight lost 15601 to
+    kernel drops, the daemon lagged 20 s and the track left the fence by 971 m."""
     from sim.truthlog import load_truth_log
     from sitl import Sitl
     raw = raw or fence_raw()
@@ -572,7 +573,8 @@ def run_daemon(kind: str, seed: int, raw: dict | None = None, speed: float = 3.0
             "daemon_declared_fc_reboots": reboots,
             "sim_flown_s": flown_s, "flight_complete": flown_s >= REST_S + flight_s - 1.0,
             "sim_speed_achieved": sim_rate, "sim_behind_real_time_max_s": worst_lag_s,
-            "valid": flown_s >= REST_S + flight_s - 1.0 and worst_lag_s < 2.0,
+            # the daemon declares an FC reboot past 5 s of lag (mavlink_io/timebase.py reboot_lag_s)
+            "valid": flown_s >= REST_S + flight_s - 1.0 and worst_lag_s < 5.0,
             "wall_s": wall_s, "loadavg_1min_start": load0, "loadavg_1min_end": load1,
             "launch_azimuth_deg": sc["launcher"]["azimuth_deg"], "workdir": str(wd)}
 
@@ -663,7 +665,7 @@ def main(argv=None) -> int:
     ap.add_argument("--busy", action="store_true", help="same as --load busy")
     ap.add_argument("--seeds", type=int, default=None, help="seeds per scenario kind (default 20, quick 2)")
     ap.add_argument("--seed0", type=int, default=0, help="first seed")
-    ap.add_argument("--speed", type=float, default=None, help="simulator speed (daemon default 2, closed 20)")
+    ap.add_argument("--speed", type=float, default=None, help="simulator speed (daemon default 1, closed 20)")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT / "bench"))
     n = args.seeds or (2 if args.quick else 20)
@@ -694,7 +696,7 @@ def main(argv=None) -> int:
                         elif mode == "closed":
                             r = run_closed(kind, seed, raw, speed=args.speed or 20.0, flight_s=flight_s)
                         else:
-                            r = run_daemon(kind, seed, raw, speed=args.speed or 2.0, flight_s=flight_s)
+                            r = run_daemon(kind, seed, raw, speed=args.speed or 1.0, flight_s=flight_s)
                         print(f"{label:12s} {kind:8s} seed {seed:2d} az {r.get('launch_azimuth_deg', 0):5.1f}  "
                               f"{_line(mode, r)}", flush=True)
                         res.append(r)
