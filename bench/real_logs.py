@@ -139,9 +139,15 @@ def score_rows(c: dict[str, np.ndarray]) -> dict:
         "heading_sigma_median_deg": float(np.median(sig[both])) if np.any(both) else math.nan,
         "azimuth_solved": bool(np.any(np.isfinite(c["azimuth_deg"]))),
     }
-    t = c["time_s"]
-    launch = np.flatnonzero(np.array([p == "launch" for p in c["phase"]], dtype=bool))
-    out["detected_takeoff_s"] = float(t[launch[0]]) if launch.size else None
+    # our take-off: the first output row in flight (launch or in-flight) after a pre-launch row, the
+    # time the daemon acted on it (a launch phase shorter than a filter step has no row of its own);
+    # a run that starts in flight (no pre-launch row before) detected no take-off
+    t, ph = c["time_s"], list(c["phase"])
+    out["detected_takeoff_s"] = None
+    for k in range(1, len(ph)):
+        if ph[k] in ("launch", "in-flight") and ph[k - 1] == "pre-launch":
+            out["detected_takeoff_s"] = float(t[k])
+            break
     return out
 
 
