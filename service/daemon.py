@@ -26,7 +26,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 from mavlink_io.commands import CommandProtocol, CommandProtocolParams, statustext_message
 from mavlink_io.decode import FcParam, FcStatusText
 from mavlink_io.link import LinkConfig, LinkEvent, MavlinkLink
-from mavlink_io.outputs import OutputScheduler, odometry_profile_for_autopilot
+from mavlink_io.outputs import OutputScheduler, _time_boot_ms, odometry_profile_for_autopilot
 from mavlink_io.outputs import encode_attitude, encode_attitude_quaternion
 from mavlink_io.output_gate import OutputLimits, extrapolate_solution, gate_solution
 from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, FcSysStatus,
@@ -166,6 +166,7 @@ class Daemon:
         self._last_solution_s = -math.inf
         self._last_sent_fc_s = -math.inf
         """FC time stamp of the last MAVLink output: a stamp never goes back (until an FC reboot)."""
+        self._last_sent_sol = None
         """Daemon clock when the pipeline last produced a solution."""
         self.output_limits = OutputLimits(math.radians(out["max_tilt_sigma_deg"]),
                                           math.radians(out["max_heading_sigma_deg"]), out["max_extrapolation_s"])
@@ -656,15 +657,24 @@ class Daemon:
         if sol is None or self.link is None or now < self.scheduler.next_due_s() \
                 or now - self._last_solution_s > limit:
             return
-        sol = extrapolate_solution(sol, now, limit) or sol
+        # Brought forward only when older than one output slot (a slow IMU: the outputs go at their
+        # own rates between its samples); a fresh solution goes as it is, its own stamp and values,
+        # so what MAVLink carries is exactly what the Pipeline produced (and Zenoh published).
+        fastest_hz = max((r for r in self.scheduler.rates_hz.values() if r > 0), default=0.0)
+        if fastest_hz > 0 and now - sol.time_rx_s > 1.0 / fastest_hz:
+            sol = extrapolate_solution(sol, now, limit) or sol
         # A stamp brought forward by the local age runs ahead of the FC clock when the sender stalled
         # and then resumes (its next samples are older than our prediction): send nothing until the
         # FC time passes what was already sent, so receivers never see time go back.
-        if sol.time_fc_s < self._last_sent_fc_s:
+        # Two different attitudes must not carry the same stamp either (receivers key on the 1 ms
+        # time_boot_ms): an equal millisecond only for the very same, unextrapolated solution.
+        ms = _time_boot_ms(sol.time_fc_s)
+        last_ms = _time_boot_ms(self._last_sent_fc_s) if math.isfinite(self._last_sent_fc_s) else -math.inf
+        if ms < last_ms or (ms == last_ms and sol is not self._last_sent_sol):
             return
         msgs = self.scheduler.messages(gate_solution(sol, self.output_limits), now)
         if msgs:
-            self._last_sent_fc_s = sol.time_fc_s
+            self._last_sent_fc_s, self._last_sent_sol = sol.time_fc_s, sol
         for msg in msgs:
             self._send(msg)
 

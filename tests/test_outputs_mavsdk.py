@@ -309,6 +309,14 @@ SAME_WITH_YAW = 15
 """Same-solution pairs (all, with a yaw) (MAVSDK attitude_euler vs Zenoh attitude) the run waits for."""
 
 
+EXTRAPOLATED_TOL_DEG = 0.2
+"""MAVLink outputs go at their own rates, each the last solution brought forward to the send time by
+its body rates (mavlink_io/output_gate.py): an ATTITUDE stamped at a solution's FC time may be the
+previous solution's prediction for that time, not that solution. The two differ by the filter's
+correction within one 20 ms step (measured 0.0012 deg level, 0.07 deg in a 21 deg bank turn); 0.2
+deg still catches any encoding error (a unit, a sign, an axis or a frame is degrees off)."""
+
+
 def _same_solution_pairs(zatt: list[dict], euler: list) -> tuple[list, int]:
     """(pairs, how many with a yaw): each MAVSDK attitude_euler with the Zenoh attitude payload of
     the very same solution (same FC time to 0.6 ms: the same IMU sample)."""
@@ -340,7 +348,7 @@ def _nearest(times: np.ndarray, t: float) -> int:
 
 def test_mavsdk_heading_matches_daemon_zenoh(daemon_run):
     """MAVSDK's attitude_euler (roll, pitch, yaw) and our NAMED_VALUE_FLOAT hdg_deg read through
-    MAVSDK equal, to 1e-3 deg, the attitude / heading the daemon published on Zenoh for the very
+    MAVSDK equal (to EXTRAPOLATED_TOL_DEG; hdg_deg to 1e-3 deg) the attitude / heading the daemon published on Zenoh for the very
     same solution (same FC time: both schedulers pick the same IMU sample on common slots, the
     MAVLink one every 20 ms and the Zenoh one every 50 ms of receive time).
     Nearest-in-time comparisons would be wrong: the heading steps when method A re-solves."""
@@ -348,12 +356,12 @@ def test_mavsdk_heading_matches_daemon_zenoh(daemon_run):
     pairs, _ = _same_solution_pairs(run.zatt, run.euler)
     same = with_yaw = 0
     for (ts_us, roll_deg, pitch_deg, yaw_deg, _), a in pairs:
-        assert abs(roll_deg - a["roll_deg"]) <= 1e-3, (ts_us, roll_deg, a)
-        assert abs(pitch_deg - a["pitch_deg"]) <= 1e-3, (ts_us, pitch_deg, a)
+        assert abs(roll_deg - a["roll_deg"]) <= EXTRAPOLATED_TOL_DEG, (ts_us, roll_deg, a)
+        assert abs(pitch_deg - a["pitch_deg"]) <= EXTRAPOLATED_TOL_DEG, (ts_us, pitch_deg, a)
         if a["yaw_deg"] is None:
             assert math.isnan(yaw_deg)
         else:
-            assert abs(wrap180(yaw_deg - a["yaw_deg"])) <= 1e-3, (ts_us, yaw_deg, a)
+            assert abs(wrap180(yaw_deg - a["yaw_deg"])) <= EXTRAPOLATED_TOL_DEG, (ts_us, yaw_deg, a)
             with_yaw += 1
         same += 1
     print(f"same-solution comparisons: {same}, with yaw: {with_yaw}")
