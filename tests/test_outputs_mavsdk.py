@@ -333,8 +333,12 @@ def _same_solution_pairs(zatt: list[dict], euler: list) -> tuple[list, int]:
 
 
 def _enough_pairs(zatt: list[dict], euler: list) -> bool:
+    """Enough for both tests: the same-solution pairs, and the sample-for-sample check's > 200
+    attitudes of which > 50 with a yaw (with 10 % to spare for samples the listener missed)."""
     pairs, with_yaw = _same_solution_pairs(zatt, euler)
-    return len(pairs) >= SAME_PAIRS and with_yaw >= SAME_WITH_YAW
+    euler_with_yaw = sum(1 for e in euler if not math.isnan(e[3]))
+    return (len(pairs) >= SAME_PAIRS and with_yaw >= SAME_WITH_YAW and len(euler) > 240
+            and euler_with_yaw > 60)
 
 
 def _nearest(times: np.ndarray, t: float) -> int:
