@@ -335,9 +335,7 @@ class Pipeline:
         C = self.C_body_from_sensor
         gyro_b, accel_b = C @ gyro_s, C @ accel_s
         mag_b = C @ mag_s if mag_s is not None else None
-        self.polar_att, adiag = polar_attitude_step(self.polar_att, t, gyro_b, accel_b, self.polar_att_params)
-        if adiag.relevelled:
-            self._event("attitude", adiag.reason)
+        self.polar_att, _ = polar_attitude_step(self.polar_att, t, gyro_b, accel_b, self.polar_att_params)
         att = polar_attitude_estimate(self.polar_att)
         tilt = self._heading_tilt(t, att, gyro_b)
         if not self._mag_usable(mag_b, t, tilt, gyro_b):
