@@ -28,7 +28,7 @@ from mavlink_io.decode import FcParam, FcStatusText
 from mavlink_io.link import LinkConfig, LinkEvent, MavlinkLink
 from mavlink_io.outputs import OutputScheduler, _time_boot_ms, odometry_profile_for_autopilot
 from mavlink_io.outputs import encode_attitude, encode_attitude_quaternion
-from mavlink_io.output_gate import OutputLimits, extrapolate_solution, gate_solution
+from mavlink_io.output_gate import OutputLimits, gate_solution
 from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, FcSysStatus,
                                 ImuSample, IncomingCommand, PressureSample)
 from service import state_file
@@ -657,12 +657,12 @@ class Daemon:
         if sol is None or self.link is None or now < self.scheduler.next_due_s() \
                 or now - self._last_solution_s > limit:
             return
-        # Brought forward only when older than one output slot (a slow IMU: the outputs go at their
-        # own rates between its samples); a fresh solution goes as it is, its own stamp and values,
-        # so what MAVLink carries is exactly what the Pipeline produced (and Zenoh published).
-        fastest_hz = max((r for r in self.scheduler.rates_hz.values() if r > 0), default=0.0)
-        if fastest_hz > 0 and now - sol.time_rx_s > 1.0 / fastest_hz:
-            sol = extrapolate_solution(sol, now, limit) or sol
+        # The solution goes as it is, its own FC stamp and values (what the Pipeline produced and Zenoh
+        # published). Not brought forward by its local age (output_gate.extrapolate_solution): when the
+        # daemon works off a backlog, that age is queueing delay, the prediction ran ahead of the FC
+        # stream, and the monotonic stamp below then held back every real solution (e2e: 6 ATTITUDE in
+        # 5 s and 2-3 deg errors after a stall). A slow IMU's outputs repeat the last solution while it
+        # is fresher than max_extrapolation_s.
         # A stamp brought forward by the local age runs ahead of the FC clock when the sender stalled
         # and then resumes (its next samples are older than our prediction): send nothing until the
         # FC time passes what was already sent, so receivers never see time go back.
