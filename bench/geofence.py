@@ -487,7 +487,9 @@ class CpuHogs:
         self.n, self.procs = n, []
 
     def __enter__(self):
-        self.procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(self.n)]
+        # each in a session (a CPU group) of its own, as other services on a companion computer
+        self.procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True)
+                      for _ in range(self.n)]
         return self
 
     def __exit__(self, *exc):
@@ -496,17 +498,45 @@ class CpuHogs:
             p.wait(5)
 
 
-def run_daemon(kind: str, seed: int, raw: dict | None = None, speed: float = 1.0, flight_s: float = 200.0) -> dict:
+IMU_RATE_HZ = 50.0
+"""RAW_IMU rate the operator asks of the FC in daemon mode (``[mavlink] imu_rate_hz``): what a stock
+ArduPilot streams (issue 15: its 50 Hz loop refuses more; 200 Hz needs SCHED_LOOP_RATE raised)."""
+SIM_BASE_RATE_HZ = {50.0: 200.0, 200.0: 500.0}
+"""The simulated FC's sensor rate per RAW_IMU rate: each message averages 4 (50 Hz) or 2-3 (200 Hz)
+base samples. The FC's own configuration (a real FC samples on its own CPU)."""
+DRAIN_S = 30.0
+"""After the flight, how long a daemon behind it may work off its backlog before it is stopped
+(what it has not processed then counts as lost)."""
+ABORT_LAG_S = 30.0
+"""A flight whose simulator falls this far behind real time is stopped: it is invalid already
+(> 5 s, the daemon's reboot_lag_s) and only costs the bench's time."""
+
+
+def _proc_cpu_s(pid: int) -> float | None:
+    """User + system CPU seconds of a live process (/proc/PID/stat fields 14, 15), None if gone."""
+    try:
+        f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def run_daemon(kind: str, seed: int, raw: dict | None = None, speed: float = 1.0, flight_s: float = 200.0,
+               imu_rate_hz: float = IMU_RATE_HZ, sim_base_rate_hz: float | None = None,
+               sim_nice: int | None = None, daemon_nice: int | None = None,
+               daemon_own_session: bool = True) -> dict:
     """One flight with the real daemon (``azimuthd sim`` + ``azimuthd run`` processes over UDP,
     bench/sitl.py). The daemon gets only the operator's config (site, launcher case, IMU mount,
-    [geofence]) and MAVLink; its own heading and phases drive its monitor. The UDP tap between
-    them records the commands it sends, the RAW_IMU it was forwarded and its ATTITUDE (latency);
-    its "stopped" log line gives the samples it processed. Truth (the simulator's truth log)
-    only scores: the true track's clearance to the fence.
+    the RAW_IMU rate it asks for, [geofence]) and MAVLink; its own heading and phases drive its
+    monitor. The UDP tap between them records the commands it sends, the RAW_IMU it was forwarded
+    and its ATTITUDE (latency); its "stopped" log line gives the samples it processed. Truth (the
+    simulator's truth log) only scores: the true track's clearance to the fence.
 
-    ``speed`` 1 (real time, as an FC runs): measured at load 4-8, niced, outbound seed 1: 0 of
-    30801 RAW_IMU lost, RTL, true track 605 m inside; at speed 2 the same flight lost 15601 to
-    kernel drops, the daemon lagged 20 s and the track left the fence by 971 m."""
+    ``speed`` 1: real time, as an FC runs. The daemon runs as systemd/azimuthd.service runs it: a
+    service in a session (so, with autogroup scheduling, a CPU group) of its own, nice
+    ``daemon_nice`` (the unit sets no Nice=: 0). ``sim_nice``: the simulator's nice value within
+    this process's group (daemon_flights puts the simulator and the tap, the FC and its wire, in
+    a group of their own above the daemon's: a real FC has its own CPU)."""
     from sim.truthlog import load_truth_log
     from sitl import Sitl
     raw = raw or fence_raw()
@@ -515,18 +545,54 @@ def run_daemon(kind: str, seed: int, raw: dict | None = None, speed: float = 1.0
     sc = scenario(kind, seed)
     sc["scenario"]["duration_s"] = REST_S + flight_s
     scen = write_scenario_toml(sc, wd / "scenario.toml")
+    base_hz = sim_base_rate_hz or SIM_BASE_RATE_HZ.get(float(imu_rate_hz), 1000.0)
     # SIMSTATE (the truth on the wire) not streamed by default (a legacy REQUEST_DATA_STREAM EXTRA1
     # turns it on; the daemon's code never reads it: tests/test_truth_isolation.py).
-    # The simulator's sensors at 500 Hz (default 1 kHz) so that it keeps real time on a shared
-    # machine: a 200 Hz RAW_IMU averages 2-3 base samples instead of 5.
     sim_args = ["--truth-log-rate", "10", "--set", "autopilot.simstate_rate_hz=0",
-                "--set", "autopilot.base_rate_hz=500"]
+                "--set", f"autopilot.base_rate_hz={base_hz:g}"]
     load0 = os.getloadavg()[0]
     t_wall0 = time.monotonic()
-    with Sitl(scenario=str(scen), speed=speed, seed=seed, tap=True, workdir=wd, tap_record_to_daemon=("RAW_IMU",),
-              config_overrides={"geofence": raw}, sim_args=sim_args) as s:
-        # a slow simulator is waited for (its flight must be complete), up to 6x the nominal time
-        s.wait_for(lambda: s.sim.poll() is not None, 6.0 * flight_s / speed + 120)
+    cpu = {"sim": None, "daemon": None}
+    lag = {"max_s": 0.0, "aborted": False}
+
+    def sim_done_or_hopeless(s) -> bool:
+        """Polled while flying: CPU time so far, and how far the simulator is behind real time."""
+        for name, p in (("sim", s.sim), ("daemon", s.daemon)):
+            c = _proc_cpu_s(p.pid) if p.poll() is None else None
+            if c is not None:
+                cpu[name] = c
+        fwd = s.tap.to_daemon
+        if len(fwd) > 1:
+            behind = (fwd[-1][0] - fwd[0][0]) - (fwd[-1][1].time_usec - fwd[0][1].time_usec) * 1e-6
+            lag["max_s"] = max(lag["max_s"], behind)
+            if behind > ABORT_LAG_S:
+                lag["aborted"] = True
+                return True
+        return s.sim.poll() is not None
+
+    sitl = Sitl(scenario=str(scen), speed=speed, seed=seed, tap=True, workdir=wd,
+                tap_record_to_daemon=("RAW_IMU",),
+                config_overrides={"geofence": raw, "mavlink": {"imu_rate_hz": float(imu_rate_hz)}},
+                sim_args=sim_args, sim_nice=sim_nice, daemon_nice=daemon_nice,
+                daemon_own_session=daemon_own_session)
+    with sitl as s:
+        # a slow simulator is waited for (its flight must be complete) until it is hopeless
+        s.wait_for(lambda: sim_done_or_hopeless(s), 6.0 * flight_s / speed + 120, poll_s=0.5)
+        # the flight is over; a daemon behind it works off its backlog (late, not lost) for up
+        # to DRAIN_S, until its ATTITUDE reaches the last RAW_IMU's FC time
+        t_drain0 = time.monotonic()
+        fwd = s.tap.to_daemon
+        last_imu_ms = fwd[-1][1].time_usec / 1000.0 if fwd else None
+        drained = False
+        while last_imu_ms is not None and s.daemon.poll() is None and time.monotonic() - t_drain0 < DRAIN_S:
+            att = next((m for _, m in reversed(s.tap.from_daemon[-200:]) if m.get_type() == "ATTITUDE"), None)
+            if att is not None and att.time_boot_ms >= last_imu_ms - 500.0:
+                drained = True
+                break
+            time.sleep(0.5)
+        drain_s = time.monotonic() - t_drain0
+        c = _proc_cpu_s(s.daemon.pid) if s.daemon.poll() is None else None
+        cpu["daemon"] = c if c is not None else cpu["daemon"]
     wall_s = time.monotonic() - t_wall0
     load1 = os.getloadavg()[0]
     divert_cmds = {20, 176, 192, 185}
@@ -576,6 +642,12 @@ def run_daemon(kind: str, seed: int, raw: dict | None = None, speed: float = 1.0
             # the daemon declares an FC reboot past 5 s of lag (mavlink_io/timebase.py reboot_lag_s)
             "valid": flown_s >= REST_S + flight_s - 1.0 and worst_lag_s < 5.0,
             "wall_s": wall_s, "loadavg_1min_start": load0, "loadavg_1min_end": load1,
+            "sim_aborted_behind_s": ABORT_LAG_S if lag["aborted"] else None,
+            "daemon_backlog_drain_s": drain_s, "daemon_backlog_drained": drained,
+            "imu_rate_hz": float(imu_rate_hz), "sim_base_rate_hz": float(base_hz),
+            "sim_nice": sim_nice, "daemon_nice": daemon_nice, "daemon_own_session": daemon_own_session,
+            "fc_group_nice": _autogroup_nice(),
+            "daemon_cpu_s": cpu["daemon"], "sim_cpu_s": cpu["sim"],
             "launch_azimuth_deg": sc["launcher"]["azimuth_deg"], "workdir": str(wd)}
 
 
@@ -599,6 +671,8 @@ def _open_loop_summary(results: list[dict], prefix: str) -> dict:
 
 
 def _closed_loop_summary(results: list[dict], margin_m: float, prefix: str) -> dict:
+    failed = [r for r in results if "error" in r]
+    results = [r for r in results if "error" not in r]
     out = [r for r in results if r["kind"] == "outbound"]
     ins = [r for r in results if r["kind"] == "inside"]
     mins = [r["min_true_clearance_m"] for r in out + ins if r["min_true_clearance_m"] is not None]
@@ -611,6 +685,8 @@ def _closed_loop_summary(results: list[dict], margin_m: float, prefix: str) -> d
                                            and r["min_true_clearance_m"] < margin_m for r in out + ins),
          f"{prefix}min_true_clearance_m": min(mins) if mins else None,
          f"{prefix}inside_false_diverts": sum(r["diverts_sent"] > 0 for r in ins)}
+    if failed:
+        s[f"{prefix}flights_failed"] = len(failed)
     if results and "raw_imu_forwarded" in results[0]:
         valid = [r for r in results if r.get("valid")]
         lost = [r["imu_samples_lost"] for r in results if r["imu_samples_lost"] is not None]
@@ -623,18 +699,37 @@ def _closed_loop_summary(results: list[dict], margin_m: float, prefix: str) -> d
                   f"{prefix}imu_samples_lost": int(sum(lost)) if lost else None,
                   f"{prefix}imu_samples_lost_pct": 100.0 * sum(lost) / fwd if lost and fwd else None,
                   f"{prefix}kernel_rx_drops": sum(r["kernel_rx_drops"] for r in results),
+                  f"{prefix}flights_daemon_backlog_not_drained": sum(not r.get("daemon_backlog_drained", True)
+                                                                     for r in results),
                   f"{prefix}daemon_declared_fc_reboots": sum(r["daemon_declared_fc_reboots"] for r in results),
                   f"{prefix}attitude_latency_p50_median_ms": float(np.median(p50)) if p50 else None,
                   f"{prefix}attitude_latency_p99_max_ms": max(p99) if p99 else None,
                   f"{prefix}sim_speed_achieved_min": min(r["sim_speed_achieved"] for r in results),
                   f"{prefix}loadavg_1min_max": max(max(r["loadavg_1min_start"], r["loadavg_1min_end"])
                                                    for r in results)})
+        cpu = [r["daemon_cpu_s"] / r["sim_flown_s"] for r in results
+               if r.get("daemon_cpu_s") is not None and r["sim_flown_s"] > 0]
+        s.update({f"{prefix}loadavg_1min_median": float(np.median([r["loadavg_1min_end"] for r in results])),
+                  f"{prefix}daemon_cpu_s_per_flight_s_median": float(np.median(cpu)) if cpu else None})
         for k, sub in (("valid_", valid),):
             if sub:
-                s.update({f"{prefix}{k}fence_exits": sum(r["min_true_clearance_m"] < 0.0 for r in sub),
-                          f"{prefix}{k}margin_violations": sum(r["min_true_clearance_m"] < margin_m for r in sub),
+                sub_mins = [r["min_true_clearance_m"] for r in sub if r["min_true_clearance_m"] is not None]
+                sub_lost = [r["imu_samples_lost"] for r in sub if r["imu_samples_lost"] is not None]
+                sub_p50 = [r["attitude_latency_p50_ms"] for r in sub if r["attitude_latency_p50_ms"] is not None]
+                sub_p99 = [r["attitude_latency_p99_ms"] for r in sub if r["attitude_latency_p99_ms"] is not None]
+                s.update({f"{prefix}{k}outbound_runs": sum(r["kind"] == "outbound" for r in sub),
+                          f"{prefix}{k}inside_runs": sum(r["kind"] == "inside" for r in sub),
+                          f"{prefix}{k}outbound_diverted": sum(r["diverts_sent"] > 0 for r in sub
+                                                               if r["kind"] == "outbound"),
+                          f"{prefix}{k}fence_exits": sum(m < 0.0 for m in sub_mins),
+                          f"{prefix}{k}margin_violations": sum(m < margin_m for m in sub_mins),
+                          f"{prefix}{k}min_true_clearance_m": min(sub_mins) if sub_mins else None,
                           f"{prefix}{k}inside_false_diverts": sum(r["diverts_sent"] > 0 for r in sub
-                                                                  if r["kind"] == "inside")})
+                                                                  if r["kind"] == "inside"),
+                          f"{prefix}{k}imu_samples_lost": int(sum(sub_lost)) if sub_lost else None,
+                          f"{prefix}{k}raw_imu_forwarded": sum(r["raw_imu_forwarded"] for r in sub),
+                          f"{prefix}{k}attitude_latency_p50_median_ms": float(np.median(sub_p50)) if sub_p50 else None,
+                          f"{prefix}{k}attitude_latency_p99_max_ms": max(sub_p99) if sub_p99 else None})
     return s
 
 
@@ -644,6 +739,8 @@ def _line(mode: str, r: dict) -> str:
         err = ("" if r["dr_error_at_latch_m"] is None else
                f"  DR error {r['dr_error_at_latch_m']:.0f} m (sigma {r['dr_sigma_major_at_latch_m']:.0f} m)")
         return f"latch {r['latch_time_s']}  true crossing {r['true_cross_time_s']}  lead {lead}{err}"
+    if "error" in r:
+        return f"FAILED: {r['error']}"
     line = f"diverts {r['diverts_sent']}  min true clearance {r['min_true_clearance_m']:.0f} m"
     if mode == "closed":
         return line + f" {r['actions']} {r['outcomes']}  modes {r['modes_seen']}"
@@ -651,6 +748,47 @@ def _line(mode: str, r: dict) -> str:
                    f"{r['attitude_latency_p99_ms']} ms  sim x{r['sim_speed_achieved']:.2f} "
                    f"behind {r['sim_behind_real_time_max_s']:.1f} s  reboots {r['daemon_declared_fc_reboots']}  "
                    f"load {r['loadavg_1min_start']:.1f}  {'valid' if r['valid'] else 'INVALID (sim behind)'}")
+
+
+def _autogroup_nice() -> int | None:
+    """This process's CPU group nice (/proc/self/autogroup "/autogroup-N nice X"), None without autogroup."""
+    try:
+        return int(Path("/proc/self/autogroup").read_text().split()[-1])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _daemon_flight(kind: str, seed: int, opts: dict) -> dict:
+    """One daemon-mode flight in a worker process: an error is a failed flight, reported as one.
+
+    ``opts["fc_group_nice"]`` (not None): this worker starts a session of its own and gives its
+    CPU group (kernel autogroup) that nice value: the simulator it starts and the UDP tap it runs
+    (the FC and its wire) then compete with the daemon's group and the machine's others as one
+    group above them, the stand-in for an FC's own CPU."""
+    bench_dir = str(ROOT / "bench")
+    if bench_dir not in sys.path:
+        sys.path.insert(0, bench_dir)
+    opts = dict(opts)
+    fc_nice = opts.pop("fc_group_nice", None)
+    try:
+        if fc_nice is not None:
+            os.setsid()
+            Path("/proc/self/autogroup").write_text(str(int(fc_nice)))
+        return run_daemon(kind, seed, **opts)
+    except Exception as e:  # noqa: BLE001  (a flight that failed is counted, with its reason)
+        return {"kind": kind, "seed": seed, "error": f"{type(e).__name__}: {e}", "valid": False}
+
+
+def daemon_flights(flights: list[tuple[str, int]], opts: dict, jobs: int):
+    """Yield run_daemon results as they finish, ``jobs`` flights at once (one process each: its
+    own tap thread, simulator, daemon, free ports and work dir)."""
+    import concurrent.futures as cf
+    import multiprocessing as mp
+    with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
+                                max_tasks_per_child=1) as ex:
+        futs = [ex.submit(_daemon_flight, kind, seed, opts) for kind, seed in flights]
+        for f in cf.as_completed(futs):
+            yield f.result()
 
 
 def main(argv=None) -> int:
@@ -666,7 +804,21 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=None, help="seeds per scenario kind (default 20, quick 2)")
     ap.add_argument("--seed0", type=int, default=0, help="first seed")
     ap.add_argument("--speed", type=float, default=None, help="simulator speed (daemon default 1, closed 20)")
+    ap.add_argument("--jobs", type=int, default=1,
+                    help="daemon mode: flights at once (each its own simulator, daemon, ports, work dir)")
+    ap.add_argument("--imu-rate-hz", type=float, default=IMU_RATE_HZ,
+                    help="daemon mode: RAW_IMU rate the operator asks of the FC (default 50, stock ArduPilot)")
+    ap.add_argument("--sim-base-rate-hz", type=float, default=None,
+                    help="daemon mode: the simulated FC's sensor rate (default 200 for 50 Hz RAW_IMU, 500 for 200 Hz)")
+    root = os.geteuid() == 0
+    ap.add_argument("--fc-nice", type=int, default=-5 if root else None,
+                    help="daemon mode: CPU-group nice of the simulator and the UDP tap, the FC and its wire "
+                         "(default -5 as root, else inherited)")
+    ap.add_argument("--daemon-nice", type=int, default=0 if root else None,
+                    help="daemon mode: nice value of the daemon (default 0: systemd/azimuthd.service sets no Nice=)")
     args = ap.parse_args(argv)
+    if args.jobs < 1:
+        ap.error(f"--jobs must be >= 1, got {args.jobs}")
     sys.path.insert(0, str(ROOT / "bench"))
     n = args.seeds or (2 if args.quick else 20)
     seeds = range(args.seed0, args.seed0 + n)
@@ -686,20 +838,31 @@ def main(argv=None) -> int:
                       "closed": "diagnostic_truth_heading.closed."}.get(mode, f"{label}.")
             res = []
             t0 = time.monotonic()
+            flights = [(kind, seed) for kind in ("outbound", "inside") for seed in seeds]
             with CpuHogs(2 if load == "busy" else 0):
-                for kind in ("outbound", "inside"):
-                    for seed in seeds:
-                        if mode == "pipeline":
-                            r = run_pipeline(kind, seed, raw, flight_s=flight_s)
-                        elif mode == "offline":
-                            r = run_offline(kind, seed, raw)
-                        elif mode == "closed":
-                            r = run_closed(kind, seed, raw, speed=args.speed or 20.0, flight_s=flight_s)
-                        else:
-                            r = run_daemon(kind, seed, raw, speed=args.speed or 1.0, flight_s=flight_s)
-                        print(f"{label:12s} {kind:8s} seed {seed:2d} az {r.get('launch_azimuth_deg', 0):5.1f}  "
+                if mode == "daemon":
+                    opts = {"raw": raw, "speed": args.speed or 1.0, "flight_s": flight_s,
+                            "imu_rate_hz": args.imu_rate_hz, "sim_base_rate_hz": args.sim_base_rate_hz,
+                            "fc_group_nice": args.fc_nice, "daemon_nice": args.daemon_nice}
+                    for r in daemon_flights(flights, opts, args.jobs):
+                        print(f"{label:12s} {r['kind']:8s} seed {r['seed']:2d} az {r.get('launch_azimuth_deg', 0):5.1f}  "
                               f"{_line(mode, r)}", flush=True)
                         res.append(r)
+                    res.sort(key=lambda r: (r["kind"] != "outbound", r["seed"]))
+                    summary.update({f"{prefix}jobs": args.jobs, f"{prefix}imu_rate_hz": args.imu_rate_hz,
+                                    f"{prefix}sim_base_rate_hz": res[0].get("sim_base_rate_hz") if res else None,
+                                    f"{prefix}fc_group_nice": args.fc_nice, f"{prefix}daemon_nice": args.daemon_nice,
+                                    f"{prefix}daemon_own_session": True})
+                for kind, seed in (flights if mode != "daemon" else []):
+                    if mode == "pipeline":
+                        r = run_pipeline(kind, seed, raw, flight_s=flight_s)
+                    elif mode == "offline":
+                        r = run_offline(kind, seed, raw)
+                    else:
+                        r = run_closed(kind, seed, raw, speed=args.speed or 20.0, flight_s=flight_s)
+                    print(f"{label:12s} {kind:8s} seed {seed:2d} az {r.get('launch_azimuth_deg', 0):5.1f}  "
+                          f"{_line(mode, r)}", flush=True)
+                    res.append(r)
             summary.update(_open_loop_summary(res, prefix) if mode in ("pipeline", "offline")
                            else _closed_loop_summary(res, margin, prefix))
             summary[f"{prefix}wall_s"] = round(time.monotonic() - t0, 1)

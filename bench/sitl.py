@@ -242,6 +242,13 @@ class UdpTap:
         self.sock.close()
 
 
+def _set_nice(value: int | None):
+    """A Popen preexec_fn that sets the child's absolute nice value (None: no preexec_fn)."""
+    if value is None:
+        return None
+    return lambda: os.setpriority(os.PRIO_PROCESS, 0, int(value))
+
+
 class Sitl:
     """Simulator + daemon as two processes; outputs mirrored to a local listener."""
 
@@ -249,7 +256,13 @@ class Sitl:
                  workdir: Path | None = None, config_overrides: dict | None = None,
                  sim_args: list[str] | None = None, daemon_args: list[str] | None = None,
                  status_interval_s: float = 0.0, capture_output: bool = True, tap: bool = False,
-                 tap_record_to_daemon: tuple[str, ...] = ()):
+                 tap_record_to_daemon: tuple[str, ...] = (), sim_nice: int | None = None,
+                 daemon_nice: int | None = None, daemon_own_session: bool = False):
+        """``sim_nice`` / ``daemon_nice``: the absolute nice value each process starts with (None:
+        inherit this process's; below 0 needs root). ``daemon_own_session``: the daemon starts in
+        a session of its own, as systemd starts a service; with the kernel's autogroup scheduling
+        (/proc/sys/kernel/sched_autogroup_enabled) that is its own CPU group, and a nice value
+        only orders processes within one group."""
         import tempfile
         self.scenario = scenario
         self.workdir = Path(workdir or tempfile.mkdtemp(prefix="azimuthd-sitl-"))
@@ -274,6 +287,7 @@ class Sitl:
         self.daemon_cmd = [sys.executable, "-m", "service.cli", "run", "--config", str(self.config_path),
                            *(daemon_args or [])]
         self.capture_output = capture_output
+        self.sim_nice, self.daemon_nice, self.daemon_own_session = sim_nice, daemon_nice, daemon_own_session
         self.listener = OutputListener(self.out_port)
         self.sim: subprocess.Popen | None = None
         self.daemon: subprocess.Popen | None = None
@@ -287,7 +301,9 @@ class Sitl:
         self._daemon_out = out("daemon.log")
         self._sim_out = out("sim.log")
         self.daemon = subprocess.Popen(self.daemon_cmd, cwd=ROOT, env=env, stdout=self._daemon_out or None,
-                                       stderr=subprocess.STDOUT if self._daemon_out else None)
+                                       stderr=subprocess.STDOUT if self._daemon_out else None,
+                                       preexec_fn=_set_nice(self.daemon_nice),
+                                       start_new_session=self.daemon_own_session)
         # the simulator pushes (udpout) from its first second: start it only once the daemon
         # listens, or a slow daemon start (imports on a loaded machine) misses the launch
         if self._daemon_out:
@@ -296,7 +312,8 @@ class Sitl:
                     and self.daemon.poll() is None:
                 time.sleep(0.05)
         self.sim = subprocess.Popen(self.sim_cmd, cwd=ROOT, env=env, stdout=self._sim_out or None,
-                                    stderr=subprocess.STDOUT if self._sim_out else None)
+                                    stderr=subprocess.STDOUT if self._sim_out else None,
+                                    preexec_fn=_set_nice(self.sim_nice))
         return self
 
     def wait_for(self, cond, timeout_s: float, poll_s: float = 0.05) -> bool:
