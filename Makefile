@@ -38,7 +38,7 @@ run: $(STAMP)
 	$(PY) bench/live_demo.py
 
 test: $(STAMP)
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q --durations=25 tests
 
 # a wheel of this tree, built by the service venv's pip (what install and upgrade put in it)
 wheel: $(SVC_PY)
