@@ -21,6 +21,14 @@ Per update (``update_hz``, FC time):
    stay unknown); the vertical clearance is min(h - h_min, h_max - h) - alt_margin - k sigma_h at
    h(t) = h + h_dot t. A breach is predicted when any clearance(t) <= 0: the fence is inside
    the uncertainty margin, not only when the mean crosses. time_to_breach = the first such t;
+   Input age: the solution describes the vehicle ``a`` seconds ago when the daemon processes it
+   late (a backlog in its socket on a loaded CPU). a = (local now - t_fc) - min over the flight
+   of (local now - t_fc): the minimum is the offset of the two clocks with no queue (the
+   one-way-delay floor, as NTP takes its best sample), so ``a`` is the queueing delay on top
+   (drift of a crystal, 1e-4, adds 0.02 s over 200 s). The prediction runs over
+   t = a, a + 1, ..., a + lookahead_s (the vehicle has flown on along its track meanwhile, and
+   P(t) grows with it): a late daemon diverts at the time a prompt one would, or earlier.
+   time_to_breach is counted from now (t - a). A late monitor says so (geofence_input_late);
 4. hysteresis: a predicted breach held for ``trigger_hold_s`` latches the breach; the latch clears
    only when the clearance now exceeds ``clear_distance_m`` with no predicted breach for
    ``clear_hold_s``;
@@ -55,13 +63,15 @@ WIND_MIN_TAS_M_S = 8.0
 WIND_MIN_SPAN_S = 10.0
 """The estimated wind replaces the configured one once it averages over this long."""
 STATES = ("inactive", "ok", "warning", "breach")
+INPUT_LATE_WARN_S = 2.0
+"""Input age above which the monitor warns (geofence_input_late); it says so again below half of it."""
 
 
 @dataclass(frozen=True)
 class GeofenceEvent:
     kind: str
     """geofence_dr_start | geofence_warning | geofence_breach | geofence_action | geofence_outcome |
-    geofence_escalate | geofence_clear | geofence_no_action | geofence_heading_unknown"""
+    geofence_escalate | geofence_clear | geofence_no_action | geofence_heading_unknown | geofence_input_late"""
     severity: str
     """MAV_SEVERITY name: critical, warning, notice, info."""
     text: str
@@ -155,6 +165,10 @@ class GeofenceMonitor:
         self._heading_known = True
         self._alt_min_armed = False
         self._flight_start_s: float | None = None
+        self._clock_offset_min_s = math.inf
+        self.input_age_s = 0.0
+        """How late the last solution was processed (s, the module docstring's ``a``)."""
+        self._input_late = False
         self.alt_reference = "none"
         self.counters = {"updates": 0, "breaches": 0, "actions_sent": 0, "clears": 0}
         self.actions_enabled = True
@@ -211,9 +225,15 @@ class GeofenceMonitor:
 
     def step(self, sol, air_data, now_s: float) -> list[CommandSpec]:
         """One NavSolution (any rate; the monitor updates at update_hz of FC time) and the latest
-        AirData (estimators.air_data; None if none). now_s: local monotonic time (unused by the
-        logic; events carry FC time). Returns the commands to submit, in order."""
+        AirData (estimators.air_data; None if none). now_s: local monotonic time, for the input
+        age only (a replay passes the FC time: age 0); events carry FC time. Returns the commands
+        to submit, in order."""
         t = float(sol.time_fc_s)
+        if self._last_time_s is not None and t < self._last_time_s:
+            self._clock_offset_min_s = math.inf  # a new FC clock: a new offset
+        offset = float(now_s) - t
+        self._clock_offset_min_s = min(self._clock_offset_min_s, offset)
+        self.input_age_s = offset - self._clock_offset_min_s
         if air_data is not None and math.isfinite(air_data.pressure_altitude_m):
             self._last_press_alt_m = air_data.pressure_altitude_m
             if sol.phase in ("boot", "pre-launch"):
@@ -237,6 +257,15 @@ class GeofenceMonitor:
         self.counters["updates"] += 1
         if self._flight_start_s is None:
             self._flight_start_s = t
+        if self.input_age_s > INPUT_LATE_WARN_S and not self._input_late:
+            self._input_late = True
+            self._event("geofence_input_late", "warning",
+                        f"fence: input {self.input_age_s:.1f} s late, predicting from it", t,
+                        input_age_s=self.input_age_s)
+        elif self._input_late and self.input_age_s < 0.5 * INPUT_LATE_WARN_S:
+            self._input_late = False
+            self._event("geofence_input_late", "info", "fence: input on time again", t,
+                        input_age_s=self.input_age_s)
         inp = self._inputs(sol, air_data, t)
         self._update_position(inp, t)
         ev = self._evaluate(inp)
@@ -344,7 +373,7 @@ class GeofenceMonitor:
 
     def _evaluate(self, inp: DrInputs) -> Evaluation:
         cfg, dr = self.cfg, self.dr
-        t = self._t_pred
+        t = self._t_pred + self.input_age_s  # since the solution's FC time (its age, then the look-ahead)
         k = cfg.sigma_k
         vN, vE = dr.v_ground_ne_m_s
         moving = inp.heading_rad is not None and inp.tas_m_s is not None
@@ -389,7 +418,7 @@ class GeofenceMonitor:
             alt_clear = float(c[0])
             clear = np.minimum(clear, c)
         bad = np.nonzero(clear <= 0.0)[0]
-        ttb = float(t[bad[0]]) if bad.size else None
+        ttb = float(self._t_pred[bad[0]]) if bad.size else None  # from now
         return Evaluation(clearance_now_m=float(clear[0]), distance_to_fence_m=d_now, alt_clearance_m=alt_clear,
                           time_to_breach_s=ttb, sigma_toward_fence_m=sig_n0)
 

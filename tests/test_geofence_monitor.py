@@ -322,3 +322,38 @@ def test_height_reference_is_the_launcher_baro_else_isa():
     m2 = monitor()                     # started in flight: no launcher sample
     run(m2, 0.0, 1.0, 90.0, alt_rel=100.0)
     assert m2.state()["alt_reference"] == "isa" and m2.state()["alt_m"] == pytest.approx(1100.0)
+
+
+def test_a_late_daemon_predicts_from_the_age_of_its_input():
+    # GIVEN 20 m/s due east from the launch site, 2000 m from the east edge (prompt: warning at
+    # 77.6 s, test_predicted_breach_time_exact_without_uncertainty), and a daemon that reads its
+    # input late: on time until 10 s, then falling behind by 0.5 s per FC second (its local
+    # clock an arbitrary 1000 s ahead of the FC's)
+    def lag_s(t):
+        return max(0.0, 0.5 * (t - 10.0))
+
+    def fly(lag):
+        m = monitor()
+        m.step(sol(0.0, 90.0, phase="pre-launch"), air(0.0, 0.0, 0.0), 1000.0)
+        t, cmds = 0.0, []
+        while t < 100.0 - 1e-9:
+            t = round(t + 0.1, 6)
+            cmds += [(t, c) for c in m.step(sol(t, 90.0), air(t), 1000.0 + t + lag(t))]
+        return m, cmds
+    m, cmds = fly(lag_s)
+    ev = m.drain_events()
+    # WHEN the monitor steps each solution at its late local time
+    # THEN it predicts from the input's age a: warning when 2000 - 20 (t - 0.1 + a + 20) - 50 <= 0
+    # with a = 0.5 (t - 10): t = 55.07 s FC time, i.e. local 77.6 s after the start, when a
+    # prompt daemon warns; it says its input is late once a > 2 s (t = 14 s)
+    warn = [e for e in ev if e.kind == "geofence_warning"]
+    assert len(warn) == 1 and warn[0].time_fc_s == pytest.approx(55.07, abs=ONE_UPDATE)
+    late = [e for e in ev if e.kind == "geofence_input_late"]
+    assert len(late) == 1 and late[0].severity == "warning" and late[0].time_fc_s == pytest.approx(14.0, abs=ONE_UPDATE)
+    assert [c.name for _, c in cmds] == ["rtl"] and cmds[0][0] == pytest.approx(55.57, abs=ONE_UPDATE)
+    assert m.input_age_s == pytest.approx(lag_s(100.0), abs=1e-6)
+    # and a constant clock offset is no lateness: the prompt figures, no late event
+    m0, cmds0 = fly(lambda t: 0.0)
+    ev0 = m0.drain_events()
+    assert [e.time_fc_s for e in ev0 if e.kind == "geofence_warning"] == [pytest.approx(77.6, abs=ONE_UPDATE)]
+    assert not any(e.kind == "geofence_input_late" for e in ev0) and m0.input_age_s == pytest.approx(0.0, abs=1e-6)
