@@ -155,6 +155,11 @@ class CommandProtocol:
         self._cur: _InFlight | None = None
         self._last_send_s = -math.inf
         self.stats = CommandStats()
+        self.input_delay_s = 0.0
+        """How late the caller is reading its input (s; the geofence monitor's input age): an ACK
+        the FC sent promptly sits behind that backlog, so a try times out only after
+        ack_timeout_s + input_delay_s (a late daemon does not escalate on ACKs it has not read yet:
+        with ``terminate`` configured that would end a flight the FC had already diverted)."""
 
     # --- state -----------------------------------------------------------------------------
 
@@ -176,7 +181,7 @@ class CommandProtocol:
             return None
         if self._cur.tries == 0 or self._cur.resend_due:
             return self._last_send_s + self.params.min_send_interval_s
-        return self._cur.deadline_s
+        return self._cur.deadline_s + self.input_delay_s
 
     # --- inputs ----------------------------------------------------------------------------
 
@@ -245,7 +250,7 @@ class CommandProtocol:
                 if not self._try_send(cur, now_s):
                     return out
                 return out
-            if now_s < cur.deadline_s:
+            if now_s < cur.deadline_s + self.input_delay_s:
                 return out
             if cur.tries >= self.params.max_tries or cur.in_progress:
                 self._cur = None

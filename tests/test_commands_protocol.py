@@ -70,6 +70,33 @@ def test_peer_that_never_answers_times_out_after_n_tries():
     assert proto.stats.retries == 3
 
 
+def test_a_late_reader_waits_its_input_delay_before_a_retry():
+    # GIVEN a caller reading its input 30 s late (the geofence monitor's input age) and an FC that
+    # ACKs at once: the ACK reaches the caller 30 s after it was sent
+    proto, peer, outcomes = make()
+    proto.input_delay_s = 30.0
+    proto.submit(cmd_rtl(), 0.0)
+    # WHEN the ACK timeout (1 s) has passed but not the delay on top of it
+    t = 0.0
+    while t < 30.9:
+        t += 0.1
+        proto.poll(t)
+    # THEN nothing was resent and nothing timed out (no escalation on an ACK not yet read) ...
+    assert len(peer.sent) == 1 and outcomes == [] and proto.next_due_s() == pytest.approx(31.0)
+    out = proto.on_command_ack(ack(20, 0), 30.95)
+    assert [(o.status, o.tries) for o in out] == [("accepted", 1)]
+    # ... and with no ACK at all, the tries still run out: 4 x (1 + 30) s
+    proto2, peer2, outcomes2 = make()
+    proto2.input_delay_s = 30.0
+    proto2.submit(cmd_rtl(), 0.0)
+    t = 0.0
+    while t < 130.0:
+        t += 0.1
+        proto2.poll(t)
+    assert len(peer2.sent) == 4 and [(o.status, o.tries) for o in outcomes2] == [("timeout", 4)]
+    assert outcomes2[0].finished_s == pytest.approx(124.0, abs=0.41)  # (+ one 0.1 s poll step each)
+
+
 def test_denied_and_unsupported_are_final_with_the_result():
     proto, peer, outcomes = make()
     proto.submit(cmd_rtl(), 0.0)
