@@ -127,7 +127,7 @@ SPEC: dict[str, dict[str, Key]] = {
     },
     "launch": {
         "case": Key(str, "inclined", "how the flight direction is found: vertical | inclined | aligned", _choice("vertical", "inclined", "aligned")),
-        "vehicle": Key(str, "launcher", "how the vehicle takes off: launcher (rail/tube/catapult boost) | hand (a throw) | runway (a take-off roll) | multicopter | vtol (a vertical lift-off)", _choice("launcher", "hand", "runway", "multicopter", "vtol")),
+        "vehicle": Key(str, "auto", "how the vehicle takes off: auto (from the FC's HEARTBEAT type and take-off parameters, service/vehicle_type.py) | launcher (rail/tube/catapult boost) | hand (a throw) | runway (a take-off roll) | multicopter | vtol (a vertical lift-off)", _choice("auto", "launcher", "hand", "runway", "multicopter", "vtol")),
         "detect_accel_m_s2": Key(_F, 5.0, "launch when |specific force| exceeds g by this much ...", _range(0.3, 200)),
         "detect_hold_s": Key(_F, 0.05, "... for this long", _range(0.0, 5)),
         "boost_window_s": Key(_F, 1.0, "time after launch used for the flight direction (inclined case)", _range(0.05, 10)),

@@ -33,6 +33,7 @@ from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcFlightSta
                                 ImuSample, IncomingCommand, PressureSample)
 from service import state_file
 from service.calibration_keeper import CalibrationKeeper
+from service.vehicle_type import param_names as vehicle_param_names
 from service.command_server import MSG_ATTITUDE, MSG_ATTITUDE_QUATERNION, MSG_HEARTBEAT, CommandServer
 from service.config import state_dir
 from service.fc_yaw_guard import FcYawGuard
@@ -508,8 +509,10 @@ class Daemon:
                 self._fc_yaw_feed_start()
             elif item.kind == "params_read":
                 self._fc_yaw_feed(self.fc_yaw_guard.on_params(self.link.fc_params, self.link.fc_params_missing))
+                self.pipeline.on_fc_params(self.link.fc_params, True, self.clock())
         elif isinstance(item, FcParam):
             self._fc_yaw_feed(self.fc_yaw_guard.on_params(self.link.fc_params, self.link.fc_params_missing))
+            self.pipeline.on_fc_params(self.link.fc_params, False, self.clock())
         elif isinstance(item, FcStatusText):
             self._fc_yaw_feed(self.fc_yaw_guard.on_statustext(item.text, self.sent.get("ODOMETRY", 0) > 0))
         elif isinstance(item, FcHeartbeat):
@@ -632,6 +635,8 @@ class Daemon:
 
     def _fc_yaw_feed_start(self) -> None:
         names, events = self.fc_yaw_guard.start(self.link.fc_autopilot)
+        if self.pipeline.vehicle.pending:  # [launch] vehicle = "auto": how a fixed wing takes off
+            names = tuple(names) + tuple(n for n in vehicle_param_names(self.link.fc_autopilot) if n not in names)
         if names:
             self.link.read_params(names)
         self._fc_yaw_feed(events)
@@ -749,4 +754,7 @@ class Daemon:
             flags["stream_advice"] = self.link.rate_advice
         # 'usable', or why the magnetometer is rejected (estimators/mag_usability via the Pipeline)
         flags["magnetometer"] = self.pipeline.mag_status
+        ch = self.pipeline.vehicle.choice  # the take-off model ([launch] vehicle) and why
+        flags["vehicle"] = "not known yet (auto: waiting for the FC)" if ch is None else \
+            f"{ch.vehicle or 'none'}: {ch.reason}"
         return flags

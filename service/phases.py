@@ -136,8 +136,10 @@ class PhaseParams:
     boost_window_s: float = 1.0
     levelling: LevellingParams = LevellingParams()
     in_flight: InFlightParams = InFlightParams()
-    vehicle: str = "launcher"
-    """launcher | hand | runway | multicopter | vtol (module docstring)."""
+    vehicle: str | None = "launcher"
+    """launcher | hand | runway | multicopter | vtol (module docstring); None: not known yet
+    (``[launch] vehicle = "auto"`` before the FC's HEARTBEAT, service/vehicle_type.py): levelling
+    goes on, no take-off is declared."""
     forward_sensor: tuple = (1.0, 0.0, 0.0)
     """The body x axis (the flight axis) in sensor axes, from the configured mount."""
     detect_started_in_flight: bool = True
@@ -165,8 +167,8 @@ class PhaseParams:
     """Rotation since the kept levelling block above which the levelling is stale (rad)."""
 
     def __post_init__(self) -> None:
-        if self.vehicle not in VEHICLES:
-            raise ValueError(f"vehicle must be one of {VEHICLES}, got {self.vehicle!r}")
+        if self.vehicle is not None and self.vehicle not in VEHICLES:
+            raise ValueError(f"vehicle must be one of {VEHICLES} or None, got {self.vehicle!r}")
         fwd = np.asarray(self.forward_sensor, float)
         if fwd.shape != (3,) or not np.all(np.isfinite(fwd)) or abs(np.linalg.norm(fwd) - 1.0) > 1e-6:
             raise ValueError(f"forward_sensor must be a unit 3-vector, got {self.forward_sensor!r}")
@@ -421,13 +423,15 @@ def phase_step(state: PhaseState, gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray
         events += lev_events
 
     if state.phase == PRE_LAUNCH:
-        if impulse:
+        if params.vehicle is None:  # the take-off model is not known yet: nothing is declared
+            launch, why, imp_events = None, "", []
+        elif impulse:
             state, launch, why, imp_events = _impulse_takeoff(state, accel_m_s2, excess, time_s, params)
         else:
             state, launch, why = _sustained_takeoff(state, time_s, ev, params)
             imp_events = []
         events += imp_events
-        if launch is None and state.fc_seen_landed and state.fc_air_since_s is not None \
+        if launch is None and params.vehicle is not None and state.fc_seen_landed and state.fc_air_since_s is not None \
                 and time_s - state.fc_air_since_s >= params.in_flight.hold_s:
             launch, why = state.fc_air_since_s, "the FC reports in the air after landed (landed state)"
         if launch is not None and ev.armed is False:

@@ -62,6 +62,7 @@ from service.heading_arbitration import (ArbitrationParams, ArbitrationState, So
 from service.phases import (IN_FLIGHT, LAUNCH, PRE_LAUNCH, FlightEvidence, InFlightParams, PhaseParams,
                             PhaseState, phase_step)
 from service.solution import NavSolution
+from service.vehicle_type import AUTO as AUTO_VEHICLE, VehicleResolver
 
 log = logging.getLogger("azimuthd.pipeline")
 
@@ -143,11 +144,13 @@ class Pipeline:
                                         detect_accel_m_s2=launch["detect_accel_m_s2"],
                                         detect_hold_s=launch["detect_hold_s"],
                                         boost_window_s=launch["boost_window_s"],
-                                        vehicle=launch["vehicle"],
+                                        vehicle=None if launch["vehicle"] == AUTO_VEHICLE else launch["vehicle"],
                                         forward_sensor=tuple(dcm_from_quat(mount)[0, :]),  # body x in sensor axes
                                         detect_started_in_flight=self.in_flight_start_detect,
                                         in_flight=InFlightParams(airspeed_m_s=launch["in_flight_airspeed_m_s"],
                                                                  alt_rate_m_s=launch["in_flight_alt_rate_m_s"]))
+        self.vehicle = VehicleResolver(launch["vehicle"])
+        """The take-off model: configured, or "auto" from the FC's HEARTBEAT (service/vehicle_type.py)."""
         self.strapdown_params = StrapdownParams(max_dt_s=cfg["mavlink"]["imu_gap_s"])
         # q_body_from_sensor: the sensor axes' attitude in the body frame (configured mount)
         self.q_body_from_sensor = quat_from_euler(math.radians(imu["mount_roll_deg"]),
@@ -270,6 +273,8 @@ class Pipeline:
 
     def on_imu(self, s: ImuSample) -> NavSolution | None:
         gyro_s, accel_s, t = s.gyro_rad_s, s.accel_m_s2, s.time_fc_s
+        if self.vehicle.pending:  # a fixed wing's take-off parameters never answered: decide without them
+            self._vehicle_chosen(self.vehicle.poll(s.time_rx_s))
         verdict = self.input_checks.check(s)  # service/input_checks.py: bad values never reach the estimators
         for ev in verdict.events:
             self._event(*ev)
@@ -374,6 +379,8 @@ class Pipeline:
 
     def on_fc_heartbeat(self, hb: FcHeartbeat) -> None:
         self.fc_armed = bool(hb.armed)
+        if self.vehicle.pending:
+            self._vehicle_chosen(self.vehicle.on_heartbeat(hb.vehicle_type, hb.autopilot, hb.time_rx_s))
         # ArduPlane's system_status is its is_flying() estimate (ACTIVE / STANDBY); other
         # autopilots' ACTIVE means armed, and CRITICAL/EMERGENCY (failsafes) say nothing
         self.fc_reports_flying = None
@@ -382,6 +389,21 @@ class Pipeline:
             self.fc_reports_flying = hb.system_status == MAV_STATE_ACTIVE
         if self.last_time_fc_s is not None:
             self._step_ahrs(FcStatusEvent(self.last_time_fc_s, system_status=hb.system_status))
+
+    def on_fc_params(self, values: dict, done: bool, time_rx_s: float) -> None:
+        """The FC parameters read so far (link.fc_params; ``done``: all answered or given up)."""
+        if self.vehicle.pending:
+            self._vehicle_chosen(self.vehicle.on_params(values, done, time_rx_s))
+
+    def _vehicle_chosen(self, choice) -> None:
+        """``[launch] vehicle = "auto"`` decided (once): the take-off detector it selects, and why."""
+        if choice is None:
+            return
+        if choice.vehicle is None:
+            self._event("vehicle", f"no take-off model: {choice.reason}")
+            return
+        self.phase_params = dc_replace(self.phase_params, vehicle=choice.vehicle)
+        self._event("vehicle", f"{choice.vehicle} take-off (auto): {choice.reason}")
 
     def on_fc_flight_state(self, st: FcFlightState) -> None:
         """The FC's armed/landed state (EXTENDED_SYS_STATE, or a log's own records): phase evidence."""

@@ -75,6 +75,25 @@ class Stream:
     last_k: int = -1
 
 
+
+def _mav_type(launcher_type: str, px4: bool) -> int:
+    """The HEARTBEAT type this airframe's autopilot sends (its own configuration, as a real FC's
+    frame setting): a multicopter QUADROTOR (2); a VTOL FIXED_WING (1) on ArduPilot (a QuadPlane,
+    as ArduPlane 4.7 sends it) and VTOL_FIXEDROTOR (22) on PX4; every other airframe FIXED_WING."""
+    if launcher_type == "multicopter":
+        return 2
+    return 22 if launcher_type == "vtol" and px4 else 1
+
+
+def _takeoff_params(launcher_type: str, px4: bool) -> dict:
+    """How the autopilot is set up to take off, in its own parameters: ArduPlane Q_ENABLE (a
+    QuadPlane) and TKOFF_THR_MINACC (> 0: a hand/catapult launch; ArduPilot suggests about 15 m/s^2),
+    PX4 FW_LAUN_DETCN_ON (catapult/hand launch detection)."""
+    launched = launcher_type in ("rail", "tube", "hand", "rig")
+    if px4:
+        return {"FW_LAUN_DETCN_ON": 1.0 if launched else 0.0}
+    return {"Q_ENABLE": 1.0 if launcher_type == "vtol" else 0.0, "TKOFF_THR_MINACC": 15.0 if launched else 0.0}
+
 class Autopilot:
     """The simulated FC. ``run()`` serves until the scenario (or ``duration_s``) ends, or stop()."""
 
@@ -124,6 +143,8 @@ class Autopilot:
         self.params = {"SYSID_THISMAV": float(self.sysid), "SIM_SPEEDUP": self.speed,
                        "AHRS_ORIENTATION": 0.0, "COMPASS_USE": 1.0, "ARSPD_TYPE": 1.0,
                        "EK3_SRC1_YAW": 1.0, "EK3_SRC1_POSXY": 3.0, "SCHED_LOOP_RATE": 0.0}
+        self.params.update(_takeoff_params(self.sc["launcher"]["type"], self.px4))
+        self.mav_type = _mav_type(self.sc["launcher"]["type"], self.px4)
         """A small parameter table so that ground stations finish their parameter download; PARAM_SET
         stores and echoes (the simulated flight does not depend on these, except SCHED_LOOP_RATE: with
         the ardupilot personality and a value > 0, rates are refused as ArduPilot does; 0 = no limit,
@@ -237,7 +258,7 @@ class Autopilot:
             flight = self.eng.flight
             status = 4 if flight.airborne else 3  # ACTIVE / STANDBY: ArduPlane's is_flying()
             base = 1 | 16 | 8 | 4 | (128 if self.armed else 0)
-            return m.heartbeat_encode(1, 12 if self.px4 else 3, base, self._custom_mode(), status)
+            return m.heartbeat_encode(self.mav_type, 12 if self.px4 else 3, base, self._custom_mode(), status)
         if msg_id == EXTENDED_SYS_STATE:
             # the autopilot's land detector: MAV_LANDED_STATE_ON_GROUND 1 / IN_AIR 2; VTOL state undefined
             return m.extended_sys_state_encode(0, 2 if self.eng.flight.airborne else 1)
