@@ -47,6 +47,48 @@ class OutputLimits:
                 raise ValueError(f"OutputLimits.{name} must be finite and > 0, got {v!r}")
 
 
+ODOMETRY_MAX_LAG_S = 0.2
+"""Oldest ODOMETRY sent, by its IMU sample against the FC's clock (s). ArduPilot dates an external-nav
+sample from its time_usec only within 500 ms (GCS_MAVLINK's jitter correction clamps the lag there),
+then EKF3 clamps it to its fusion horizon (its largest sensor delay, about 0.2 s): a yaw older than that
+is fused as if it were recent. Flown (ArduPlane SITL, a daemon 26-74 s behind its input on a machine at
+load 32): every VISP sample dated 0.55 s before its arrival, EKF3's yaw innovation 65-179 deg, all
+rejected by its gate, and EKF3's yaw drifted to +9 deg in 80 s after the GNSS cut."""
+
+
+@dataclass(slots=True)
+class FcLagMeter:
+    """How far a solution's FC time stamp lags the FC's clock, seen from the local clock.
+
+    The FC-to-local clock offset is the smallest ``time_rx - time_fc`` seen (the sample that came
+    with the least transport delay), as ArduPilot's own jitter correction does, relaxed upward by
+    ``relax_s_per_s`` so that an FC clock a little slower than ours (SITL below its speedup) is not
+    taken for a growing lag. lag(t_fc, now) = now - (t_fc + offset): 0 for a solution of the newest
+    sample computed at once; the backlog when the daemon works through old input."""
+
+    relax_s_per_s: float = 0.005
+    """0.5 %: SITL held its speedup to 1.00 (1.99-2.0 at 2) in bench/ardupilot_sitl.py; a lag that lasts
+    masks itself at this rate (a 30 s backlog after 6,000 s, a 0.3 s one after 20 s)."""
+    offset_s: float | None = None
+    _rx_s: float = 0.0
+
+    def on_sample(self, time_fc_s: float, time_rx_s: float) -> None:
+        off = time_rx_s - time_fc_s
+        if not math.isfinite(off):
+            return
+        if self.offset_s is not None:
+            off = min(off, self.offset_s + self.relax_s_per_s * max(0.0, time_rx_s - self._rx_s))
+        self.offset_s, self._rx_s = off, time_rx_s
+
+    def lag_s(self, time_fc_s: float, now_s: float) -> float:
+        """0.0 before the first sample."""
+        return 0.0 if self.offset_s is None else now_s - (time_fc_s + self.offset_s)
+
+    def reset(self) -> None:
+        """The FC rebooted (its clock restarted): learn the offset again."""
+        self.offset_s = None
+
+
 def _finite(x) -> bool:
     return x is not None and math.isfinite(x)
 

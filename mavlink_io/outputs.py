@@ -302,6 +302,8 @@ class OutputScheduler:
         self._next_due_s: dict[str, float | None] = {name: None for name in rates}
         self.reset_counter = 0
         self.odometry_allowed = True
+        self.odometry_late = 0
+        """ODOMETRY not sent because the solution lagged the FC's clock (``messages(..., late=True)``)."""
         self._last_heading: tuple[float, float] | None = None
         """(FC time s, heading rad) of the last usable heading."""
         self._ever_usable = False
@@ -353,8 +355,10 @@ class OutputScheduler:
             self._last_heading = (sol.time_fc_s, float(sol.heading_rad))
         self._heading_was_usable = usable
 
-    def messages(self, sol: NavSolution, now_s: float) -> list:
-        """All messages due for this solution at local monotonic time ``now_s`` (s)."""
+    def messages(self, sol: NavSolution, now_s: float, late: bool = False) -> list:
+        """All messages due for this solution at local monotonic time ``now_s`` (s). ``late``: the
+        solution lags the FC's clock beyond what the FC can date (output_gate.ODOMETRY_MAX_LAG_S): its
+        ODOMETRY slot passes without one (counted in ``odometry_late``), the rest goes as usual."""
         self._track_resets(sol)
         out: list = []
         if self.due("ATTITUDE", now_s):
@@ -366,7 +370,10 @@ class OutputScheduler:
             if msg is not None:
                 out.append(msg)
         if self.odometry_allowed and heading_usable(sol) and self.due("ODOMETRY", now_s):
-            out.append(encode_odometry(sol, self.profile, self.reset_counter))
+            if late:
+                self.odometry_late += 1
+            else:
+                out.append(encode_odometry(sol, self.profile, self.reset_counter))
         if self.due("NAMED_VALUE_FLOAT", now_s):
             out.extend(encode_named_values(sol))
         return out

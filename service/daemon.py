@@ -28,7 +28,7 @@ from mavlink_io.decode import FcParam, FcStatusText
 from mavlink_io.link import LinkConfig, LinkEvent, MavlinkLink
 from mavlink_io.outputs import OutputScheduler, _time_boot_ms, odometry_profile_for_autopilot
 from mavlink_io.outputs import encode_attitude, encode_attitude_quaternion
-from mavlink_io.output_gate import OutputLimits, gate_solution
+from mavlink_io.output_gate import ODOMETRY_MAX_LAG_S, FcLagMeter, OutputLimits, gate_solution
 from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, FcSysStatus,
                                 ImuSample, IncomingCommand, PressureSample)
 from service import state_file
@@ -172,6 +172,7 @@ class Daemon:
         self.output_limits = OutputLimits(math.radians(out["max_tilt_sigma_deg"]),
                                           math.radians(out["max_heading_sigma_deg"]), out["max_extrapolation_s"])
         self.attitude_to_fc = out["attitude_to_fc"]
+        self.fc_lag = FcLagMeter()  # how late a solution is against the FC's clock (ODOMETRY held back)
         self.fc_yaw_guard = FcYawGuard()
         if not cfg["heading"].get("use_fc_yaw", True):
             self.fc_yaw_guard.configured_exclusion()
@@ -480,6 +481,7 @@ class Daemon:
     def dispatch(self, item) -> None:
         if isinstance(item, ImuSample):
             self._last_imu_rx_s = item.time_rx_s
+            self.fc_lag.on_sample(item.time_fc_s, item.time_rx_s)
             sol = self.pipeline.on_imu(item)
             if sol is not None:
                 self.last_solution = sol
@@ -502,6 +504,7 @@ class Daemon:
             self._event(item.kind, item.detail)
             if item.kind == "fc_reboot":
                 self._last_sent_fc_s = -math.inf  # the FC clock restarted: stamps start again
+                self.fc_lag.reset()
                 self.pipeline.on_fc_reboot()
                 self._fc_yaw_feed_start()  # its parameters may have changed with the reboot
             elif item.kind == "autopilot_detected":
@@ -677,7 +680,14 @@ class Daemon:
         last_ms = _time_boot_ms(self._last_sent_fc_s) if math.isfinite(self._last_sent_fc_s) else -math.inf
         if ms < last_ms or (ms == last_ms and sol is not self._last_sent_sol):
             return
-        msgs = self.scheduler.messages(gate_solution(sol, self.output_limits), now)
+        # an ODOMETRY the FC would misdate (output_gate.ODOMETRY_MAX_LAG_S) is held back
+        lag_s = self.fc_lag.lag_s(sol.time_fc_s, now)
+        late = lag_s > ODOMETRY_MAX_LAG_S
+        if late:
+            self.rl.log(logging.WARNING, "odometry_late", f"ODOMETRY held back: our solution lags the FC's clock by "
+                        f"{lag_s:.2f} s (> {ODOMETRY_MAX_LAG_S:g} s: the daemon is behind its input; the FC would "
+                        "fuse the yaw misdated)", event="odometry_late")
+        msgs = self.scheduler.messages(gate_solution(sol, self.output_limits), now, late=late)
         if msgs:
             self._last_sent_fc_s, self._last_sent_sol = sol.time_fc_s, sol
         for msg in msgs:
@@ -736,6 +746,7 @@ class Daemon:
             self.link.connected, sol.phase if sol else "boot", now - self.started_s, self.link.stats.rates_hz(),
             {"imu_samples": c.imu_samples, "imu_rejected": c.imu_rejected,
              "pressure_samples": c.pressure_samples, **{f"sent_{k}": v for k, v in self.sent.items()},
+             "odometry_late": self.scheduler.odometry_late,
              **{f"imu_input_{k}": v for k, v in self.pipeline.input_checks.counts.items()},
              **self._link_counters(),
              **{f"commands_{k.lower()}": v for k, v in self.command_server.counts.items()}},
