@@ -17,9 +17,16 @@ Cases: vertical   vertical_launch scenario, u_SF from gravity at rest, random mo
        aligned    inclined_rail, IMU aligned with the airframe, u_SF = body x;
        nonaligned inclined_rail, random mount, u_SF = C_SF<-body [1,0,0] from the configured mount.
 
-The estimator gets only the sensor arrays and ``run.site`` (field from the WMM at the site and
-date, mounting rotation, launcher elevation for the cross-check); the launch instant is found by
-``launch_direction.launch_detect_step`` from the accelerometer. Truth is used only for scoring:
+Headline (``--modes pipeline``): every flight through the daemon's own ``service.pipeline.Pipeline``
+as its link feeds it (bench/sitl.py's pipeline_inputs), with the config an operator writes for it
+(site and date, IMU mount, ``[launch] case``, a launcher take-off, the distortion model; the
+launcher's true azimuth is never given): method A's solution as the daemon computes it (take-off
+by the phases, levelling on the launcher, re-solves on the daemon's schedule, inline) and the
+heading the daemon publishes. Diagnostic (``--modes per_method``): method A alone on the sensor
+arrays (the figures before session 4), its launch instant from
+``launch_direction.launch_detect_step``. Both decision halves run on a sealed run
+(bench/_truth_guard.py). The simulator's field is IGRF + the WMM's error budget + a crustal
+field (docs/SIMULATOR.md), not the estimators' WMM. Truth is used only for scoring:
 error = azimuth of u minus the azimuth of the true body x axis (the nose), sampled at 2 Hz from
 the first solution to 30 s after launch; samples with the true nose within 10 deg of vertical
 are not scored (no azimuth exists there; the estimator's sigma is huge there too).
@@ -50,6 +57,9 @@ from estimators import azimuth as az  # noqa: E402
 from estimators.geomag import earth_field  # noqa: E402
 from estimators.launch_direction import LaunchDetectState, launch_detect_step  # noqa: E402
 from sim.offline import simulate  # noqa: E402
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from _truth_guard import sealed  # noqa: E402
 
 CASES = ("vertical", "inclined", "aligned", "nonaligned")
 SCORE_HORIZON_S = 30.0
@@ -113,28 +123,48 @@ def wrap_pi(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
 
 
-def run_flight(case: str, seed: int, model: str, rate_hz: float, extra_overrides: dict | None = None,
-               params_kw: dict | None = None) -> dict:
-    """One simulated flight through the estimator; ``extra_overrides`` (ablations) are merged
-    over the randomised scenario overrides, ``params_kw`` over the estimator parameters."""
-    rng = np.random.default_rng(10_000 * CASES.index(case) + seed)
-    scenario, ov = flight_overrides(case, rng)
-    for k, v in (extra_overrides or {}).items():
-        ov[k] = {**ov.get(k, {}), **copy.deepcopy(v)} if isinstance(v, dict) else copy.deepcopy(v)
-    run = simulate(scenario, seed=seed, imu_grade="consumer", imu_rate_hz=rate_hz,
-                   duration_s=REST_S + WINDOW_S, overrides=ov)
-    p = estimator_params(case, run.site, model, **(params_kw or {}))
+def operator_config(case: str, ov: dict, site: dict, model: str, rate_hz: float) -> dict:
+    """The daemon's config for one flight, as its operator writes it: site and date, IMU mount,
+    launch case, a launcher take-off, the distortion model. The scenario's launcher azimuth is
+    not configuration (it is what method A estimates)."""
+    from service.config import validate
+    roll, pitch, yaw = ov["imu"]["mount_euler_deg"]
+    return validate({
+        "site": {"lat_deg": float(site["lat_deg"]), "lon_deg": float(site["lon_deg"]), "alt_m": float(site["alt_m"]),
+                 "decimal_year": float(site["decimal_year"])},
+        "imu": {"mount_roll_deg": float(roll), "mount_pitch_deg": float(pitch), "mount_yaw_deg": float(yaw)},
+        "launch": {"case": {"vertical": "vertical", "inclined": "inclined"}.get(case, "aligned"), "vehicle": "launcher"},
+        "azimuth": {"distortion_model": model, "solve_in_background": False},
+        "mavlink": {"imu_rate_hz": rate_hz}})
+
+
+def pipeline_decide(run, cfg: dict) -> list:
+    """The daemon's decision half on a (sealed) run: (FC time, A's azimuth, its sigma, A's
+    heading, its sigma, why not) per Pipeline solution (nan while A has no solution)."""
+    from service.pipeline import Pipeline
+    from sitl import feed_pipeline, pipeline_inputs
+    p = Pipeline(cfg)
+    nan = math.nan
+    rows = []
+    for sol in feed_pipeline(p, pipeline_inputs(run)):
+        a = p.azimuth_out
+        ok = sol.azimuth_rad is not None and a is not None and a.valid
+        rows.append((sol.time_fc_s, sol.azimuth_rad if ok else nan, sol.azimuth_sigma_rad if ok else nan,
+                     a.heading_rad if ok else nan, a.heading_sigma_rad if ok else nan,
+                     "" if ok else p.azimuth_status()))
+    return rows
+
+
+def per_method_decide(run, p: az.AzimuthParams) -> tuple[list, float | None, float]:
+    """Diagnostic: method A alone on a (sealed) run's sensor arrays. Rows as pipeline_decide's;
+    the launch time it detected; the cross-check angle (rad)."""
     st = az.azimuth_init(p)
     ld = LaunchDetectState()
     t_arr, g_arr, a_arr, m_arr = run.time_s, run.gyro_rad_s, run.accel_m_s2, run.mag_gauss
-    q_true = run.truth.q_nav_from_body
     launch = None
-    first_solution = None
-    scored = []          # (t_since_launch, az_err, az_sigma, hd_err, hd_sigma)
-    next_score = 0.0
-    at30 = None
-    reason = ""
-    t_launch_true = run.truth.launch_time_s
+    rows = []
+    nan = math.nan
+    out = None
     for i in range(len(t_arr)):
         t = float(t_arr[i])
         if launch is None:
@@ -144,30 +174,65 @@ def run_flight(case: str, seed: int, model: str, rate_hz: float, extra_overrides
                 launch = ld.launch_time_s
                 st, why = az.azimuth_launch(st, launch)
                 if why:
-                    reason = why
+                    rows.append((t, nan, nan, nan, nan, why))
             continue
         st, out = az.azimuth_step(st, g_arr[i], a_arr[i], m_arr[i], t)
+        rows.append((t, out.azimuth_rad, out.azimuth_sigma_rad, out.heading_rad, out.heading_sigma_rad, "")
+                    if out.valid else (t, nan, nan, nan, nan, out.reason))
+    return rows, launch, (out.cross_check_rad if out is not None else nan)
+
+
+def run_flight(case: str, seed: int, model: str, rate_hz: float, extra_overrides: dict | None = None,
+               params_kw: dict | None = None, mode: str = "per_method") -> dict:
+    """One simulated flight; ``mode`` pipeline (the daemon's Pipeline) or per_method (A alone);
+    ``extra_overrides`` (ablations) are merged over the randomised scenario overrides,
+    ``params_kw`` over the per-method estimator parameters."""
+    rng = np.random.default_rng(10_000 * CASES.index(case) + seed)
+    scenario, ov = flight_overrides(case, rng)
+    for k, v in (extra_overrides or {}).items():
+        ov[k] = {**ov.get(k, {}), **copy.deepcopy(v)} if isinstance(v, dict) else copy.deepcopy(v)
+    run = simulate(scenario, seed=seed, imu_grade="consumer", imu_rate_hz=rate_hz,
+                   duration_s=REST_S + WINDOW_S, overrides=ov)
+    p = estimator_params(case, run.site, model if model != "none" or mode != "pipeline" else "full12",
+                         **(params_kw or {}))
+    launch, cross = None, math.nan
+    if mode == "pipeline":
+        rows = pipeline_decide(sealed(run), operator_config(case, ov, run.site, model, rate_hz))
+    else:
+        rows, launch, cross = per_method_decide(sealed(run), p)
+    # scoring: truth from here on
+    q_true, t_arr = run.truth.q_nav_from_body, run.time_s
+    t_launch_true = run.truth.launch_time_s
+    first_solution = None
+    scored = []          # (t_since_launch, az_err, az_sigma, hd_err, hd_sigma)
+    next_score = 0.0
+    at30 = None
+    reason = ""
+    for (t, azr, azs, hd, hds, why) in rows:
         ts = t - t_launch_true
-        if out.valid and first_solution is None:
+        if ts < 0.0:
+            continue
+        valid = math.isfinite(azr)
+        if valid and first_solution is None:
             first_solution = ts
-        if not out.valid:
-            reason = out.reason
+        if not valid:
+            reason = why
         if ts >= next_score and ts <= SCORE_HORIZON_S + 1e-9:
             next_score += SCORE_PERIOD_S
-            if out.valid:
+            if valid:
+                i = min(int(np.searchsorted(t_arr, t - 1e-9)), len(t_arr) - 1)
                 az_true, el_true = nose_azimuth_elevation(q_true[i])
                 if abs(math.degrees(el_true)) <= MAX_NOSE_ELEVATION_DEG:
-                    rec = (ts, wrap_pi(out.azimuth_rad - az_true), out.azimuth_sigma_rad,
-                           wrap_pi(out.heading_rad - az_true), out.heading_sigma_rad)
-                    scored.append(rec)
+                    scored.append((ts, wrap_pi(azr - az_true), azs, wrap_pi(hd - az_true), hds))
             if abs(ts - SCORE_HORIZON_S) < 0.5 * SCORE_PERIOD_S:
                 at30 = scored[-1] if (scored and abs(scored[-1][0] - ts) < 1e-9) else None
     e = p.e_ned_gauss
-    return {"case": case, "seed": seed, "launch_detect_error_s": (launch - t_launch_true) if launch else None,
+    return {"case": case, "seed": seed, "mode": mode,
+            "launch_detect_error_s": (launch - t_launch_true) if launch else None,
             "inclination_deg": math.degrees(math.atan2(abs(e[2]), math.hypot(e[0], e[1]))),
             "first_solution_s": first_solution, "scored": scored, "at30": at30,
             "withheld_reason": reason if first_solution is None or first_solution > SCORE_HORIZON_S else "",
-            "cross_check_deg": math.degrees(out.cross_check_rad) if launch else None}
+            "cross_check_deg": math.degrees(cross) if launch else None}
 
 
 def summarise(results: list[dict]) -> dict:
@@ -279,6 +344,8 @@ def main(argv=None) -> int:
                     help="also run N flights of the 'inclined' case per error source switched off "
                          "(default: 5 with --quick, 25 otherwise; 0 = skip)")
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (flights are independent)")
+    ap.add_argument("--modes", default="pipeline,per_method",
+                    help="pipeline (the headline: the daemon's Pipeline) and/or per_method (A alone, diagnostic)")
     ap.add_argument("--json", default=str(pathlib.Path(__file__).resolve().parent / "results" / "azimuth_accuracy.json"))
     a = ap.parse_args(argv)
     n = a.flights if a.flights is not None else (20 if a.quick else 200)
@@ -286,29 +353,36 @@ def main(argv=None) -> int:
     for c in cases:
         if c not in CASES:
             ap.error(f"unknown case {c!r}; choose from {CASES}")
+    modes = [m for m in a.modes.split(",") if m]
+    if "pipeline" in modes and a.model == "none":
+        ap.error("--model none is a per_method diagnostic ([azimuth] distortion_model is seed7 or full12)")
     t0 = time.time()
     out = {"distortion_model": a.model, "imu_grade": "consumer", "imu_rate_hz": a.rate,
-           "flights_per_case": n, "score_horizon_s": SCORE_HORIZON_S, "cases": {}}
+           "flights_per_case": n, "score_horizon_s": SCORE_HORIZON_S, "headline": "pipeline", "modes": {}}
     print(f"method A azimuth, {n} flights per case, model {a.model}, consumer IMU at {a.rate:.0f} Hz, "
           f"figures at {SCORE_HORIZON_S:.0f} s after launch")
-    hdr = (f"{'case':<11}{'rms':>7}{'p95':>7}{'max':>7}{'sig~':>7}{'NEES':>7}{'poolRMS':>8}{'poolP95':>8}"
+    hdr = (f"{'mode':<11}{'case':<11}{'rms':>7}{'p95':>7}{'max':>7}{'sig~':>7}{'NEES':>7}{'poolRMS':>8}{'poolP95':>8}"
            f"{'poolNEES':>9}{'hdgRMS':>7}{'t1st':>6}{'held':>6}")
     print(hdr + "   (deg, s)")
-    for c in cases:
-        results = run_many([(c, s, a.model, a.rate) for s in range(n)], a.jobs)
-        s = summarise(results)
-        out["cases"][c] = s
-        print(f"{c:<11}{s['azimuth_rms_deg']:7.3f}{s['azimuth_p95_deg']:7.3f}{s['azimuth_max_deg']:7.2f}"
-              f"{s['azimuth_sigma_median_deg']:7.3f}{s['nees_mean']:7.2f}{s['azimuth_pooled_rms_deg']:8.3f}"
-              f"{s['azimuth_pooled_p95_deg']:8.3f}{s['nees_pooled_mean']:9.2f}{s['heading_rms_deg']:7.3f}"
-              f"{s['first_solution_median_s']:6.1f}{s['withheld_fraction']:6.2f}", flush=True)
-        if s["withheld_reasons"]:
-            print(f"{'':11}withheld: {s['withheld_reasons']}")
+    for mode in modes:
+        out["modes"][mode] = {"cases": {}}
+        for c in cases:
+            results = run_many([(c, s, a.model, a.rate, None, None, mode) for s in range(n)], a.jobs)
+            s = summarise(results)
+            out["modes"][mode]["cases"][c] = s
+            print(f"{mode:<11}{c:<11}{s['azimuth_rms_deg']:7.3f}{s['azimuth_p95_deg']:7.3f}{s['azimuth_max_deg']:7.2f}"
+                  f"{s['azimuth_sigma_median_deg']:7.3f}{s['nees_mean']:7.2f}{s['azimuth_pooled_rms_deg']:8.3f}"
+                  f"{s['azimuth_pooled_p95_deg']:8.3f}{s['nees_pooled_mean']:9.2f}{s['heading_rms_deg']:7.3f}"
+                  f"{s['first_solution_median_s']:6.1f}{s['withheld_fraction']:6.2f}", flush=True)
+            if s["withheld_reasons"]:
+                print(f"{'':22}withheld: {s['withheld_reasons']}")
+    out["cases"] = out["modes"][modes[0]]["cases"]
+    out["cases_mode"] = modes[0]
     print("azimuth RMS / p95 at 30 s by |magnetic inclination| (deg):")
     for c in out["cases"]:
         row = "  ".join(f"{k[5:-4].replace('_', '-'):>6}: {v['azimuth_rms_deg']:5.2f}/{v['azimuth_p95_deg']:5.2f} (n={v['flights']})"
                         for k, v in out["cases"][c]["by_inclination"].items())
-        print(f"  {c:<11}{row}")
+        print(f"  {out['cases_mode']:<11}{c:<11}{row}")
     n_ab = a.ablation if a.ablation is not None else (5 if a.quick else 25)
     if n_ab > 0:
         out["ablation_inclined"] = run_ablation("inclined", n_ab, a.model, a.rate, a.jobs)

@@ -4,9 +4,10 @@
 
 Cases (sim.offline.simulate, consumer IMU at 100 Hz, fed to ``service.pipeline.Pipeline`` as the
 daemon's link hands it the samples: bench/sitl.py's ``pipeline_inputs`` plus a 1 Hz HEARTBEAT
-(armed; system_status STANDBY before the launch, ACTIVE after, as ArduPlane reports
-is_flying) and a 1 Hz EKF status whose ``horiz_pos_ok`` clears at the simulator's GNSS loss,
-as the simulator sends EKF_STATUS_REPORT on the wire):
+(armed; system_status ArduPlane's is_flying() from the FC's OWN airspeed, bench/_fc_status.py)
+and a 1 Hz EKF status whose ``horiz_pos_ok`` clears at the GNSS loss the FC sees, as the simulator
+sends EKF_STATUS_REPORT on the wire). The decision half (``decide``) runs on a sealed run
+(bench/_truth_guard.py): the truth only scores (tests/test_truth_isolation.py).
 
 - ``inclined_rail``: rail launch, climb, turns; method A solves in flight; no GNSS loss;
 - ``inclined_rail_in_flight``: the same flight, the daemon started 60 s after the launch (no
@@ -23,8 +24,8 @@ outage), per ``heading_source``, and for the inputs the arbitration gets (B, C, 
 Targets (honest heading): >= 95 % within 3 sigma and NEES in [0.5, 2] in every window.
 
 ``--random-iron``: each flight's hard and soft iron drawn from the prior method C's published
-sigma assumes for an uncompensated magnetometer (PolarHeadingParams.uncalibrated_hard_iron_gauss
-per axis, uncalibrated_soft_iron per element, seeded by the flight's seed) instead of the
+sigma assumes for an uncompensated magnetometer ([heading] uncalibrated_hard_iron_gauss per axis,
+PolarHeadingParams.uncalibrated_soft_iron per element, seeded by the flight's seed) instead of the
 scenario's own: a calibration check of that consider model (C's input NEES ~1 on average when the
 airframes are drawn from the prior; a scenario's fixed iron is one draw).
 """
@@ -49,25 +50,24 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from estimators.polar_heading import polar_heading_estimate  # noqa: E402
-from mavlink_io.samples import FcAttitude, FcEkfStatus, FcHeartbeat, ImuSample, PressureSample  # noqa: E402
+from mavlink_io.samples import ImuSample  # noqa: E402
 from service.config import validate  # noqa: E402
 from service.pipeline import Pipeline  # noqa: E402
 from service.replay import json_safe  # noqa: E402
 from sim.offline import simulate  # noqa: E402
-from sitl import pipeline_inputs, scenario_site  # noqa: E402
+from _fc_status import feed, merged_items  # noqa: E402
+from _truth_guard import sealed  # noqa: E402
+from sitl import scenario_site  # noqa: E402
 
 IMU_HZ = 100.0
 GAP_S = 10.0
 """Length of the injected outage (s)."""
 AFTER_GAP_S = 30.0
 """The 'after_gap' window: this long after the outage ends (s)."""
-STATUS_PERIOD_S = 1.0
-MAV_STATE_STANDBY = 3
-MAV_STATE_ACTIVE = 4
 WINDOWS = ("overall", "before_gnss_loss", "after_gnss_loss", "after_gap")
 TARGET_WITHIN_3SIGMA = 0.95
-FC_SIGMA_RAD = [math.radians(1.5)]
-"""The FC yaw sigma in use (SyntheticAhrsParams' default unless --fc-yaw-sigma-deg)."""
+FC_SIGMA_RAD = [math.nan]
+"""The FC yaw sigma in use ([heading] fc_yaw_sigma_deg's default unless --fc-yaw-sigma-deg)."""
 TARGET_NEES = (0.5, 2.0)
 
 
@@ -94,39 +94,29 @@ def cases(quick: bool) -> list[dict]:
 
 
 def items_for(run, case: dict) -> list:
-    """The Pipeline inputs in time order, with HEARTBEAT and EKF status, the outage cut out."""
-    t_end = float(run.time_s[-1])
-    loss = run.gnss_lost_time_s
-    extra = []
-    launch = run.truth.launch_time_s
-    for t in np.arange(case["feed_from_s"], t_end, STATUS_PERIOD_S).tolist():
-        # armed; ArduPlane's system_status is ACTIVE once it flies, STANDBY before
-        status = MAV_STATE_ACTIVE if t >= launch else MAV_STATE_STANDBY
-        extra.append(FcHeartbeat(t, 1, 1, "ardupilot", 1, 129, 0, status, True))
-        extra.append(FcEkfStatus(t, True, loss is None or t < loss, 0, "ekf_status_report", t))
-    items = pipeline_inputs(run)
-    merged = sorted([(it.time_rx_s, 0, i, it) for i, it in enumerate(extra)]
-                    + [(it.time_rx_s, 1, i, it) for i, it in enumerate(items)], key=lambda x: x[:3])
+    """The Pipeline inputs in time order, with HEARTBEAT and EKF status (bench/_fc_status.py: from
+    the FC's own sensors), the outage cut out."""
     g0, g1 = case["gap_start_s"], case["gap_start_s"] + GAP_S
-    return [x[3] for x in merged if x[0] >= case["feed_from_s"] and not g0 <= x[0] < g1]
+    return merged_items(run, case["feed_from_s"], cut=lambda t: g0 <= t < g1)
 
 
 def random_iron_overrides(case: dict, seed: int) -> dict:
     """``case`` with its magnetometer's hard/soft iron drawn from method C's uncalibrated prior."""
     from estimators.polar_heading import PolarHeadingParams
+    from service.config import SPEC
     p = PolarHeadingParams()
     rng = np.random.default_rng(7919 + seed)
-    mag = {"hard_iron_gauss": rng.normal(0.0, p.uncalibrated_hard_iron_gauss, 3).tolist(),
+    hard_sigma = SPEC["heading"]["uncalibrated_hard_iron_gauss"].default   # what the Pipeline is given
+    mag = {"hard_iron_gauss": rng.normal(0.0, hard_sigma, 3).tolist(),
            "soft_iron": (np.eye(3) + rng.normal(0.0, p.uncalibrated_soft_iron, (3, 3))).tolist()}
     return {**case, "overrides": {**case["overrides"], "mag": {**case["overrides"].get("mag", {}), **mag}}}
 
 
-def fly(case: dict, seed: int, fc_yaw_sigma_deg: float | None = None) -> dict:
-    """One flight through a fresh Pipeline; per-solution arrays for scoring. ``fc_yaw_sigma_deg``:
-    the FC's yaw sigma the pipeline assumes (method B's SyntheticAhrsParams.fc_sigma_yaw_rad; no
-    config key yet), for a sensitivity run; None = the default."""
-    run = simulate(scenario=case["scenario"], seed=seed, imu_grade="consumer", imu_rate_hz=IMU_HZ,
-                   duration_s=case["duration_s"], overrides=case["overrides"])
+def decide(run, case: dict, fc_yaw_sigma_deg: float | None = None) -> dict:
+    """The daemon's decision half on a (sealed) SimRun: a fresh Pipeline with the operator's config
+    (site and date, launcher, mount: bench/sitl.py's scenario_site), fed as the daemon's link feeds
+    it. Per-solution lists: time, the published heading and sigma, its source, and the inputs the
+    arbitration got (B, C, the trusted FC's yaw). Reads no truth."""
     cfg = scenario_site(case["scenario"])
     s = run.site
     cfg["site"].update(lat_deg=s["lat_deg"], lon_deg=s["lon_deg"], alt_m=s["alt_m"],
@@ -137,35 +127,35 @@ def fly(case: dict, seed: int, fc_yaw_sigma_deg: float | None = None) -> dict:
     rec = {k: [] for k in ("t", "h", "s", "src", "b_h", "b_s", "c_h", "c_s", "f_h")}
     nan = math.nan
     for it in items_for(run, case):
-        c = type(it)
-        if c is ImuSample:
-            sol = p.on_imu(it)
-            p.drain_events()
-            if sol is None:
-                continue
-            rec["t"].append(sol.time_fc_s)
-            ok = sol.heading_valid
-            rec["h"].append(sol.heading_rad if ok else nan)
-            rec["s"].append(sol.heading_sigma_rad if ok else nan)
-            rec["src"].append(sol.heading_source)
-            b = p.ahrs_out
-            bok = b is not None and b.valid
-            rec["b_h"].append(b.heading_rad if bok else nan)
-            rec["b_s"].append(b.heading_sigma_rad if bok else nan)
-            h = polar_heading_estimate(p.polar_hdg)
-            rec["c_h"].append(h.heading_rad if h.initialised else nan)
-            rec["c_s"].append(math.sqrt(h.variance_rad2) if h.initialised else nan)
-            fc = p.fc_attitude
-            trusted = bok and b.reference_trusted and fc is not None
-            rec["f_h"].append(fc.yaw_rad if trusted else nan)
-        elif c is PressureSample:
-            p.on_pressure(it)
-        elif c is FcAttitude:
-            p.on_fc_attitude(it)
-        elif c is FcHeartbeat:
-            p.on_fc_heartbeat(it)
-        elif c is FcEkfStatus:
-            p.on_fc_ekf_status(it)
+        sol = feed(p, it)
+        if type(it) is not ImuSample or sol is None:
+            continue
+        rec["t"].append(sol.time_fc_s)
+        ok = sol.heading_valid
+        rec["h"].append(sol.heading_rad if ok else nan)
+        rec["s"].append(sol.heading_sigma_rad if ok else nan)
+        rec["src"].append(sol.heading_source)
+        b = p.ahrs_out
+        bok = b is not None and b.valid
+        rec["b_h"].append(b.heading_rad if bok else nan)
+        rec["b_s"].append(b.heading_sigma_rad if bok else nan)
+        h = polar_heading_estimate(p.polar_hdg)
+        rec["c_h"].append(h.heading_rad if h.initialised else nan)
+        rec["c_s"].append(math.sqrt(h.variance_rad2) if h.initialised else nan)
+        fc = p.fc_attitude
+        trusted = bok and b.reference_trusted and fc is not None
+        rec["f_h"].append(fc.yaw_rad if trusted else nan)
+    return rec
+
+
+def fly(case: dict, seed: int, fc_yaw_sigma_deg: float | None = None) -> dict:
+    """One flight: simulate, decide on the sealed run, score against the truth. ``fc_yaw_sigma_deg``:
+    the FC's yaw sigma the pipeline assumes (None = [heading] fc_yaw_sigma_deg's default), for a
+    sensitivity run."""
+    run = simulate(scenario=case["scenario"], seed=seed, imu_grade="consumer", imu_rate_hz=IMU_HZ,
+                   duration_s=case["duration_s"], overrides=case["overrides"])
+    rec = decide(sealed(run), case, fc_yaw_sigma_deg)
+    # scoring: truth from here on
     t = np.array(rec["t"])
     k = np.minimum(np.searchsorted(run.time_s, t - 1e-9), len(run.time_s) - 1)
     yaw = run.truth.euler_rad[k, 2]
@@ -250,23 +240,25 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="shorter flights, 2 seeds (~2 min)")
     ap.add_argument("--json", default=str(ROOT / "bench" / "results" / "heading_consistency.json"))
     ap.add_argument("--seeds", type=int, default=None, help="seeds per case (default 2 quick, 5 full)")
+    ap.add_argument("--seed-base", type=int, default=0,
+                    help="first seed (seeds seed-base .. seed-base + seeds - 1); 100+: seeds no default was chosen on")
     ap.add_argument("--random-iron", action="store_true",
                     help="hard/soft iron per flight drawn from method C's uncalibrated prior (module docstring)")
     ap.add_argument("--fc-yaw-sigma-deg", type=float, default=None,
                     help="sensitivity: the FC yaw sigma the pipeline assumes (default: SyntheticAhrsParams')")
     args = ap.parse_args(argv)
-    from estimators.synthetic_ahrs import SyntheticAhrsParams
-    FC_SIGMA_RAD[0] = (math.radians(args.fc_yaw_sigma_deg) if args.fc_yaw_sigma_deg is not None
-                       else SyntheticAhrsParams.fc_sigma_yaw_rad)
+    from service.config import SPEC
+    FC_SIGMA_RAD[0] = math.radians(args.fc_yaw_sigma_deg if args.fc_yaw_sigma_deg is not None
+                                   else SPEC["heading"]["fc_yaw_sigma_deg"].default)
     t0 = time.time()
     n_seeds = args.seeds if args.seeds is not None else (2 if args.quick else 5)
-    results = {"quick": args.quick, "seeds": n_seeds, "imu_rate_hz": IMU_HZ, "gap_s": GAP_S,
+    results = {"quick": args.quick, "seeds": n_seeds, "seed_base": args.seed_base, "imu_rate_hz": IMU_HZ, "gap_s": GAP_S,
                "fc_yaw_sigma_deg": math.degrees(FC_SIGMA_RAD[0]), "random_iron": args.random_iron, "cases": {}}
     all_flights = []
     print(HEADER)
     for case in cases(args.quick):
         flights = [fly(random_iron_overrides(case, seed) if args.random_iron else case, seed, args.fc_yaw_sigma_deg)
-                   for seed in range(n_seeds)]
+                   for seed in range(args.seed_base, args.seed_base + n_seeds)]
         all_flights += flights
         sc = score(flights)
         results["cases"][case["name"]] = {"gap_start_s": case["gap_start_s"], "duration_s": case["duration_s"],
