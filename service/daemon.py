@@ -587,7 +587,9 @@ class Daemon:
 
     def _geofence_step(self, sol: NavSolution) -> None:
         now = self.clock()
-        for spec in self.geofence.step(sol, self.pipeline.air_data(), now):
+        specs = self.geofence.step(sol, self.pipeline.air_data(), now)
+        self.commands.input_delay_s = self.geofence.input_age_s  # an ACK sits behind our input backlog
+        for spec in specs:
             for o in self.commands.submit(spec, now):
                 self._command_outcome(o, now)
         self._geofence_events()
