@@ -408,8 +408,8 @@ class GeofenceMonitor:
             h = (dr.alt_m - self.home[2]) + inp.alt_rate_m_s * t
             c = np.full_like(t, np.inf)
             if cfg.alt_min_m is not None:
-                if not self._alt_min_armed and h[0] >= cfg.alt_min_m + cfg.alt_margin_m + k * cfg.alt_sigma_m:
-                    self._alt_min_armed = True  # the floor applies once the vehicle has climbed above it
+                if not self._alt_min_armed and dr.alt_m - self.home[2] >= cfg.alt_min_m + cfg.alt_margin_m + k * cfg.alt_sigma_m:
+                    self._alt_min_armed = True  # the floor applies once the vehicle HAS climbed above it (not a prediction)
                 if self._alt_min_armed:
                     c = np.minimum(c, h - cfg.alt_min_m)
             if cfg.alt_max_m is not None:

@@ -235,6 +235,22 @@ def test_altitude_ceiling_predicted_with_the_climb_rate_and_floor_armed_after_cl
     assert cmds and cmds[0][0] == pytest.approx(15.5, abs=ONE_UPDATE)
 
 
+def test_a_late_daemon_arms_the_floor_on_the_height_reached_not_the_predicted_one():
+    # GIVEN a floor of 30 m (armed above 30 + 10 + 2 x 5 = 50 m; the ceiling far) and a daemon 5 s late from 1 s on,
+    # the vehicle climbing at 10 m/s to 45 m and holding it
+    m = monitor(inclusion=[], alt_min_m=30.0, alt_max_m=1000.0, alt_margin_m=10.0, alt_sigma_m=5.0)
+    prelaunch(m)
+    t, cmds = 0.0, []
+    while t < 30.0 - 1e-9:
+        t = round(t + 0.1, 6)
+        h, rate = min(10.0 * t, 45.0), (10.0 if 10.0 * t < 45.0 else 0.0)
+        cmds += m.step(sol(t, 90.0), air(t, alt_rel=h, rate=rate), t + (5.0 if t >= 1.0 else 0.0))
+    # WHEN its prediction 5 s ahead of the climb passes 50 m (from t = 0.1 s) but the height never does
+    # THEN the floor is never armed: no warning, no divert at 45 m
+    assert m.input_age_s == pytest.approx(5.0)
+    assert cmds == [] and not any(e.kind in ("geofence_warning", "geofence_breach") for e in m.drain_events())
+
+
 def test_heading_unknown_grows_the_radius_and_diverts_fail_safe():
     m = monitor(max_airspeed_m_s=30.0)
     prelaunch(m)
