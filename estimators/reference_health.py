@@ -19,7 +19,9 @@ the FC's attitude is trusted. Trusted means all of:
    taken at t_a the FC attitude carried forward by our gyros, P = C_fc(t_a) C_gyro(t_a)^T
    C_gyro(t), is compared with C_fc(t): C_fc P^T = I + [d x] (d in nav axes); its tilt part
    |d_xy| and yaw part |d_z| must stay below n_sigma sqrt(2 sigma_fc^2 + (sigma_bias (t -
-   t_a))^2) + margin, with the FC's normal tilt and yaw error sigmas respectively.
+   t_a))^2 + V(t) - V(t_a)) + margin, with the FC's normal tilt and yaw error sigmas
+   respectively, and V the integration error variance of our gyro-only attitude (per axis, rad^2,
+   accumulated by its integrator: sampled rates; see ``health_on_attitude``).
    This is the rate-agreement test integrated over the window (a mean rate disagreement
    w over T shows as w T), so a slow drift that a sample-by-sample rate test misses is caught.
    Its threshold is set by the FC's normal error (sigma_fc): a silent drift is detected once it
@@ -94,7 +96,7 @@ class ReferenceHealthState:
     attitude_interval_s: float | None = None
     """Mean interval of the FC's ATTITUDE samples (FC time, exponential average)."""
     anchors: tuple = ()
-    """((t_a, C_fc(t_a), C_gyro(t_a)), ...), oldest first."""
+    """((t_a, C_fc(t_a), C_gyro(t_a), V(t_a)), ...), oldest first (V: the integration variance)."""
     max_discrepancy_rad: float = 0.0
     """Largest anchor test ratio at the last check (delta / threshold; > 1 diverged)."""
     check_time_s: float | None = None
@@ -134,8 +136,15 @@ def _signals_bad(state: ReferenceHealthState, params: ReferenceHealthParams) -> 
 
 def health_on_attitude(state: ReferenceHealthState, C_nav_from_body_fc: np.ndarray,
                        C_nav_from_body_gyro: np.ndarray, time_s: float,
-                       params: ReferenceHealthParams = ReferenceHealthParams()) -> ReferenceHealthState:
-    """An FC ATTITUDE sample at FC time ``time_s`` with our gyro-only attitude at that time."""
+                       params: ReferenceHealthParams = ReferenceHealthParams(),
+                       gyro_integration_var_rad2: float = 0.0) -> ReferenceHealthState:
+    """An FC ATTITUDE sample at FC time ``time_s`` with our gyro-only attitude at that time.
+
+    ``gyro_integration_var_rad2``: the integration error variance (per axis, rad^2) accumulated
+    by our gyro-only attitude since it started (non-decreasing); the part accumulated since an
+    anchor widens that anchor's threshold. A 25 Hz log of a vibrating multicopter integrates
+    degrees of error in seconds that a 400 Hz stream does not: without this term the GNSS-aided
+    FC attitude of arducopter-rtl-midflight.bin read as a silent divergence after 23 s."""
     C_fc = np.asarray(C_nav_from_body_fc, dtype=float)
     C_g = np.asarray(C_nav_from_body_gyro, dtype=float)
     if not (np.all(np.isfinite(C_fc)) and np.all(np.isfinite(C_g)) and math.isfinite(time_s)):
@@ -149,12 +158,12 @@ def health_on_attitude(state: ReferenceHealthState, C_nav_from_body_fc: np.ndarr
             and not _signals_bad(state, params)):
         return replace(state, fc_time_s=time_s)
     worst = 0.0
-    for t_a, C_fc_a, C_g_a in state.anchors:
+    for t_a, C_fc_a, C_g_a, v_a in state.anchors:
         predicted = C_fc_a @ C_g_a.T @ C_g          # FC attitude carried forward by our gyros
         # discrepancy as a small nav-frame rotation: C_fc ~ (I + [d x]) predicted
         D = C_fc @ predicted.T
         d = 0.5 * np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])
-        drift2 = (params.sigma_bias_rad_s * (time_s - t_a)) ** 2
+        drift2 = (params.sigma_bias_rad_s * (time_s - t_a)) ** 2 + max(0.0, gyro_integration_var_rad2 - v_a)
         thr_tilt = params.n_sigma * math.sqrt(2.0 * params.sigma_fc_tilt_rad ** 2 + drift2) + params.margin_rad
         thr_yaw = params.n_sigma * math.sqrt(2.0 * params.sigma_fc_yaw_rad ** 2 + drift2) + params.margin_rad
         worst = max(worst, math.hypot(d[0], d[1]) / thr_tilt, abs(d[2]) / thr_yaw)
@@ -164,7 +173,7 @@ def health_on_attitude(state: ReferenceHealthState, C_nav_from_body_fc: np.ndarr
     if diverged or signals or state.silent_divergence:
         anchors = ()                                 # re-lay after the reference recovers
     elif not anchors or time_s - anchors[-1][0] >= params.anchor_period_s:
-        anchors = anchors + ((time_s, C_fc.copy(), C_g.copy()),)
+        anchors = anchors + ((time_s, C_fc.copy(), C_g.copy(), float(gyro_integration_var_rad2)),)
     silent = (state.silent_divergence or (diverged and not signals)) and not signals
     good = not (diverged or signals or silent)
     good_since = (state.good_since_s if state.good_since_s is not None else time_s) if good else None

@@ -223,6 +223,10 @@ class SyntheticAhrsState:
     q_gyro_free: np.ndarray | None = None
     """Gyro-only attitude q_free_from_body (started at identity, never reset; trapezoidal
     increments), for the reference agreement test: only its changes are used."""
+    gyro_prev_rad_s: np.ndarray | None = None
+    """The last bias-corrected body rate integrated into q_gyro_free."""
+    gyro_free_var_rad2: float = 0.0
+    """Integration error variance of q_gyro_free (per axis, rad^2) accumulated since it started."""
     b1: B1State | None = None
     kf2: Kf2State | None = None
     kf1_learn: Kf1State | None = None
@@ -434,11 +438,19 @@ def _on_imu(state: SyntheticAhrsState, ev: ImuEvent, params: SyntheticAhrsParams
         if dt <= params.kf2.max_dt_s:
             qf = quat_mul(qf, quat_from_rotvec(w * dt))   # rectangular: ample for the test
             qf = qf / math.sqrt(float(qf @ qf))
+            if state.gyro_prev_rad_s is not None:
+                # each step's error is (mean rate over the interval - sample) dt. Rate content at or
+                # above the sample rate (vibration, noise) makes successive samples independent
+                # about the mean, E|w_k - w_k-1|^2 = 2 sigma_w^2 per axis (3 axes: 6 sigma_w^2), and
+                # each step adds sigma_w^2 dt^2 per axis: summed, the one-sample estimates average
+                # out. Manoeuvres inflate it (conservative).
+                sigma_w2 = float(np.sum((w - state.gyro_prev_rad_s) ** 2)) / 6.0
+                state = _upd(state, gyro_free_var_rad2=state.gyro_free_var_rad2 + sigma_w2 * dt * dt)
         elif state.health.anchors:
             # a gap: the gyro-only attitude did not see it, so the FC's change across it cannot be
             # compared with ours (it would read as a silent divergence): re-lay the anchors
             state = _upd(state, health=_upd(state.health, anchors=()))
-    state = _upd(state, q_gyro_free=qf, omega_lp_rad_s=wlp, time_s=t)
+    state = _upd(state, q_gyro_free=qf, omega_lp_rad_s=wlp, time_s=t, gyro_prev_rad_s=w)
     state = _trust(state, t, params)
     if state.b1 is not None:
         return _upd(state, b1=b1_imu_step(state.b1, gyro_b, t, params.b1))
@@ -611,7 +623,8 @@ def _on_fc_attitude(state: SyntheticAhrsState, ev: FcAttitudeEvent, params: Synt
         state = _upd(state, health=_upd(state.health, fc_time_s=t, anchors=()))
     elif state.q_gyro_free is not None:
         C_fc = dcm_from_euler(*e)
-        h = health_on_attitude(state.health, C_fc, dcm_from_quat(state.q_gyro_free), t, params.health)
+        h = health_on_attitude(state.health, C_fc, dcm_from_quat(state.q_gyro_free), t, params.health,
+                               state.gyro_free_var_rad2)
         state = _upd(state, health=h)
     state = _upd(state, fc_last=(t, e.copy()))
     state = _trust(state, t if state.time_s is None else max(t, state.time_s), params)
