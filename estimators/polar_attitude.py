@@ -11,7 +11,9 @@ P  the "floating platform" frame: locally level at start (its azimuth is the bod
    start, i.e. arbitrary), then carried by the mechanisation below; it is never corrected for
    position, so nothing in the filter divides by cos(latitude).
 
-Nominal mechanisation (per IMU sample, two-sample strapdown as estimators/strapdown.py):
+Nominal mechanisation (per sample, a sample being the mean rate and specific force over its
+interval: increment (w - b_g) dt with the two-interval coning term, exact quaternion update,
+so no Euler angle and no small-angle step anywhere: any attitude, rates up to the gyro range):
 
     C_PB' = C_PB [w_hat x] - [W_hat x] C_PB,   w_hat = w_meas - b_g_hat,
     W_hat = w_ie_P_hat + w_eP_P_hat            (Earth rate + transport rate, both in P)
@@ -57,6 +59,15 @@ its residual to the residual's size (``_match_gated_accel``), which bounds the a
 of the update by one attitude sigma. After ``reentry_max_wait_updates`` unsettled residuals
 under the gate the next one is fused anyway (with (2)), so a vehicle whose residual never
 settles is not left on the gyros.
+
+Holes (beyond the seed): samples the link lost inside an interval (longer than 1.5 x the previous
+one, up to ``max_dt_s``) are bridged on the rate taken linear between the samples around the hole,
+with the variance of what that line may miss added to the attitude (``_bridge_variance_rad2``);
+a longer gap is not integrated and widens the attitude covariance (``polar_attitude_unseen``).
+
+Re-levelling at rest (beyond the seed): a tilt error beyond the gate (after a tumble) would be
+rejected for ever; after ``relevel_rest_s`` of gated-out updates at rest roll/pitch are reset
+from the accelerometer with a derived sigma, P's azimuth kept (``_relevel``; diag.relevelled).
 
 The vehicle-acceleration GM state is what keeps manoeuvre accelerations out of the attitude
 (they are absorbed as a_v for ~tau_av); beyond the seed its variance is raised while the gyros
@@ -159,12 +170,29 @@ class PolarAttitudeParams:
     >= 0): before the first update fused after a gated-out run, the variance of a_v along its
     residual z is raised by this gain times ``|z|^2 - u^T S u`` (u = z/|z|), so that residual goes
     to a_v rather than to the attitude (``_match_gated_accel``). 0 switches it off."""
-    max_dt_s: float = 0.1
-    """Largest IMU sample interval that is integrated; a longer gap is reported, not integrated."""
+    max_dt_s: float = 0.5
+    """Largest sample interval that is integrated (bridged when it holds lost samples, see
+    ``gap_rate_walk_rad_s2_rt_hz``); a longer gap is an interval not seen (``polar_attitude_unseen``).
+    The daemon sets it to [mavlink] imu_gap_s (default 0.5 s, as the strapdown's), beyond which the
+    link reports a time_gap."""
     unseen_rate_sigma_rad_s: float = math.radians(10.0)
     """Over an interval the filter did not see (a gap longer than ``max_dt_s``, or an interval
     the caller reports with ``polar_attitude_unseen``) the vehicle kept manoeuvring: the attitude
     error variance grows by (this rate x the interval)^2 per axis (rad/s) ..."""
+    relevel_rest_s: float = 1.0
+    """Re-levelling at rest (see ``_relevel``): the specific-force update must have been gated
+    out at rest for this long (s) before roll/pitch are re-initialised from the accelerometer."""
+    relevel_max_rate_rad_s: float = math.radians(5.0)
+    """Rest test: the bias-corrected mean body rate of an update interval is below this (rad/s)."""
+    relevel_norm_tol_m_s2: float = 0.1
+    """Rest test: | |f - b_a| - g | of an update interval is below this (m/s^2). It also bounds
+    the horizontal acceleration such a rest can hide, a_max = sqrt(2 g tol), and so the
+    re-levelled tilt sigma (``_relevel``)."""
+    gap_rate_walk_rad_s2_rt_hz: float = math.radians(10.0)
+    """A hole in the samples (an interval longer than 1.5 x the previous one, up to ``max_dt_s``: IMU
+    samples the link lost) is bridged with the rate taken linear between the samples around it;
+    the rate's deviation from that line is modelled as a random walk of this intensity (rad/s^2
+    per sqrt(Hz)): see ``_bridge_variance_rad2``."""
     unseen_max_sigma_rad: float = math.radians(30.0)
     """... up to this sigma (rad): a wide prior on the attitude after an unseen interval of a few
     seconds or more, so the specific force pulls roll/pitch back at the next updates and the
@@ -178,7 +206,9 @@ class PolarAttitudeParams:
                      "transport_rate_tau_s", "accel_bias_sigma_m_s2", "accel_bias_tau_s",
                      "gravity_variation_sigma_m_s2", "gravity_variation_tau_s", "gravity_m_s2",
                      "init_tilt_sigma_rad", "init_yaw_sigma_rad", "max_platform_yaw_sigma_rad",
-                     "gate_chi2", "reentry_settle_chi2", "max_dt_s", "unseen_rate_sigma_rad_s", "unseen_max_sigma_rad"):
+                     "gate_chi2", "reentry_settle_chi2", "max_dt_s", "unseen_rate_sigma_rad_s", "unseen_max_sigma_rad",
+                     "relevel_rest_s", "relevel_max_rate_rad_s", "relevel_norm_tol_m_s2",
+                     "gap_rate_walk_rad_s2_rt_hz"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
@@ -219,6 +249,15 @@ class PolarAttitudeState:
     """Of those, the consecutive ones that passed the gate but not the re-entry test."""
     z_prev_m_s2: np.ndarray | None = None
     """Specific-force residual of the previous update (body, m/s^2); None before the first."""
+    rest_gated_run: int = 0
+    """Consecutive updates gated out at rest (``_rest_test``): the re-levelling count."""
+    rest_f_sum_m_s2: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    """Sum of the bias-corrected mean specific force (body) over those updates."""
+    rest_s: float = 0.0
+    """Time those updates span (s)."""
+    n_relevels: int = 0
+    sample_dt_s: float | None = None
+    """Interval of the last sample that was not a hole (s): what a regular interval of this stream is."""
     """Sigma of the gyro-bias prior given at init (None: params.gyro_bias_init_sigma_rad_s)."""
 
     def to_dict(self) -> dict:
@@ -230,7 +269,8 @@ class PolarAttitudeState:
     @classmethod
     def from_dict(cls, d: dict) -> "PolarAttitudeState":
         arrays = {"q_P_from_body", "x_hat", "P", "gyro_prev_rad_s", "acc_f_sum_m_s2",
-                  "acc_down_sum", "acc_q_b0_from_b", "acc_C_BP_start", "z_prev_m_s2"}
+                  "acc_down_sum", "acc_q_b0_from_b", "acc_C_BP_start", "z_prev_m_s2",
+                  "rest_f_sum_m_s2"}
         kw = {k: (np.array(v, dtype=float) if (k in arrays and v is not None) else v)
               for k, v in d.items()}
         return cls(**kw)
@@ -251,6 +291,11 @@ class PolarAttitudeDiag:
     accel_var_raised_m2_s4: float = 0.0
     """Variance added to the vehicle acceleration along the rejected residual (m^2/s^4; 0 when
     fused or when nothing was added): the flag "sustained acceleration the model did not expect"."""
+    relevelled: bool = False
+    """Roll/pitch were re-initialised from the accelerometer at rest at this update (``_relevel``);
+    ``reason`` says by how much."""
+    relevel_rad: float = 0.0
+    """Tilt correction of that re-levelling (rad)."""
 
 
 @dataclass(frozen=True)
@@ -354,7 +399,8 @@ def polar_attitude_unseen(state: PolarAttitudeState, unseen_s: float,
     x = state.x_hat.copy()
     x[3:6] *= math.exp(-unseen_s / p.vehicle_accel_tau_s)
     C_BP = dcm_from_quat(state.q_P_from_body).T
-    return replace(state, P=0.5 * (P + P.T), x_hat=x, time_s=None, gyro_prev_rad_s=None, acc_n=0, acc_dt_s=0.0,
+    return replace(state, P=0.5 * (P + P.T), x_hat=x, time_s=None, gyro_prev_rad_s=None, sample_dt_s=None,
+                   acc_n=0, acc_dt_s=0.0,
                    acc_f_sum_m_s2=np.zeros(3), acc_down_sum=np.zeros(3),
                    acc_q_b0_from_b=np.array([1.0, 0.0, 0.0, 0.0]), acc_C_BP_start=C_BP)
 
@@ -394,14 +440,31 @@ def polar_attitude_step(state: PolarAttitudeState, time_s: float, gyro_body_rad_
         # keep the attitude, restart the increments (strapdown.py's rule), and let the covariance
         # say what the unseen interval may have done to the attitude
         st = polar_attitude_unseen(state, dt, params)
-        return replace(st, time_s=time_s, gyro_prev_rad_s=w), PolarAttitudeDiag(
+        return replace(st, time_s=time_s, gyro_prev_rad_s=w, sample_dt_s=None), PolarAttitudeDiag(
             reason=f"gap of {dt:.3f} s not integrated; attitude sigma widened")
+    hole = state.sample_dt_s is not None and dt > 1.5 * state.sample_dt_s
 
     xh = state.x_hat
     b_g = xh[0:3]
     W_hat = xh[6:9] + xh[9:12]
-    # two-sample body increment (trapezoid) on bias-corrected rates
-    dtheta = 0.5 * ((state.gyro_prev_rad_s - b_g) + (w - b_g)) * dt
+    # body increment: the sample is the mean rate over its interval (the daemon's filter-rate
+    # mean of the IMU samples), so the increment is (w - b_g) dt, plus the two-interval coning
+    # term (1/12) a_prev x a: a rotation whose axis turns within the interval (a tumble) is not
+    # the rotation about the mean rate; at 500 deg/s with a wobbling axis and 50 Hz samples the
+    # trapezoid of the mean rates lagged half a sample and drifted 4 deg in 3 s
+    a_prev = (state.gyro_prev_rad_s - b_g) * dt
+    a_now = (w - b_g) * dt
+    if hole:
+        # samples lost inside the interval: this sample's mean rate covers only its own last
+        # sample_dt_s; over the hole before it, h = dt - sample_dt_s, the rate is taken linear
+        # between the two samples' means (centred sample_dt_s / 2 before their stamps, so the mean
+        # of that line over the hole is (w_prev + w) / 2: exact for a rate ramp), and the
+        # covariance says what that line may miss (``_bridge_variance_rad2``)
+        h_s = dt - state.sample_dt_s
+        dtheta = (0.5 * ((state.gyro_prev_rad_s - b_g) + (w - b_g)) * h_s + (w - b_g) * state.sample_dt_s
+                  + np.cross(a_prev, a_now) / 12.0)
+    else:
+        dtheta = a_now + np.cross(a_prev, a_now) / 12.0
     qb = quat_from_rotvec(dtheta)
     q = quat_mul(quat_from_rotvec(-W_hat * dt), quat_mul(state.q_P_from_body, qb))
     q = q / math.sqrt(float(q @ q))
@@ -409,14 +472,42 @@ def polar_attitude_step(state: PolarAttitudeState, time_s: float, gyro_body_rad_
     x_new = xh.copy()
     x_new[3:6] *= math.exp(-dt / params.vehicle_accel_tau_s)
     q_int = quat_mul(state.acc_q_b0_from_b, qb)
-    st = replace(state, time_s=time_s, q_P_from_body=q, x_hat=x_new, gyro_prev_rad_s=w,
+    P_att = state.P
+    if hole:
+        P_att = state.P.copy()
+        P_att[I_ATT, I_ATT] += np.eye(3) * _bridge_variance_rad2(state.gyro_prev_rad_s, w, h_s, params)
+    st = replace(state, time_s=time_s, q_P_from_body=q, x_hat=x_new, gyro_prev_rad_s=w, P=P_att,
+                 sample_dt_s=state.sample_dt_s if hole else dt,
                  acc_n=state.acc_n + 1, acc_dt_s=state.acc_dt_s + dt,
                  acc_f_sum_m_s2=state.acc_f_sum_m_s2 + f,
-                 acc_down_sum=state.acc_down_sum + _down_in_body(q),
+                 acc_down_sum=state.acc_down_sum + _down_mean_over_sample(state.q_P_from_body, q, W_hat, dt, dtheta),
                  acc_q_b0_from_b=q_int)
     if st.acc_dt_s + 1e-9 < params.update_period_s:
         return st, PolarAttitudeDiag()
     return _update(st, params)
+
+
+def _bridge_variance_rad2(w_prev: np.ndarray, w: np.ndarray, dt: float, p: PolarAttitudeParams) -> float:
+    """Per-axis variance (rad^2) of the angle a hole of ``dt`` adds when bridged by the line.
+
+    Two terms, both about the rate's departure from the line between the samples around the hole:
+    a rate that is a random walk of intensity q = gap_rate_walk^2 pinned at both ends is a Brownian
+    bridge, and the variance of its integral over [0, T] is q T^3 / 12 (the double integral of the
+    bridge covariance min(s, t) - s t / T); a step of the rate from w_prev to w at a uniformly
+    unknown instant inside the hole misses ((w - w_prev) T)^2 / 12 of the angle (the variance of
+    (tau - T/2) for tau uniform on [0, T]), taken per axis on the largest component."""
+    step = float(np.max(np.abs(w - w_prev))) * dt
+    return p.gap_rate_walk_rad_s2_rt_hz ** 2 * dt ** 3 / 12.0 + step * step / 12.0
+
+
+def _down_mean_over_sample(q0: np.ndarray, q1: np.ndarray, W_hat: np.ndarray, dt: float,
+                           dtheta: np.ndarray) -> np.ndarray:
+    """Mean over the sample's interval of the predicted down direction in B (Simpson's rule on
+    start, middle and end attitude): the specific force of a sample is the mean over its interval,
+    and at 500 deg/s the body turns 10 deg in a 20 ms sample, so the end attitude alone would
+    predict gravity ~5 deg off its mean direction (what a spin then fused into the tilt)."""
+    qm = quat_mul(quat_from_rotvec(-0.5 * W_hat * dt), quat_mul(q0, quat_from_rotvec(0.5 * dtheta)))
+    return (_down_in_body(q0) + 4.0 * _down_in_body(qm) + _down_in_body(q1)) / 6.0
 
 
 def _init_step(state, time_s, w, f, params):
@@ -538,8 +629,93 @@ def _update(st: PolarAttitudeState, p: PolarAttitudeParams):
                   z_prev_m_s2=z)
     reason = ("" if fused else "specific-force residual gated out" if not gate_ok
               else "specific-force residual not settled after a gated-out run")
+    f_c = f_mean - xh[12:15]
+    if not gate_ok and _at_rest(st, f_c, g, w_mean, z, r, s0 * (1.0 - phi_diag[6] ** 2), p):
+        st2 = replace(st2, rest_gated_run=st.rest_gated_run + 1, rest_f_sum_m_s2=st.rest_f_sum_m_s2 + f_c,
+                      rest_s=st.rest_s + T)
+    elif st.rest_gated_run:
+        st2 = replace(st2, rest_gated_run=0, rest_f_sum_m_s2=np.zeros(3), rest_s=0.0)
+    if st2.rest_gated_run and st2.rest_s + 1e-9 >= p.relevel_rest_s:
+        st2, moved = _relevel(st2, p)
+        return st2, PolarAttitudeDiag(
+            updated=True, fused=False, innovation_m_s2=z, test_ratio=ratio, settle_ratio=settle_ratio,
+            reason=f"re-levelled at rest: tilt corrected by {math.degrees(moved):.1f} deg from the accelerometer "
+                   f"after {p.relevel_rest_s:.1f} s of gated-out updates", relevelled=True, relevel_rad=moved)
     return st2, PolarAttitudeDiag(updated=True, fused=fused, innovation_m_s2=z, test_ratio=ratio,
                                   reason=reason, settle_ratio=settle_ratio, accel_var_raised_m2_s4=raised)
+
+
+def _at_rest(st: PolarAttitudeState, f_c: np.ndarray, g: float, w_mean: np.ndarray, z: np.ndarray,
+             r: float, q_av: float, p: PolarAttitudeParams) -> bool:
+    """Rest test of one update interval: |f - b_a| ~ g, low rate, and a steady residual (it differs
+    from the previous update's by no more than two steady residuals do, as ``_reentry``)."""
+    if abs(float(np.linalg.norm(f_c)) - g) > p.relevel_norm_tol_m_s2:
+        return False
+    if float(np.linalg.norm(w_mean)) > p.relevel_max_rate_rad_s:
+        return False
+    if st.z_prev_m_s2 is None:
+        return True
+    d = z - st.z_prev_m_s2
+    return float(d @ d) / (2.0 * r + q_av) <= p.reentry_settle_chi2
+
+
+def _relevel(st: PolarAttitudeState, p: PolarAttitudeParams) -> tuple[PolarAttitudeState, float]:
+    """Re-initialise roll/pitch from the accelerometer after a sustained gated-out rest.
+
+    Why: the gate rejects a residual beyond sqrt(gate_chi2) innovation sigmas, and a rejected
+    update changes nothing. A tilt error larger than that (after a tumble beyond the gyro range,
+    or rotations the error model linearised badly: the issue-18 replay lay flat at roll -41 deg,
+    pitch +31 deg, rejecting every update) is therefore never corrected. Widening the attitude
+    covariance until the gate accepts (covariance matching, as ``_match_gated_accel`` does for
+    a_v) would fuse a 40-180 deg error through the small-angle model C (I + [eps x]), which is
+    wrong at that size; so at this depth the nominal attitude is reset exactly instead.
+
+    When: every update of ``relevel_rest_s`` was gated out AND at rest (``_at_rest``: |f - b_a|
+    within ``relevel_norm_tol_m_s2`` of g, body rate under ``relevel_max_rate_rad_s``, a steady
+    residual). A wrong tilt at rest gives exactly that (a constant residual of |z| = 2 g sin(e/2)
+    with |f| = g); a real acceleration a along the level gives |f| - g = a^2 / (2 g), so the
+    norm test admits at most a_max = sqrt(2 g tol) of it (1.4 m/s^2 for 0.1 m/s^2).
+
+    How: the measured down direction d_m = -f/|f| (mean of the rest run, b_a removed) and the
+    estimated one d = C_BP[:, 2]. The smallest body rotation with R d_m = d (axis d_m x d, angle
+    between them) gives C_PB' = C_PB R, so C_PB' d_m = e3: roll/pitch from the accelerometer,
+    while the rotation has no component about the vertical, so P's azimuth (the heading the
+    heading filter carries) and the gyro bias (a rate, not an angle) are kept.
+
+    Sigma: the residual tilt error is the hidden acceleration and the horizontal accelerometer
+    bias over g; a_max is taken as 3 sigma: sigma_t = hypot(a_max / 3, sigma_ba) / g (2.7 deg with
+    the defaults). The attitude block becomes sigma_t^2 (I - d_m d_m^T) + v d_m d_m^T (v: the old
+    variance about the vertical, kept), its cross-covariances are zeroed (the new tilt comes
+    from the accelerometer, not from the states), and a_v restarts at its prior.
+    """
+    f = st.rest_f_sum_m_s2 / st.rest_gated_run
+    C_BP = dcm_from_quat(st.q_P_from_body).T
+    d_hat = C_BP[:, 2]
+    d_m = -f / float(np.linalg.norm(f))
+    axis = np.cross(d_m, d_hat)
+    s_ang, c_ang = float(np.linalg.norm(axis)), float(d_m @ d_hat)
+    angle = math.atan2(s_ang, c_ang)
+    if s_ang < 1e-9:      # parallel (no move) or opposite (upside down): any axis normal to d_m
+        axis = np.cross(d_m, [1.0, 0.0, 0.0] if abs(d_m[0]) < 0.9 else [0.0, 1.0, 0.0])
+        s_ang = float(np.linalg.norm(axis))
+    eps = axis / s_ang * angle
+    q = quat_mul(st.q_P_from_body, quat_from_rotvec(eps))
+    q = q / math.sqrt(float(q @ q))
+    a_max = math.sqrt(2.0 * p.gravity_m_s2 * p.relevel_norm_tol_m_s2)
+    sig_t = math.hypot(a_max / 3.0, p.accel_bias_sigma_m_s2) / p.gravity_m_s2
+    v_vert = float(d_hat @ st.P[I_ATT, I_ATT] @ d_hat)
+    P = st.P.copy()
+    P[I_ATT, :] = 0.0
+    P[:, I_ATT] = 0.0
+    P[I_ATT, I_ATT] = sig_t ** 2 * (np.eye(3) - np.outer(d_m, d_m)) + v_vert * np.outer(d_m, d_m)
+    P[I_AV, :] = 0.0
+    P[:, I_AV] = 0.0
+    P[I_AV, I_AV] = np.eye(3) * p.vehicle_accel_sigma_m_s2 ** 2
+    x = st.x_hat.copy()
+    x[3:6] = 0.0
+    return replace(st, q_P_from_body=q, x_hat=x, P=P, acc_C_BP_start=dcm_from_quat(q).T,
+                   gated_run=0, reentry_wait=0, z_prev_m_s2=None, rest_gated_run=0,
+                   rest_f_sum_m_s2=np.zeros(3), rest_s=0.0, n_relevels=st.n_relevels + 1), angle
 
 
 def _reentry(st: PolarAttitudeState, z: np.ndarray, r: float, q_av: float,
