@@ -27,7 +27,8 @@ THE_WHEEL = $(or $(WHEEL),$$(ls $(DIST)/azimuthd-*.whl))
 
 venv: $(STAMP)
 
-$(STAMP): pyproject.toml
+# the compiled core is built at install time (scikit-build-core): its sources re-run the install
+$(STAMP): pyproject.toml CMakeLists.txt $(wildcard core/*.cpp core/*.hpp)
 	$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "azimuthd needs Python >= 3.11")'
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
@@ -40,9 +41,10 @@ run: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q --durations=25 tests
 
-# a wheel of this tree, built by the service venv's pip (what install and upgrade put in it)
+# a wheel of this tree, built by the service venv's pip (what install and upgrade put in it); DESTDIR
+# is kept from the build (CMake's install step into the wheel would honour it and miss the wheel)
 wheel: $(SVC_PY)
-	$(if $(WHEEL),@echo "using $(WHEEL)",rm -rf $(DIST) && $(SVC_PY) -m pip wheel --quiet --no-deps --wheel-dir $(DIST) .)
+	$(if $(WHEEL),@echo "using $(WHEEL)",rm -rf $(DIST) && env -u DESTDIR $(SVC_PY) -m pip wheel --quiet --no-deps --wheel-dir $(DIST) .)
 
 $(SVC_PY):
 	$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "azimuthd needs Python >= 3.11")'

@@ -52,6 +52,12 @@ def test_install_upgrade_uninstall_in_a_staging_root(tmp_path):
 
     run = subprocess.run([str(venv_cmd), "--version"], capture_output=True, text=True, timeout=60)
     assert run.stdout.strip() == "azimuthd 0.1.0", run.stderr
+    # the wheel carries the compiled core, built for this machine (it imports; numpy, which its
+    # calls need, is a dependency not fetched here)
+    core = subprocess.run([str(d / "opt/azimuthd/bin/python"), "-c",
+                           "from estimators import _core; print(_core.LEVELLING_PACKED, _core.__file__.endswith('.so'))"],
+                          capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert core.stdout.split() == ["38", "True"], core.stderr
     # the extras were not installed: each says how to get it, in one line, exit 2
     for args, words in ((["watch"], "pip install 'azimuthd[tui]'"),
                         (["replay", "x.tlog", "--plot", "p.png"], "pip install 'azimuthd[plot]'")):
