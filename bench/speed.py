@@ -12,6 +12,11 @@ separate processes at 400 Hz.
    references imufusion (x-io Fusion, C), vqf (C++), ahrs Madgwick and ahrs EKF (numpy). The
    references are benchmark-only: installed into this venv at bench start if missing (their
    versions are printed), never runtime dependencies.
+   The compiled core (issue 19): the whole stack runs twice, with the ported parts in the core (the
+   default) and with the Python reference (AZIMUTHD_CORE=python); each ported part runs as the
+   Python reference, through the core per sample, and through the core's batch API (the whole
+   stream's N x 3 arrays in one call). JSON ``ported``: per-sample costs and speed-ups
+   (``*_speedup_x`` = reference / core), all from the same run as imufusion and vqf.
 2. Latency. ``bench.sitl.Sitl`` (simulator and daemon as two processes over loopback UDP) with a
    tap between them that timestamps, on one monotonic clock in one thread, every RAW_IMU it
    forwards to the daemon and every ATTITUDE the daemon sends back. The daemon stamps ATTITUDE
@@ -102,15 +107,31 @@ def site_config(run) -> dict:
 # over the stream (fresh state each pass). Factories that fail (an estimator's API moved) are
 # reported as errors, not hidden.
 
-def case_pipeline(run, items):
-    from bench.sitl import feed_pipeline
-    from service.pipeline import Pipeline
-    cfg = site_config(run)
+def _pipeline_case(backend: str):
+    """The whole stack with the ported parts in the compiled core or the Python reference
+    (service/core_backend.py: AZIMUTHD_CORE, read when a Pipeline is built)."""
+    def factory(run, items):
+        from bench.sitl import feed_pipeline
+        from service.pipeline import Pipeline
+        cfg = site_config(run)
 
-    def one_pass():
-        for _ in feed_pipeline(Pipeline(cfg), items):
-            pass
-    return one_pass
+        def one_pass():
+            before = os.environ.get("AZIMUTHD_CORE")
+            os.environ["AZIMUTHD_CORE"] = backend
+            try:
+                p = Pipeline(cfg)
+            finally:
+                os.environ.pop("AZIMUTHD_CORE") if before is None else os.environ.update(AZIMUTHD_CORE=before)
+            if p.core.name != backend:
+                raise RuntimeError(f"asked for {backend}, got {p.core.name}: {p.core.why}")
+            for _ in feed_pipeline(p, items):
+                pass
+        return one_pass
+    return factory
+
+
+case_pipeline = _pipeline_case("core")
+case_pipeline_python = _pipeline_case("python")
 
 
 def case_phases(run, items):
@@ -134,6 +155,71 @@ def case_strapdown(run, items):
         st = strapdown_init(np.array([1.0, 0.0, 0.0, 0.0]))
         for k in range(len(t)):
             st, _ = strapdown_step(st, g[k], t[k], params)
+    return one_pass
+
+
+def _in_flight_rates(run):
+    """Bias-corrected rates as the Pipeline propagates them (the bias: the first 200 samples' mean)."""
+    g = np.ascontiguousarray(run.gyro_rad_s - run.gyro_rad_s[:200].mean(axis=0))
+    return run.time_s.copy(), g
+
+
+def case_strapdown_core_held(run, items):
+    """The Pipeline's hot path: the state held in the core, one call per sample."""
+    from estimators.core import strapdown_step_held
+    from estimators.strapdown import StrapdownParams, strapdown_init
+    t, g = _in_flight_rates(run)
+    t, g, params = t.tolist(), list(g), StrapdownParams()
+
+    def one_pass():
+        st = strapdown_init(np.array([1.0, 0.0, 0.0, 0.0]))
+        for k in range(len(t)):
+            st, _ = strapdown_step_held(st, g[k], t[k], params)
+    return one_pass
+
+
+def case_strapdown_core_batch(run, items):
+    """The batch API: the whole stream's (N, 3) rates in one call."""
+    from estimators.core import strapdown_propagate
+    from estimators.strapdown import StrapdownParams, strapdown_init
+    t, g = _in_flight_rates(run)
+
+    def one_pass():
+        strapdown_propagate(strapdown_init(np.array([1.0, 0.0, 0.0, 0.0])), g, t, StrapdownParams())
+    return one_pass
+
+
+def case_levelling(run, items):
+    from estimators.levelling import LevellingState, levelling_step
+    t, g, a = run.time_s.tolist(), list(run.gyro_rad_s), list(run.accel_m_s2)
+
+    def one_pass():
+        st = LevellingState()
+        for k in range(len(t)):
+            st = levelling_step(st, g[k], a[k], t[k])
+    return one_pass
+
+
+def case_levelling_core_step(run, items):
+    """The per-sample drop-in (state packed and unpacked every call: why it is not wired)."""
+    from estimators.core import levelling_step
+    from estimators.levelling import LevellingState
+    t, g, a = run.time_s.tolist(), list(run.gyro_rad_s), list(run.accel_m_s2)
+
+    def one_pass():
+        st = LevellingState()
+        for k in range(len(t)):
+            st = levelling_step(st, g[k], a[k], t[k])
+    return one_pass
+
+
+def case_levelling_core_batch(run, items):
+    from estimators.core import levelling_accumulate
+    from estimators.levelling import LevellingState
+    t, g, a = run.time_s, np.ascontiguousarray(run.gyro_rad_s), np.ascontiguousarray(run.accel_m_s2)
+
+    def one_pass():
+        levelling_accumulate(LevellingState(), g, a, t)
     return one_pass
 
 
@@ -280,8 +366,14 @@ def case_ahrs_ekf(run, items):
 
 CASES = [
     ("azimuthd whole stack (service.pipeline.Pipeline)", "ours", case_pipeline),
+    ("whole stack, Python reference (AZIMUTHD_CORE=python)", "ours", case_pipeline_python),
     ("phases: levelling + launch detection", "ours", case_phases),
     ("strapdown (estimators.strapdown)", "ours", case_strapdown),
+    ("strapdown, core, per sample (held state)", "ours", case_strapdown_core_held),
+    ("strapdown, core, batch (N x 3 array)", "ours", case_strapdown_core_batch),
+    ("rest accumulator (estimators.levelling)", "ours", case_levelling),
+    ("rest accumulator, core, per-sample drop-in", "ours", case_levelling_core_step),
+    ("rest accumulator, core, batch (N x 3 arrays)", "ours", case_levelling_core_batch),
     ("method A azimuth (estimators.azimuth)", "ours", case_azimuth),
     ("method B synthetic AHRS (estimators.synthetic_ahrs)", "ours", case_synthetic_ahrs),
     ("polar attitude (estimators.polar_attitude)", "ours", case_polar_attitude),
@@ -458,6 +550,33 @@ def harness_floor(seconds: float, rt_priority: int = 0) -> dict:
             "floor_p99_ms": float(np.percentile(r, 99)) if r.size else math.nan}
 
 
+def ported_figures(rows: list[dict]) -> dict:
+    """The ported parts and the whole stack, core against the Python reference (issue 19 item 2):
+    per-sample costs and speed-ups (x = reference / core), measured in the same run."""
+    us = {r["case"]: r.get("us_per_imu_sample", math.nan) for r in rows}
+    pick = {
+        "strapdown_python_us_per_sample": "strapdown (estimators.strapdown)",
+        "strapdown_core_held_us_per_sample": "strapdown, core, per sample (held state)",
+        "strapdown_core_batch_us_per_sample": "strapdown, core, batch (N x 3 array)",
+        "levelling_python_us_per_sample": "rest accumulator (estimators.levelling)",
+        "levelling_core_step_us_per_sample": "rest accumulator, core, per-sample drop-in",
+        "levelling_core_batch_us_per_sample": "rest accumulator, core, batch (N x 3 arrays)",
+    }
+    out = {k: us.get(v, math.nan) for k, v in pick.items()}
+    for part in ("strapdown", "levelling"):
+        base = out[f"{part}_python_us_per_sample"]
+        for form in ("core_held", "core_step", "core_batch"):
+            k = f"{part}_{form}_us_per_sample"
+            if k in out:
+                out[f"{part}_{form}_speedup_x"] = base / out[k] if out[k] > 0 else math.nan
+    stack_core = us.get("azimuthd whole stack (service.pipeline.Pipeline)", math.nan)
+    stack_py = us.get("whole stack, Python reference (AZIMUTHD_CORE=python)", math.nan)
+    out["stack_core_us_per_imu_sample"] = stack_core
+    out["stack_python_reference_us_per_imu_sample"] = stack_py
+    out["stack_core_speedup_x"] = stack_py / stack_core if stack_core > 0 else math.nan
+    return {"ported": out, "stack_python_reference_us_per_imu_sample": stack_py}
+
+
 # --- main -------------------------------------------------------------------------------------
 
 def main(argv=None) -> int:
@@ -495,22 +614,29 @@ def main(argv=None) -> int:
         print(f"  measured {name}: " + (f"{r['us_per_imu_sample']:.2f} us" if "error" not in r else r["error"]),
               flush=True)
     ref = next((r for r in rows if r["case"].startswith("imufusion") and "error" not in r), None)
+    ref_vqf = next((r for r in rows if r["case"].startswith("vqf") and "error" not in r), None)
     stack = rows[0]
     print()
-    print(f"{'case':<54} {'us/IMU sample':>14} {'x imufusion':>12} {'% of stack':>11}")
+    print(f"{'case':<54} {'us/IMU sample':>14} {'x imufusion':>12} {'x vqf':>8} {'% of stack':>11}")
     for r in rows:
         if "error" in r:
             print(f"{r['case']:<54} {'error':>14}  {r['error']}")
             continue
         us = r["us_per_imu_sample"]
         r["ratio_vs_imufusion"] = us / ref["us_per_imu_sample"] if ref else math.nan
+        r["ratio_vs_vqf"] = us / ref_vqf["us_per_imu_sample"] if ref_vqf else math.nan
         r["fraction_of_stack"] = us / stack["us_per_imu_sample"] if "error" not in stack else math.nan
-        print(f"{r['case']:<54} {us:14.2f} {r['ratio_vs_imufusion']:12.1f} {100 * r['fraction_of_stack']:10.0f}%")
+        print(f"{r['case']:<54} {us:14.2f} {r['ratio_vs_imufusion']:12.1f} {r['ratio_vs_vqf']:8.1f} "
+              f"{100 * r['fraction_of_stack']:10.0f}%")
     result = {"rate_hz": RATE_HZ, "imu_samples": n_imu, "reference_versions": versions,
               "python": sys.version.split()[0], "numpy": np.__version__, "cases": rows,
               "stack_us_per_imu_sample": stack.get("us_per_imu_sample", math.nan),
               "target_stack_us_per_imu_sample": TARGET_STACK_US, "cpu_count": os.cpu_count(),
               "load_avg_1min": os.getloadavg()[0]}
+    result.update(ported_figures(rows))
+    print("\ncompiled core vs the Python reference (same stream, same run):")
+    for k, v in result["ported"].items():
+        print(f"  {k}: {v:.3f}")
     if not args.no_sitl:
         print("\nSITL: simulator + daemon as processes at 400 Hz (loopback UDP) ...", flush=True)
         try:
