@@ -74,12 +74,14 @@ GCS_STREAM_HZ = {"ATTITUDE": 25.0, "SIMSTATE": 25.0, "EKF_STATUS_REPORT": 2.0, "
 """What this ground station asks for on SERIAL0 (truth and ArduPilot's own attitude, FC clock)."""
 EXTERNAL_YAW_PARAMS = {"VISO_TYPE": 1, "EK3_SRC1_YAW": 6, "EK3_SRC1_POSXY": 3, "EK3_SRC1_VELXY": 3,
                        "EK3_SRC1_POSZ": 1, "EK3_SRC1_VELZ": 3, "EK2_ENABLE": 0, "AHRS_EKF_TYPE": 3,
-                       "VISO_YAW_M_NSE": 0.05, "VISO_DELAY_MS": 30}
+                       "VISO_YAW_M_NSE": 0.05, "VISO_DELAY_MS": 0}
 """docs/OUTPUTS.md 1.2: EKF3's yaw from our ODOMETRY, its position/velocity never from it; EKF2 off
 (it has no source selection: with EK2_ENABLE 1, ArduPlane's default, it fuses any external-nav
 position, our placeholder included). The ``ek2_stock`` flight keeps EK2_ENABLE 1 to check that.
-VISO_YAW_M_NSE 0.05 rad and VISO_DELAY_MS 30 as 1.2 says: with the default 0.2 rad the FC logged
-VISP AErr 0.2 (11.5 deg) for our ~1.4 deg heading and its yaw drifted to +6.8 deg after the cut."""
+VISO_YAW_M_NSE 0.05 rad as 1.2 says (with the default 0.2 rad the FC logged VISP AErr 0.2, 11.5 deg, for
+our ~1.4 deg heading; EKF3 floors it at 5 deg anyway). VISO_DELAY_MS 0: our time_usec is the FC's own
+IMU sample time, and ArduPilot's jitter correction maps it to its clock by the smallest transport delay
+seen, so the latency is already out (a VISO_DELAY_MS on top dates the yaw that much too early)."""
 BEFORE_CUT_S = 40.0
 AFTER_CUT_S = 80.0
 FENCE_HALF_SIZE_M = 2000.0
@@ -569,6 +571,13 @@ class Daemon:
 
     def __init__(self, config: Path, log_path: Path, src: Path = ROOT):
         self.cmd = [sys.executable, "-m", "service.cli", "run", "--config", str(config)]
+        if Path(src).resolve() != ROOT:
+            # an editable install of this repository maps its packages to ROOT ahead of sys.path:
+            # drop that finder so the daemon really runs from ``src``
+            self.cmd = [sys.executable, "-c", "import sys, runpy; sys.meta_path[:] = [f for f in sys.meta_path "
+                        "if 'editable' not in repr(f).lower()]; sys.path.insert(0, sys.argv[1]); "
+                        "sys.argv = ['azimuthd'] + sys.argv[2:]; runpy.run_module('service.cli', run_name='__main__')",
+                        str(src), "run", "--config", str(config)]
         self.log_path = log_path
         self.src = src
         self.proc: subprocess.Popen | None = None
@@ -648,7 +657,9 @@ def fly(spec: FlightSpec, args, rundir: Path, log=print) -> FlightRecord:
     """Boot SITL, start the daemon on SERIAL1 (through the tap), upload the mission, arm in AUTO, cut
     GNSS at ``spec.gnss_cut_s`` after arming, end at ``spec.duration_s`` (FC clock)."""
     home = args.home
-    params = {"SCHED_LOOP_RATE": args.loop_rate_hz, "ARMING_CHECK": 0}
+    # SERIAL1 is the daemon's port: 921600 baud as docs/OUTPUTS.md 1.2 says (ArduPilot's stock 57600 made
+    # its jitter correction assume ~40 ms of serial time per ODOMETRY and date our yaw that much early)
+    params = {"SCHED_LOOP_RATE": args.loop_rate_hz, "ARMING_CHECK": 0, "SERIAL1_BAUD": 921}
     if args.wind_m_s > 0:
         wdir = float(np.random.default_rng([args.seed, 3]).uniform(0.0, 360.0))
         params.update({"SIM_WIND_SPD": args.wind_m_s, "SIM_WIND_DIR": round(wdir, 1)})

@@ -14,6 +14,7 @@ FC's clock, not the wall clock. Skipped, with the reason, when the SITL binary i
 from __future__ import annotations
 
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -96,8 +97,11 @@ def test_fence_clearance_and_mission_geometry():
 
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory):
-    # instance 3: ports 5790-5793, apart from the bench's default -I 1 and other users of -I 2
-    args = aps.build_parser().parse_args(["-I", "3", "--speedup", "2", "--rest-s", "4", "--flight-wall-limit-s", "300"])
+    # instance 2: ports 5780-5783, apart from the bench's default -I 1
+    # $AZIMUTHD_DAEMON_SRC: run the daemon from another source tree (e.g. `git archive HEAD`)
+    src = ["--daemon-src", os.environ["AZIMUTHD_DAEMON_SRC"]] if os.environ.get("AZIMUTHD_DAEMON_SRC") else []
+    args = aps.build_parser().parse_args(["-I", "2", "--speedup", "2", "--rest-s", "4", "--flight-wall-limit-s", "300",
+                                          *src])
     args.sitl_dir = SITL
     if not all(aps.port_free(p) for p in aps.sitl_ports(args.instance).values()):
         pytest.skip(f"SITL instance -I {args.instance} ports are in use")
