@@ -8,7 +8,8 @@ Rules (MAVLink "Command Protocol", https://mavlink.io/en/services/command.html):
 * one command in flight at a time; further commands wait in a short queue (``max_queue``, the
   oldest queued one is dropped as ``superseded`` when it is full); a command equal to one already
   queued or in flight (same ``key``) is not queued twice;
-* a try that gets no COMMAND_ACK within ``ack_timeout_s`` is resent, up to ``max_tries`` tries;
+* a try that gets no COMMAND_ACK within ``ack_timeout_s`` (+ ``input_delay_s``, how late the caller
+  reads its input) is resent, up to ``max_tries`` tries;
   COMMAND_LONG retries carry ``confirmation`` = 1, 2, ... (0 on the first try); COMMAND_INT has
   no such field and is resent as is;
 * MAV_RESULT_IN_PROGRESS: the autopilot is working on it; no resend; the final ACK is awaited
