@@ -28,7 +28,9 @@ Per update (``update_hz``, FC time):
    (drift of a crystal, 1e-4, adds 0.02 s over 200 s). The prediction runs over
    t = a, a + 1, ..., a + lookahead_s (the vehicle has flown on along its track meanwhile, and
    P(t) grows with it): a late daemon diverts at the time a prompt one would, or earlier.
-   time_to_breach is counted from now (t - a). A late monitor says so (geofence_input_late);
+   time_to_breach is counted from now (t - a). A late monitor says so (geofence_input_late).
+   Lost packets add no age; a sender clock that pauses (a starved simulator) reads as late by the
+   pause from then on (conservative);
 4. hysteresis: a predicted breach held for ``trigger_hold_s`` latches the breach; the latch clears
    only when the clearance now exceeds ``clear_distance_m`` with no predicted breach for
    ``clear_hold_s``;
