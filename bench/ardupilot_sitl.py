@@ -667,6 +667,7 @@ def fly(spec: FlightSpec, args, rundir: Path, log=print) -> FlightRecord:
         params.update(EXTERNAL_YAW_PARAMS)
     if spec.ek2_enable is not None:
         params["EK2_ENABLE"] = spec.ek2_enable
+    params.update(getattr(args, "fc_params", {}) or {})   # --fc-param NAME=VALUE: an experiment's own
     rec = FlightRecord(spec, home, rundir=str(rundir))
     fence_cfg = None
     if spec.fence is not None:
@@ -1153,6 +1154,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--ready-timeout-s", type=float, default=60.0, help="wall s to wait for EKF3 'using GPS'")
     ap.add_argument("--flight-wall-limit-s", type=float, default=400.0, help="wall-clock bound of one flight")
     ap.add_argument("--keep", action="store_true", help="keep the run directories (logs, daemon config)")
+    ap.add_argument("--fc-param", action="append", default=[], metavar="NAME=VALUE",
+                    help="an extra FC parameter for every flight (repeatable), e.g. COMPASS_USE=0")
     ap.add_argument("--quick", action="store_true", help="one flight: external yaw + the divert fence")
     ap.add_argument("--flights", default="", help="comma-separated subset of compass,ours,divert,inside,ek2_stock")
     ap.add_argument("--json", type=Path, default=ROOT / "bench" / "results" / "ardupilot_sitl.json")
@@ -1162,6 +1165,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     args.sitl_dir = sitl_dir(args.sitl_dir)
+    try:
+        args.fc_params = {k.strip(): float(v) for k, v in (x.split("=", 1) for x in args.fc_param)}
+    except ValueError:
+        print(f"ardupilot_sitl: --fc-param wants NAME=VALUE (a number), got {args.fc_param}", file=sys.stderr)
+        return 2
     why = sitl_missing(args.sitl_dir)
     if why:
         print(f"ardupilot_sitl: {why}", file=sys.stderr)
@@ -1200,7 +1208,7 @@ def main(argv=None) -> int:
     res["config"] = {"model": args.model, "gnss_cut_s": args.gnss_cut_s, "duration_s": args.duration_s,
                      "seed": args.seed, "home": list(args.home), "speedup": args.speedup,
                      "instance": args.instance, "sched_loop_rate_hz": args.loop_rate_hz, "wind_m_s": args.wind_m_s,
-                     "quick": args.quick, "daemon_config": "systemd/azimuthd.toml with [site], [mavlink] url; "
+                     "quick": args.quick, "fc_params": args.fc_params, "daemon_config": "systemd/azimuthd.toml with [site], [mavlink] url; "
                      "zenoh off, fresh state_dir; [geofence] on the divert flights"}
     print_table(res)
     args.json.parent.mkdir(parents=True, exist_ok=True)
