@@ -142,3 +142,43 @@ def test_pipeline_auto_declares_no_take_off_before_the_fc_has_said(runway_run):
     assert "levelled" in [k for _t, k, _d in events] and not math.isnan(p.phase.level.roll_rad)
     assert not [k for _t, k, _d in events if k in ("takeoff", "vehicle", "started_in_flight")]
     assert p.phase.launch_time_s is None and p.vehicle.pending
+
+
+# --- through the daemon's wiring ---------------------------------------------------------------------
+
+class _Link:
+    """What the daemon's parameter reading and health flags need from MavlinkLink."""
+
+    def __init__(self):
+        self.fc_autopilot = "ardupilot"
+        self.fc_params, self.fc_params_missing, self.asked = {}, set(), []
+        self.rate_advice = None
+
+    def read_params(self, names):
+        self.asked.append(tuple(names))
+
+    def stream_report(self):
+        return {}
+
+
+def test_daemon_reads_the_take_off_parameters_and_shows_its_choice_on_health(tmp_path):
+    """GIVEN the daemon on the shipped default WHEN ArduPilot is detected THEN it asks for Q_ENABLE and
+    TKOFF_THR_MINACC with the heading-feed parameters; WHEN a fixed wing's HEARTBEAT came THEN health says
+    it waits; WHEN the parameters are read (TKOFF_THR_MINACC 15: a catapult) THEN health says launcher and why."""
+    from mavlink_io.link import LinkEvent
+    from service.daemon import Daemon
+    d = Daemon(validate({"site": {"lat_deg": 47.0, "lon_deg": 8.0}, "zenoh": {"enabled": False},
+                         "service": {"state_dir": str(tmp_path)}, "azimuth": {"solve_in_background": False}}))
+    try:
+        d.link = link = _Link()
+        d.dispatch(LinkEvent("autopilot_detected", "ardupilot", 1.0))
+        assert {"Q_ENABLE", "TKOFF_THR_MINACC", "VISO_TYPE", "EK2_ENABLE"} <= set(link.asked[-1])
+        d.dispatch(FcHeartbeat(1.1, 1, 1, "ardupilot", 1, 81, 0, 3, False))
+        assert d._health_flags()["vehicle"] == "not known yet (auto: waiting for the FC)"
+        link.fc_params = {"Q_ENABLE": 0.0, "TKOFF_THR_MINACC": 15.0, "VISO_TYPE": 0.0}
+        d.dispatch(LinkEvent("params_read", "Q_ENABLE 0, TKOFF_THR_MINACC 15, VISO_TYPE 0", 1.5))
+        assert d._health_flags()["vehicle"] == ("launcher: HEARTBEAT type 1 (fixed wing, ardupilot), "
+                                                "TKOFF_THR_MINACC 15 m/s^2 (a hand/catapult launch)")
+        assert d.pipeline.phase_params.vehicle == "launcher"
+    finally:
+        d.pipeline.solver.close()
