@@ -240,6 +240,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="shorter flights, 2 seeds (~2 min)")
     ap.add_argument("--json", default=str(ROOT / "bench" / "results" / "heading_consistency.json"))
     ap.add_argument("--seeds", type=int, default=None, help="seeds per case (default 2 quick, 5 full)")
+    ap.add_argument("--cases", default=None, help="comma-separated case names (default: all three)")
     ap.add_argument("--seed-base", type=int, default=0,
                     help="first seed (seeds seed-base .. seed-base + seeds - 1); 100+: seeds no default was chosen on")
     ap.add_argument("--random-iron", action="store_true",
@@ -257,6 +258,8 @@ def main(argv=None) -> int:
     all_flights = []
     print(HEADER)
     for case in cases(args.quick):
+        if args.cases and case["name"] not in args.cases.split(","):
+            continue
         flights = [fly(random_iron_overrides(case, seed) if args.random_iron else case, seed, args.fc_yaw_sigma_deg)
                    for seed in range(args.seed_base, args.seed_base + n_seeds)]
         all_flights += flights

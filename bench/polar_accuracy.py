@@ -247,6 +247,8 @@ def main() -> int:
     ap.add_argument("--json", default=str(pathlib.Path(__file__).resolve().parent / "results" / "polar_accuracy.json"))
     ap.add_argument("--seeds", type=int, default=None)
     ap.add_argument("--seed-base", type=int, default=0)
+    ap.add_argument("--duration-s", type=float, default=None,
+                    help="flight length from the simulator's start, s (default 600; --quick 300; 60 s on the rail)")
     ap.add_argument("--grades", default=None)
     ap.add_argument("--lats", default=",".join(str(x) for x in LATS_DEG))
     ap.add_argument("--modes", default="pipeline,per_method",
@@ -256,7 +258,7 @@ def main() -> int:
     grades = (a.grades or ("consumer" if a.quick else "consumer,tactical")).split(",")
     lats = [float(x) for x in a.lats.split(",")]
     modes = [m for m in a.modes.split(",") if m]
-    duration = 300.0 if a.quick else None
+    duration = a.duration_s if a.duration_s is not None else (300.0 if a.quick else None)
     out = {"bench": "polar_accuracy", "imu_rate_hz": RATE_HZ, "seeds": seeds, "seed_base": a.seed_base,
            "scenario": "polar_89", "flight_s": duration or 600.0, "headline": "pipeline", "results": {}}
     keys = ("roll_rms_deg", "pitch_rms_deg", "roll_pitch_nees", "heading_rms_valid_deg",

@@ -209,6 +209,8 @@ def main(argv=None):
     ap.add_argument("--per-airframe", type=int, default=5)
     ap.add_argument("--silent", action="store_true", help="do not signal the GNSS loss (agreement test only)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--flight-s", type=float, default=FLIGHT_S,
+                    help=f"flight after launch, s (default {FLIGHT_S:.0f}; the loss stays at launch + {LOSS_AFTER_LAUNCH_S:.0f} s)")
     ap.add_argument("--modes", default="pipeline,per_method",
                     help="pipeline (the headline: the daemon's Pipeline) and/or per_method (B2 alone, diagnostic)")
     ap.add_argument("--json", default=str(pathlib.Path(__file__).resolve().parent / "results" / "synthetic_ahrs_accuracy.json"))
@@ -239,7 +241,7 @@ def main(argv=None):
         fake_clock[0] += 86400.0
         ov = flight_overrides(rng, airframe)
         run = simulate("runway_gnss_denied", seed=a.seed * 1000 + f, imu_grade="consumer", imu_rate_hz=IMU_HZ,
-                       duration_s=REST_S + FLIGHT_S, overrides=ov)
+                       duration_s=REST_S + a.flight_s, overrides=ov)
         row = {"flight": f, "airframe_flight": f % a.per_airframe}
         msg = f"flight {f:2d}"
         if "pipeline" in modes:
@@ -293,7 +295,7 @@ def main(argv=None):
     tmp.cleanup()
     res = {"bench": "synthetic_ahrs_accuracy", "variant": "b2", "flights": n_flights, "modes": modes,
            "headline": "pipeline", "scenario": "runway_gnss_denied", "imu_grade": "consumer", "imu_rate_hz": IMU_HZ,
-           "loss_after_launch_s": LOSS_AFTER_LAUNCH_S, "flight_after_launch_s": FLIGHT_S,
+           "loss_after_launch_s": LOSS_AFTER_LAUNCH_S, "flight_after_launch_s": a.flight_s,
            "loss_signalled": not a.silent, "scored": "from the reference loss to the end of the flight",
            "target_roll_pitch_rms_deg": 1.0, "target_heading_rms_deg": 2.0}
     if "pipeline" in modes:
