@@ -108,29 +108,30 @@ def pipeline_inputs(run) -> list:
     return [x[2] for x in items]
 
 
-def feed_pipeline(pipeline, items, events: list | None = None):
-    """Feed ``items`` (ImuSample, PressureSample, FcAttitude) to ``pipeline`` as the daemon does:
-    ``on_imu`` then ``drain_events`` per IMU sample, ``on_pressure``, ``on_fc_attitude``. Yields the
-    solutions ``on_imu`` returns (None is not yielded); the drained events are appended to
-    ``events`` when given. A generator: nothing is fed until it is iterated."""
-    from mavlink_io.samples import FcAttitude, ImuSample, PressureSample
-    on_imu, on_press, on_att, drain = (pipeline.on_imu, pipeline.on_pressure, pipeline.on_fc_attitude,
-                                       pipeline.drain_events)
+def feed_pipeline(pipeline, items, events: list | None = None, timed_events: bool = False):
+    """Feed ``items`` to ``pipeline`` by type, as the daemon's dispatch does: ImuSample -> ``on_imu``
+    then ``drain_events``; PressureSample, FcAttitude, FcHeartbeat, FcFlightState -> their handlers.
+    Yields the solutions ``on_imu`` returns (None is not yielded); the drained events are appended
+    to ``events`` when given, as (kind, detail), or (IMU time s, kind, detail) with ``timed_events``.
+    A generator: nothing is fed until it is iterated (code between two solutions runs between them)."""
+    from mavlink_io.samples import FcAttitude, FcFlightState, FcHeartbeat, ImuSample, PressureSample
+    on_imu, drain = pipeline.on_imu, pipeline.drain_events
+    others = {PressureSample: pipeline.on_pressure, FcAttitude: pipeline.on_fc_attitude,
+              FcHeartbeat: pipeline.on_fc_heartbeat, FcFlightState: pipeline.on_fc_flight_state}
     for it in items:
         c = type(it)
         if c is ImuSample:
             sol = on_imu(it)
             drained = drain()
-            if events is not None:
-                events += drained
+            if events is not None and drained:
+                events += [(it.time_fc_s, k, d) for k, d in drained] if timed_events else drained
             if sol is not None:
                 yield sol
-        elif c is PressureSample:
-            on_press(it)
-        elif c is FcAttitude:
-            on_att(it)
         else:
-            raise TypeError(f"feed_pipeline: not a Pipeline input: {c.__name__}")
+            fn = others.get(c)
+            if fn is None:
+                raise TypeError(f"feed_pipeline: not a Pipeline input: {c.__name__}")
+            fn(it)
 
 
 @dataclass

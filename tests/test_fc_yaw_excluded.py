@@ -20,7 +20,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
-from sitl import scenario_site  # noqa: E402
+from sitl import feed_pipeline, scenario_site  # noqa: E402
 
 from mavlink_io.samples import FcAttitude, FcHeartbeat, ImuSample, PressureSample  # noqa: E402
 from service.config import validate  # noqa: E402
@@ -70,21 +70,13 @@ def fly(run, heading_cfg, mag_scale_after=None, exclude_at_s=None, feed_s=FEED_S
     site["site"].update(lat_deg=s["lat_deg"], lon_deg=s["lon_deg"], alt_m=s["alt_m"], decimal_year=s["decimal_year"])
     p = Pipeline(validate({**site, "mavlink": {"imu_rate_hz": RATE_HZ}, "heading": heading_cfg}))
     sols, events = [], []
-    for t, _o, it in items:
-        if exclude_at_s is not None and t >= exclude_at_s:
-            p.exclude_fc_yaw("test: the FC's yaw is our own fed back")
-            exclude_at_s = None
-        if isinstance(it, ImuSample):
-            sol = p.on_imu(it)
-            if sol is not None:
-                sols.append((sol, p.mag_status))
-            events += p.drain_events()
-        elif isinstance(it, PressureSample):
-            p.on_pressure(it)
-        elif isinstance(it, FcHeartbeat):
-            p.on_fc_heartbeat(it)
-        else:
-            p.on_fc_attitude(it)
+    # the FC's yaw is excluded just before the first item at or after exclude_at_s
+    cut = len(items) if exclude_at_s is None else next((k for k, x in enumerate(items) if x[0] >= exclude_at_s),
+                                                       len(items))
+    sols += [(sol, p.mag_status) for sol in feed_pipeline(p, [it for _t, _o, it in items[:cut]], events)]
+    if cut < len(items):
+        p.exclude_fc_yaw("test: the FC's yaw is our own fed back")
+        sols += [(sol, p.mag_status) for sol in feed_pipeline(p, [it for _t, _o, it in items[cut:]], events)]
     return p, sols, events
 
 

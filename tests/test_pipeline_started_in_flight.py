@@ -17,7 +17,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
-from sitl import scenario_site  # noqa: E402
+from sitl import feed_pipeline, scenario_site  # noqa: E402
 
 from mavlink_io.samples import FcAttitude, FcHeartbeat, ImuSample, PressureSample  # noqa: E402
 from service.config import validate  # noqa: E402
@@ -50,19 +50,8 @@ def fly(feed_from_s, feed_s, with_fc=True, rest_s=REST_S, launch_cfg=None, syste
     site["site"].update(lat_deg=s["lat_deg"], lon_deg=s["lon_deg"], alt_m=s["alt_m"], decimal_year=s["decimal_year"])
     p = Pipeline(validate({**site, "mavlink": {"imu_rate_hz": RATE_HZ},
                            "launch": {**site.get("launch", {}), **(launch_cfg or {})}}))
-    sols, events = [], []
-    for _t, _o, it in items:
-        if isinstance(it, ImuSample):
-            sol = p.on_imu(it)
-            if sol is not None:
-                sols.append(sol)
-            events += p.drain_events()
-        elif isinstance(it, PressureSample):
-            p.on_pressure(it)
-        elif isinstance(it, FcHeartbeat):
-            p.on_fc_heartbeat(it)
-        else:
-            p.on_fc_attitude(it)
+    events = []
+    sols = list(feed_pipeline(p, [it for _t, _o, it in items], events))
     return run, p, sols, events
 
 

@@ -8,14 +8,19 @@ within 2 s of the true one (the truth only scores), and method A runs, or says i
 not. The Pipeline never sees the truth.
 """
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from mavlink_io.samples import FcAttitude, FcHeartbeat, ImuSample, PressureSample
-from service.config import validate
-from service.pipeline import Pipeline
-from sim.offline import simulate
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from sitl import feed_pipeline  # noqa: E402
+
+from mavlink_io.samples import FcAttitude, FcHeartbeat, ImuSample, PressureSample  # noqa: E402
+from service.config import validate  # noqa: E402
+from service.pipeline import Pipeline  # noqa: E402
+from sim.offline import simulate  # noqa: E402
 
 
 def fly(scenario, rate_hz, vehicle, case="aligned", duration_s=None, seed=2, overrides=None):
@@ -40,16 +45,8 @@ def fly(scenario, rate_hz, vehicle, case="aligned", duration_s=None, seed=2, ove
                            "launch": {"vehicle": vehicle, "case": case},
                            "azimuth": {"solve_in_background": False}}))
     events = []
-    for t, _o, it in items:
-        if isinstance(it, ImuSample):
-            p.on_imu(it)
-            events += [(t, k, d) for k, d in p.drain_events()]
-        elif isinstance(it, PressureSample):
-            p.on_pressure(it)
-        elif isinstance(it, FcHeartbeat):
-            p.on_fc_heartbeat(it)
-        else:
-            p.on_fc_attitude(it)
+    for _ in feed_pipeline(p, [it for _t, _o, it in items], events, timed_events=True):
+        pass
     return run, p, events
 
 
