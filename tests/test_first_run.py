@@ -34,7 +34,10 @@ def test_readme_pair_as_written_reaches_a_ground_station(tmp_path):
     cmds = readme_commands()
     assert [c.split()[0] for c in cmds] == ["sed", "azimuthd", "azimuthd"], cmds
     (tmp_path / "systemd").symlink_to(ROOT / "systemd")  # the commands run from a checkout
-    env = dict(os.environ, PATH=f"{ROOT / '.venv' / 'bin'}{os.pathsep}{os.environ['PATH']}")
+    # the example config leaves state_dir empty: $STATE_DIRECTORY, else ~/.local/state/azimuthd (the
+    # tester's own): the daemon's calibrations go to this test's directory instead
+    env = dict(os.environ, PATH=f"{ROOT / '.venv' / 'bin'}{os.pathsep}{os.environ['PATH']}",
+               STATE_DIRECTORY=str(tmp_path / "state"))
     subprocess.run(cmds[0], shell=True, cwd=tmp_path, env=env, check=True, timeout=60)
 
     # the ground station: where QGroundControl listens
