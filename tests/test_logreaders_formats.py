@@ -372,6 +372,39 @@ def test_dataflash_instances_and_two_flights(tmp_path):
     assert (7.0, True, True) in states and (7.5, False, True) in states and states[-1] == (8.5, True, False)
 
 
+def test_dataflash_that_starts_in_flight_is_read_and_replayed_as_started_in_flight(tmp_path, capsys):
+    """GIVEN a log whose logging began in the air: its first state records are a landing (EV 18) and
+    a disarm (EV 11), with no arming or take-off before them (arducopter-rtl-midflight.bin's shape)
+    WHEN read THEN the first item is the state the FC had from the start (armed, in the air), the
+    notes say why, and the log has no take-off of its own
+    WHEN replayed THEN the run is started in flight (no levelling, no launch), never a take-off."""
+    import json
+    p = tmp_path / "midflight.bin"
+    new_dataflash(p, [(8.0, "EV", 18), (8.5, "EV", 11)])
+    r = open_log(p)
+    items = list(r.items())
+    assert type(items[0]) is FcFlightState and (items[0].armed, items[0].landed) == (True, False)
+    assert items[0].time_fc_s == pytest.approx(5.0)
+    states = [(round(s.time_fc_s, 3), s.armed, s.landed) for s in items if type(s) is FcFlightState]
+    assert states == [(5.0, True, False), (8.0, True, True), (8.5, False, True)]
+    assert r.takeoff_times_s() == []
+    assert any("starts armed and in the air" in n and "landed at 8.0 s" in n and "disarmed at 8.5 s" in n
+               for n in r.summary.notes)
+    j = tmp_path / "s.json"
+    assert main([str(p), "--json", str(j), "--no-progress"]) == 0
+    capsys.readouterr()
+    summ = json.loads(j.read_text())
+    assert [(x["phase"], round(x["from_time_s"], 2)) for x in summ["phases"]] == [("pre-launch", 5.0),
+                                                                                  ("in-flight", 6.02)]
+    kinds = {e["kind"]: e["reason"] for e in summ["event_reasons"]}
+    assert kinds["started_in_flight"].startswith("FC armed, the FC reports in the air (landed state)")
+    assert "takeoff" not in kinds and "launch_unlevelled" not in kinds
+    # the contrast: a log that arms first starts on the ground (no start state is inferred)
+    new_dataflash(p, FLIGHTS)
+    first = next(i for i in open_log(p).items() if type(i) is FcFlightState)
+    assert (first.time_fc_s, first.armed, first.landed) == (pytest.approx(5.5), True, None)
+
+
 def test_dataflash_no_3d_fix_needs_site(tmp_path, capsys):
     p = tmp_path / "nofix.bin"
     new_dataflash(p, [], gps_status=2)

@@ -29,6 +29,14 @@ GPS    Status >= 3 (3D fix): Lat, Lng deg, Alt m;    the site (first 3D fix) and
 
 Records come in file order; ArduPilot writes them in time order per message type. An IMU sample
 whose time does not increase is passed on (the Pipeline rejects and counts it).
+
+EV and ARM are written on a change only, so a log that starts in flight (logging started or
+rotated in the air) says nothing until the vehicle lands. A change implies the state before it:
+when the log's first armed-saying EV/ARM record is a disarm, the FC was armed from the log's
+start; when its first landed-saying EV is a landing (land complete) with no take-off before it,
+the FC was in the air. That state is given as one FcFlightState at the first sample (and said in
+the summary's notes), as the FC's HEARTBEAT gives it on a live link. STAT is written
+continuously and needs no inference.
 """
 from __future__ import annotations
 
@@ -87,6 +95,8 @@ class DataflashReader:
         self._site: LogSite | None = None
         self._gps_unix_s: float | None = None
         self._takeoffs: list[float] = []
+        self._start_state: tuple[bool | None, bool | None] = (None, None)
+        """(armed, landed) the FC had at the log's start, implied by its first EV/ARM changes."""
         self._offset = 0
         self._scan()
 
@@ -98,6 +108,7 @@ class DataflashReader:
         instances: dict[str, set] = {}
         track = FlightStateTrack()
         last_t = 0.0
+        first_change: dict[str, tuple[bool, float]] = {}   # "armed"/"landed": (its first EV/ARM value, time)
         try:
             for name, rec, _ in walk(self._data, wanted, st):
                 t = _time_s(rec) if not name.startswith("GPS") else None  # old GPS: TimeMS of the GPS week
@@ -105,13 +116,19 @@ class DataflashReader:
                 if "I" in rec:
                     instances.setdefault(name, set()).add(rec["I"])
                 if name in _STATE_MSGS:
+                    before = (track.armed, track.landed)
                     self._state_update(track, name, rec, last_t)
+                    if name != "STAT":
+                        for key, old, new in (("armed", before[0], track.armed), ("landed", before[1], track.landed)):
+                            if old is None and new is not None:
+                                first_change.setdefault(key, (new, last_t))
                 elif name == "GPS" and self._site is None:
                     self._gps(rec)
         except (struct.error, ValueError, TypeError, KeyError) as exc:
             raise LogError(f"{self.path}: unreadable DataFlash records ({one_line(exc)})") from None
         self._stats = st
         self._takeoffs = track.takeoffs_s
+        self._infer_start_state(first_change)
         names = st.names()
         self._use: dict[str, tuple[str, int | None]] = {}
         for kind, msgs in _KINDS.items():
@@ -154,6 +171,23 @@ class DataflashReader:
             self.summary.notes.append(f"{st.skipped_bytes} damaged bytes skipped"
                                       + (f", {st.bad_formats} unusable FMT records" if st.bad_formats else "")
                                       + " (corrupt log): records there are lost")
+
+    def _infer_start_state(self, first_change: dict[str, tuple[bool, float]]) -> None:
+        """The state before the log's first EV/ARM changes (module docstring): a first disarm means
+        armed from the start; a first landing means in the air from the start."""
+        armed = first_change.get("armed")
+        landed = first_change.get("landed")
+        start_armed = True if armed is not None and armed[0] is False else None
+        start_landed = False if landed is not None and landed[0] is True else None
+        if start_armed is None and start_landed is None:
+            return
+        self._start_state = (start_armed, start_landed)
+        said = [f"{'disarmed' if k == 'armed' else 'landed'} at {v[1]:.1f} s" for k, v in first_change.items()
+                if (k == "armed" and start_armed) or (k == "landed" and start_landed is False)]
+        self.summary.notes.append(
+            "the log starts " + " and ".join(x for x, on in (("armed", start_armed), ("in the air", start_landed is False))
+                                             if on)
+            + f": its first state records are {' and '.join(said)} with no arming or take-off before them")
 
     def _gps(self, rec: dict) -> None:
         if "I" in rec and rec["I"] != 0:
@@ -223,12 +257,18 @@ class DataflashReader:
         track = FlightStateTrack()
         counts = {"imu": 0, "imu_with_mag": 0, "pressure": 0, "pressure_with_diff": 0, "attitude": 0,
                   "flight_state": 0}
+        start_state = self._start_state if self._start_state != (None, None) else None
         for name, rec, pos in walk(self._data, wanted):
             self._offset = pos
             t = _time_s(rec)
             if t is None or not math.isfinite(t):
                 t = last_t  # an old EV has no time: the last record's
             last_t = t
+            if start_state is not None:   # the state the log starts in, before its first sample
+                armed0, landed0 = track.update(t, armed=start_state[0], landed=start_state[1])
+                start_state = None
+                counts["flight_state"] += 1
+                yield FcFlightState(t, t, armed0, landed0, "EV")
             if name in _STATE_MSGS:
                 st = self._state_update(track, name, rec, t)
                 if st is not None:
