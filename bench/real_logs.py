@@ -14,7 +14,8 @@ valid heading (share of output rows with one); roll / pitch / heading RMS agains
 attitude (the FC's GNSS-aided estimate where it had GNSS: a reference, not truth); the share of
 rows whose heading error is within 2 published sigmas; whether method A produced a solution;
 whether the magnetometer was usable (the replay names a rejection). Per log: the detected take-off
-(our phases: the first ``launch``) against the log's own take-off (the FC's landed -> in-air
+(our phases: the first ``launch``; none when they found the run started in flight, whose time is
+``started_in_flight_s``) against the log's own take-off (the FC's landed -> in-air
 transition from the reader's ``takeoff_times_s()`` where the log has a land detector or arming
 records), the error in seconds.
 
@@ -216,6 +217,12 @@ def replay(log: pathlib.Path, mode_args: list[str], site: str | None, tmp: pathl
     ft = out["flight_time_s"]
     out["x_realtime"] = ft / wall if ft and wall > 0 else None
     out.update(score_rows(read_csv(csv_path)))
+    # a run the phases found started in flight (no levelling, no launch) has no take-off of its own,
+    # though its rows go from pre-launch to in-flight
+    sif = next((e for e in summ.get("event_reasons", []) if e.get("kind") == "started_in_flight"), None)
+    out["started_in_flight_s"] = sif.get("first_time_s") if sif else None
+    if sif is not None:
+        out["detected_takeoff_s"] = None
     usable, why = mag_verdict(p.stdout, summ)
     out["magnetometer_usable"], out["magnetometer_reason"] = usable, why
     out["warnings"] = summ.get("warnings", [])
@@ -233,18 +240,8 @@ def main(argv=None) -> int:
                     help="[launch] vehicle an operator configures for a log (launcher, hand, runway, multicopter, vtol)")
     ap.add_argument("--timeout", type=float, default=900.0, help="per replay, s")
     args = ap.parse_args(argv)
-    sites = dict(ASSUMED_SITES)
-    for item in args.site_for:
-        name, _, val = item.partition("=")
-        if not val:
-            ap.error(f"--site-for: expected NAME=LAT,LON, got {item!r}")
-        sites[name] = val
-    vehicles = dict(OPERATOR_VEHICLE)
-    for item in args.vehicle_for:
-        name, _, val = item.partition("=")
-        if not val:
-            ap.error(f"--vehicle-for: expected NAME=VEHICLE, got {item!r}")
-        vehicles[name] = val
+    sites = _per_log(ap, ASSUMED_SITES, args.site_for, "--site-for", "LAT,LON")
+    vehicles = _per_log(ap, OPERATOR_VEHICLE, args.vehicle_for, "--vehicle-for", "VEHICLE")
     logs = find_logs(args.paths or [DATA])
     if not logs:
         print(f"real_logs: no .tlog/.bin/.ulg under {', '.join(map(str, args.paths or [DATA]))}", file=sys.stderr)
@@ -291,6 +288,17 @@ def main(argv=None) -> int:
     args.json.write_text(json.dumps(json_safe(res), indent=2) + "\n")
     print(f"json: {args.json}")
     return 0
+
+
+def _per_log(ap: argparse.ArgumentParser, defaults: dict, items: list[str], option: str, what: str) -> dict:
+    """``defaults`` updated by the NAME=VALUE items of a per-log option (a usage error names it)."""
+    out = dict(defaults)
+    for item in items:
+        name, _, val = item.partition("=")
+        if not name or not val:
+            ap.error(f"{option}: expected NAME={what}, got {item!r}")
+        out[name] = val
+    return out
 
 
 def checks(logs: dict) -> dict:
@@ -340,7 +348,10 @@ def print_row(name: str, e: dict) -> None:
               f"within 2 sigma {_g(r, 'within_2sigma_fraction', '.0%')} (median sigma "
               f"{_g(r, 'heading_sigma_median_deg')}); method A {'solved' if r['azimuth_solved'] else 'no'}")
     te = e["takeoff_error_s"]
-    print(f"  take-off: ours {_g(e['fc_allowed'], 'detected_takeoff_s', '.1f')} s, the log's "
+    sif = e["fc_allowed"].get("started_in_flight_s")
+    ours = f"none (started in flight, said at {sif:.1f} s)" if sif is not None else \
+        f"{_g(e['fc_allowed'], 'detected_takeoff_s', '.1f')} s"
+    print(f"  take-off: ours {ours}, the log's "
           f"{e['log_takeoffs_s'] if e['log_takeoffs_s'] else '-'} ({e['log_takeoff_source']}); error "
           f"{'-' if te is None else f'{te:+.1f} s'}")
     mu = e["magnetometer_usable"]
