@@ -262,14 +262,16 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--json", default=str(pathlib.Path(__file__).resolve().parent / "results" / "deviation_declination.json"))
     ap.add_argument("--seeds", type=int, default=None)
+    ap.add_argument("--parts", default="d,e", help="d (deviation through the Pipeline) and/or e (declination at rest)")
     a = ap.parse_args()
+    parts = set(a.parts.split(","))
     seeds = a.seeds if a.seeds is not None else (1 if a.quick else 3)
     out = {"bench": "deviation_declination", "seeds": seeds, "deviation": {}, "declination": {}}
 
     print("D: heading error (deg RMS) before/after the 21-coefficient compensation")
     print(f"{'grade':9s} {'cal_s':>6s} {'cov':>5s} {'ref':>6s} {'bef_c':>6s} {'aft_c':>6s} {'bef_e':>6s} "
           f"{'aft_e':>6s} {'x_cal':>6s} {'x_eval':>6s} {'HSI_e':>6s} {'ext33e':>6s}")
-    for grade in (("consumer",) if a.quick else ("consumer", "tactical")):
+    for grade in (("consumer",) if a.quick else ("consumer", "tactical")) if "d" in parts else ():
         per = [deviation_flight(s, grade) for s in range(seeds)]
         agg = {k: float(np.sqrt(np.mean([p[k] ** 2 for p in per]))) if k.endswith("_deg")
                else float(np.mean([p[k] for p in per]))
@@ -288,7 +290,7 @@ def main() -> int:
 
     print("\nE: declination at rest, 5 min (error vs WMM, deg)")
     sites = SITES[:2] if a.quick else SITES
-    for grade in ("consumer", "tactical", "navigation"):
+    for grade in ("consumer", "tactical", "navigation") if "e" in parts else ():
         cases = [declination_case(lat, lon, s, grade) for (lat, lon) in sites for s in range(1 if a.quick else 2)]
         used = np.array([c["used_error_vs_wmm_deg"] for c in cases])
         forced = np.array([c["forced_error_vs_wmm_deg"] for c in cases])
@@ -311,13 +313,19 @@ def main() -> int:
               f"  forced-TRIAD RMS {summary['forced_triad_error_rms_deg']:6.2f} "
               f"(predicted sigma {summary['forced_predicted_sigma_rms_deg']:.2f})")
         print(f"           e.g. {cases[0]['message']}")
+    if "e" not in parts:
+        return _write(a.json, out)
     an = declination_case(45.0, 10.0, 0, "navigation", anomaly=True)
     out["declination"]["anomaly_case"] = an
     print(f"anomaly    flag={an['anomaly_flag']}  {an['message']}")
     raw = declination_case(45.0, 10.0, 0, "navigation", personality="ardupilot")
     out["declination"]["navigation_over_raw_imu"] = raw
     print(f"RAW_IMU    (ArduPilot, gyro in mrad/s) navigation grade: {raw['message']}")
-    p = pathlib.Path(a.json)
+    return _write(a.json, out)
+
+
+def _write(path: str, out: dict) -> int:
+    p = pathlib.Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     p.write_text(json.dumps(out, indent=1, default=float))
     print(f"wrote {p}")
