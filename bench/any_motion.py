@@ -1,6 +1,6 @@
 """Attitude and heading through any motion: azimuthd beside VQF and x-io Fusion on the same IMU.
 
-    python bench/any_motion.py [--quick] [--json PATH] [--seeds N]
+    python bench/any_motion.py [--quick] [--json PATH] [--seeds N] [--seed0 S]
 
 Scenarios (sim/scenarios/any_motion_*.toml, launcher type ``rig``: the attitude follows scripted
 segments, the position stays put; consumer IMU at 100 Hz with the simulator's own Earth field,
@@ -268,10 +268,11 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="seed 0 only (default: seeds 0..--seeds-1)")
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--seed0", type=int, default=0, help="first seed (e.g. 100: seeds no default was chosen on)")
     ap.add_argument("--json", type=pathlib.Path, help="write the figures here")
     args = ap.parse_args(argv)
     from sim.offline import simulate
-    seeds = [0] if args.quick else list(range(max(1, args.seeds)))
+    seeds = [args.seed0] if args.quick else list(range(args.seed0, args.seed0 + max(1, args.seeds)))
     missing = {e: peer_missing(e) for e in ESTIMATORS if peer_missing(e)}
     for msg in missing.values():
         print(f"skipped {msg}")

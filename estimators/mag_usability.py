@@ -167,10 +167,12 @@ def _motion(state: MagUsabilityState, t: float, m: np.ndarray, gyro_body_rad_s, 
 
 
 def mag_usability_step(state: MagUsabilityState, time_s: float, mag_body_gauss, roll_rad: float | None,
-                       pitch_rad: float | None, params: MagUsabilityParams, gyro_body_rad_s=None
-                       ) -> tuple[MagUsabilityState, MagVerdict]:
+                       pitch_rad: float | None, params: MagUsabilityParams, gyro_body_rad_s=None,
+                       hard_iron_gauss=None) -> tuple[MagUsabilityState, MagVerdict]:
     """One magnetometer sample (body axes, gauss) with the roll/pitch it is levelled with (None:
     no dip test) and the body rate since the previous call (rad/s, body axes; None: motion unknown).
+    ``hard_iron_gauss``: a hard iron learnt meanwhile (estimators/mag_disturbance); the norm and
+    dip tests judge m - hard_iron (the frozen, stuck-axis and rate tests the raw samples).
     Non-finite input is the caller's to reject (ValueError)."""
     m = np.asarray(mag_body_gauss, float)
     if m.shape != (3,) or not np.all(np.isfinite(m)) or not math.isfinite(time_s):
@@ -192,15 +194,18 @@ def mag_usability_step(state: MagUsabilityState, time_s: float, mag_body_gauss, 
     new_times = tuple(x for x in state.new_times if t - x < params.rate_window_s) + ((t,) if new else ())
     window = tuple(w for w in state.window if t - w[0] < params.window_s)
     if new:
-        ratio = float(np.linalg.norm(m)) / params.field_norm_gauss
+        mc = m
+        if hard_iron_gauss is not None:
+            mc = m - np.asarray(hard_iron_gauss, float)
+        ratio = float(np.linalg.norm(mc)) / params.field_norm_gauss
         dip = math.nan
         if roll_rad is not None and pitch_rad is not None and math.isfinite(roll_rad) and math.isfinite(pitch_rad):
             # level the field: m_lev = R_y(pitch) R_x(roll) m (the same levelling as polar_heading)
             cr, sr, cp, sp = math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
-            my = cr * m[1] - sr * m[2]
-            mz1 = sr * m[1] + cr * m[2]
-            mx = cp * m[0] + sp * mz1
-            mz = -sp * m[0] + cp * mz1
+            my = cr * mc[1] - sr * mc[2]
+            mz1 = sr * mc[1] + cr * mc[2]
+            mx = cp * mc[0] + sp * mz1
+            mz = -sp * mc[0] + cp * mz1
             dip = math.atan2(mz, math.hypot(mx, my))
         window = window + ((t, ratio, dip),)
     norm_ratio = _median(w[1] for w in window)

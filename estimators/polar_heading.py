@@ -54,6 +54,31 @@ An innovation gate rejects
 disturbed samples; after ``reset_after_s`` of continuous rejection the heading is re-initialised
 from the source (reported in the diagnostics: ``reset=True`` with the jump).
 
+Platform formulation (issue 18: heading in every attitude; used when the caller gives the attitude
+filter's ``q_P_from_body``). The Euler rate above divides by cos(theta) and has no meaning at pitch
++-90 deg. The attitude filter (estimators/polar_attitude.py) already carries the FULL attitude of
+the body in its floating platform frame P (level, azimuth arbitrary, propagated by the
+bias-corrected gyros, nothing Euler in it). The body's attitude in NED is then
+    C_nav_from_body = R_z(psi_P) C_PB,
+so the heading filter needs to estimate only psi_P, the azimuth of P from true north, and nothing
+divides by cos(pitch). Kinematics (derivation: C_NP = C_NB C_BP with C_NB' = C_NB[w x] - [W_N x]C_NB
+and P's mechanisation C_PB' = C_PB[w_hat x] - [W_hat x]C_PB, w_hat = w_meas - b_hat; to first
+order in the tilt, C_NP' = C_NP[(C_PB d) x] + C_NP[W_hat x] - [W_N x]C_NP, d = b_hat - b):
+
+    psi_P' = e_z^T C_PB d - w_v,     w_v = W_N,down - W_hat,z   (GM, as above)
+
+States (5): [psi_P, w_v, d_x, d_y, d_z]; d is the error of the attitude filter's gyro bias (body,
+GM). When the attitude filter corrects its bias by db_hat the error moves by the same amount
+(d += db_hat, exact bookkeeping). Measurement: the magnetometer levelled by the full rotation,
+m_P = C_PB m_B, psi_m = D - atan2(m_P_y, m_P_x). A tilt error t (the horizontal components of
+C_PB eps, eps the attitude filter's body-frame error, covariance C_PB P_eps C_BP) turns it by
+    d psi_m = -m_z (m_x t_x + m_y t_y) / H^2      (G = -m_z/H^2 [m_x, m_y]; |G| = tan(dip)),
+the same consider/inflation rules as above apply (R, r_uncal). Heading observable in every
+attitude; unobservable (no update, sigma grows) only where the levelled horizontal field is below
+``min_horizontal_field_gauss``. The published heading is the Euler yaw of R_z(psi_P) C_PB,
+psi_P + yaw(C_PB), so R_z(heading) R_y(pitch) R_x(roll) with the attitude filter's roll/pitch is
+exactly R_z(psi_P) C_PB (also at pitch +-90 deg, where roll and yaw share one degree of freedom).
+
 Pure: ``polar_heading_step(state, inputs, params) -> (state, diag)``.
 """
 from __future__ import annotations
@@ -63,9 +88,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from estimators.rotations import wrap_2pi, wrap_pi
+from estimators.rotations import (dcm_from_euler, dcm_from_quat, euler_from_dcm, quat_from_euler, quat_from_rotvec,
+                                  quat_mul, quat_normalize, wrap_2pi, wrap_pi)
 
 EARTH_RATE_RAD_S = 7.292115e-5
+WITHHELD_AFTER_S = 1.0
+"""No measurement for this long (s): the magnetometer was withheld (a disturbance), not rejected."""
 EARTH_RADIUS_M = 6.371e6
 
 
@@ -175,6 +203,12 @@ class PolarHeadingState:
     r_uncal_rad2: float = 0.0
     """Consider term of the uncalibrated (or residual) magnetometer error at the last measurement
     (rad^2, module docstring), added to the published heading variance."""
+    platform: bool = False
+    """True: the platform formulation (x = [psi_P, w_v, d_x, d_y, d_z], module docstring)."""
+    q_P_from_body: np.ndarray | None = None
+    """Platform mode: the attitude filter's attitude at the last step."""
+    gyro_bias_prev_rad_s: np.ndarray | None = None
+    """Platform mode: the attitude filter's gyro bias at the last step (for d's bookkeeping)."""
 
     def to_dict(self) -> dict:
         return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()}
@@ -182,8 +216,9 @@ class PolarHeadingState:
     @classmethod
     def from_dict(cls, d: dict) -> "PolarHeadingState":
         kw = dict(d)
-        kw["x"] = np.array(d["x"], float)
-        kw["P"] = np.array(d["P"], float)
+        for k in ("x", "P", "q_P_from_body", "gyro_bias_prev_rad_s"):
+            if kw.get(k) is not None:
+                kw[k] = np.array(kw[k], float)
         return cls(**kw)
 
 
@@ -206,6 +241,17 @@ class HeadingInputs:
     ``mag_body_gauss`` (e.g. method D's residual when its coefficients are applied; 0 = exactly
     compensated, as a clean simulation); None = not compensated: the params' uncalibrated
     hard/soft-iron model sets the consider term."""
+    q_P_from_body: np.ndarray | None = None
+    """The attitude filter's attitude in its platform frame P: given, the platform formulation
+    (module docstring) runs and ``roll_rad``/``pitch_rad`` only level the magnetometer when
+    ``level_with_roll_pitch``; None, the Euler formulation."""
+    cov_att_body_rad2: np.ndarray | None = None
+    """Platform mode: 3x3 covariance of the attitude filter's body-frame attitude error eps."""
+    gyro_bias_rad_s: np.ndarray | None = None
+    """Platform mode: the attitude filter's gyro-bias estimate (body, rad/s)."""
+    level_with_roll_pitch: bool = False
+    """Platform mode: level the magnetometer with R_z(yaw of C_PB) R_y(pitch) R_x(roll) and
+    ``cov_roll_pitch_rad2`` (e.g. a trusted FC's tilt) instead of C_PB's own tilt."""
 
 
 @dataclass(frozen=True)
@@ -255,9 +301,8 @@ def polar_heading_init(heading_rad: float | None = None, sigma_rad: float | None
     return PolarHeadingState(initialised=True, x=x, P=_prior_P(sigma_rad ** 2, params))
 
 
-def _prior_P(var_psi: float, p: PolarHeadingParams) -> np.ndarray:
-    return np.diag([var_psi, p.vertical_rate_sigma_rad_s ** 2, p.gyro_bias_sigma_rad_s ** 2,
-                    p.gyro_bias_sigma_rad_s ** 2])
+def _prior_P(var_psi: float, p: PolarHeadingParams, n: int = 4) -> np.ndarray:
+    return np.diag([var_psi, p.vertical_rate_sigma_rad_s ** 2] + [p.gyro_bias_sigma_rad_s ** 2] * (n - 2))
 
 
 def magnetic_heading(mag_body_gauss: np.ndarray, roll_rad: float, pitch_rad: float) -> tuple[float, float]:
@@ -275,6 +320,8 @@ def magnetic_heading(mag_body_gauss: np.ndarray, roll_rad: float, pitch_rad: flo
 def polar_heading_step(state: PolarHeadingState, u: HeadingInputs,
                        params: PolarHeadingParams = PolarHeadingParams()
                        ) -> tuple[PolarHeadingState, HeadingDiag]:
+    if u.q_P_from_body is not None:
+        return _platform_step(state, u, params)
     w = np.asarray(u.gyro_body_rad_s, float)
     if (w.shape != (3,) or not np.all(np.isfinite(w)) or not math.isfinite(u.time_s)
             or not math.isfinite(u.roll_rad) or not math.isfinite(u.pitch_rad)):
@@ -309,8 +356,9 @@ def polar_heading_unseen(state: PolarHeadingState, unseen_s: float,
         return state
     a_v, q_v = _gm(unseen_s, params.vertical_rate_tau_s, params.vertical_rate_sigma_rad_s)
     a_b, q_b = _gm(unseen_s, params.gyro_bias_tau_s, params.gyro_bias_sigma_rad_s)
-    f = np.array([1.0, a_v, a_b, a_b])
-    P = f[:, None] * state.P * f[None, :] + np.diag([0.0, q_v, q_b, q_b])
+    n = len(state.x)
+    f = np.array([1.0, a_v] + [a_b] * (n - 2))
+    P = f[:, None] * state.P * f[None, :] + np.diag([0.0, q_v] + [q_b] * (n - 2))
     s = min(params.unseen_rate_sigma_rad_s * unseen_s, params.unseen_max_sigma_rad)
     P[0, 0] += s * s
     x = state.x.copy()
@@ -385,9 +433,16 @@ def _measure(st, u, Prp, p):
     R_single = r_white + r_corr          # the error of ONE measurement (initialisation, reset)
     z = wrap_2pi(psi_m + u.declination_rad)
     st = replace(st, r_uncal_rad2=uncalibrated_heading_var(m, H, u.mag_residual_sigma_gauss, p))
+    return _fuse_heading(st, u, z, H, R, R_single, r_corr, p)
+
+
+def _fuse_heading(st, u, z, H, R, R_single, r_corr, p):
+    """Initialise from, gate, fuse (or reset on) one heading measurement z (rad) of state x[0]."""
+    n = len(st.x)
     if not st.initialised:
-        st = replace(st, initialised=True, x=np.array([z, 0.0, st.x[2], st.x[3]]), P=_prior_P(R_single, p),
-                     source_available=True)
+        x0 = st.x.copy()
+        x0[0], x0[1] = z, 0.0
+        st = replace(st, initialised=True, x=x0, P=_prior_P(R_single, p, n), source_available=True)
         return st, HeadingDiag(measured=True, fused=True, source_available=True,
                                horizontal_field_gauss=H, heading_meas_rad=z, innovation_rad=0.0,
                                innovation_var_rad2=R_single, test_ratio=0.0, reason="initialised from source")
@@ -404,7 +459,9 @@ def _measure(st, u, Prp, p):
             P[0, :] = 0.0
             P[:, 0] = 0.0
             P[0, 0] = R_single
-            st = replace(st, x=np.array([z, st.x[1], st.x[2], st.x[3]]), P=P, rejected_since_s=None,
+            x0 = st.x.copy()
+            x0[0] = z
+            st = replace(st, x=x0, P=P, rejected_since_s=None,
                          source_available=True, n_resets=st.n_resets + 1)
             return st, HeadingDiag(**diag_kw, reset=True, reset_jump_rad=nu,
                                    reason="re-initialised from the source after continuous rejection")
@@ -413,7 +470,7 @@ def _measure(st, u, Prp, p):
     K = st.P[:, 0] / S
     x = st.x + K * nu
     x[0] = wrap_2pi(x[0])
-    I_KH = np.eye(4)
+    I_KH = np.eye(n)
     I_KH[:, 0] -= K
     P = I_KH @ st.P @ I_KH.T + np.outer(K, K) * R
     # consider floor: the correlated part of the source error (tilt, declination, residual
@@ -452,7 +509,138 @@ def polar_heading_estimate(state: PolarHeadingState) -> HeadingEstimate:
     if not state.initialised:
         return HeadingEstimate(math.nan, math.inf, state.source_available, False)
     var = float(state.P[0, 0])
+    heading = float(state.x[0])
+    if state.platform and state.q_P_from_body is not None:   # yaw of R_z(psi_P) C_PB
+        heading = wrap_2pi(heading + euler_from_dcm(dcm_from_quat(state.q_P_from_body))[2])
     if state.r_corr_avg_rad2 is not None:
         var = max(var, state.r_corr_avg_rad2)      # consider floor (see _measure)
     var += state.r_uncal_rad2
-    return HeadingEstimate(float(state.x[0]), var, state.source_available, True)
+    return HeadingEstimate(heading, var, state.source_available, True)
+
+
+# ---- platform formulation (module docstring) ----------------------------------------------------
+def _platform_step(state: PolarHeadingState, u: HeadingInputs, p: PolarHeadingParams):
+    q_P = np.asarray(u.q_P_from_body, float)
+    w = np.asarray(u.gyro_body_rad_s, float)
+    if (q_P.shape != (4,) or not np.all(np.isfinite(q_P)) or not math.isfinite(u.time_s) or w.shape != (3,)
+            or not np.all(np.isfinite(w))):
+        return state, HeadingDiag(reason="non-finite input", source_available=state.source_available)
+    q_P = q_P / np.linalg.norm(q_P)
+    st = state if state.platform else _to_platform(state, q_P, p)
+    q = q_P          # no own attitude yet, or after a gap: take the attitude filter's
+    if st.time_s is not None:
+        dt = u.time_s - st.time_s
+        if dt <= 0.0:
+            return st, HeadingDiag(reason=f"time not increasing (dt={dt:.6f} s)")
+        if dt <= p.max_dt_s and st.q_P_from_body is not None:
+            q = _own_attitude(st.q_P_from_body, (w - st.x[2:5]) * dt, q_P)
+            if st.initialised:
+                st = _predict_platform(st, dt, p)
+        elif st.initialised:
+            st = polar_heading_unseen(st, dt, p)
+    st = replace(st, time_s=u.time_s, q_P_from_body=q)
+    if u.mag_body_gauss is None:
+        return st, HeadingDiag(source_available=st.source_available)
+    if st.last_mag_time_s is not None and u.time_s - st.last_mag_time_s + 1e-9 < p.mag_update_period_s:
+        return st, HeadingDiag(source_available=st.source_available)
+    if st.rejected_since_s is not None and st.last_mag_time_s is not None \
+            and u.time_s - st.last_mag_time_s > WITHHELD_AFTER_S:
+        # the magnetometer was withheld meanwhile (a disturbance): its rejections start over
+        st = replace(st, rejected_since_s=None)
+    return _measure_platform(st, u, q, p)
+
+
+def _own_attitude(q_prev: np.ndarray, angle_body_rad: np.ndarray, q_P: np.ndarray) -> np.ndarray:
+    """The heading filter's own body attitude in its level frame H: propagated by the bias-corrected
+    gyro increment, then given the attitude filter's tilt by the smallest body rotation (about an
+    axis normal to the vertical: no turn about the vertical, so the azimuth of H is the gyros' alone
+    and the attitude filter's corrections about its own, unobservable vertical never reach the
+    heading). With R_b the body rotation and g the down direction in body axes:
+        C_HB_new = C_HB_pred R_b,   R_b g_att = g_pred,   axis g_att x g_pred."""
+    q_pred = quat_normalize(quat_mul(q_prev, quat_from_rotvec(angle_body_rad)))
+    g_pred = dcm_from_quat(q_pred)[2, :]       # e_z^T C_HB: down in body axes
+    g_att = dcm_from_quat(q_P)[2, :]
+    axis = np.cross(g_att, g_pred)
+    s, c = float(np.linalg.norm(axis)), float(g_att @ g_pred)
+    if s < 1e-12:
+        return q_pred if c > 0.0 else q_P
+    return quat_normalize(quat_mul(q_pred, quat_from_rotvec(axis / s * math.atan2(s, c))))
+
+
+def _to_platform(st: PolarHeadingState, q: np.ndarray, p: PolarHeadingParams) -> PolarHeadingState:
+    """Switch an Euler-mode state to the platform states (a heading already known becomes psi_P =
+    heading - yaw(C_PB); the gyro-bias errors start from their prior)."""
+    x = np.zeros(5)
+    P = _prior_P(0.0, p, 5)
+    if st.initialised:
+        x[0] = wrap_2pi(st.x[0] - euler_from_dcm(dcm_from_quat(q))[2])
+        x[1] = st.x[1]
+        P[:2, :2] = st.P[:2, :2]
+    return replace(st, platform=True, x=x, P=P)
+
+
+def _predict_platform(st, dt, p):
+    C_PB = dcm_from_quat(st.q_P_from_body)
+    row = C_PB[2, :]                    # e_z^T C_PB: a body vector's component along P's vertical
+    x = st.x
+    a_v, q_v = _gm(dt, p.vertical_rate_tau_s, p.vertical_rate_sigma_rad_s)
+    a_b, q_b = _gm(dt, p.gyro_bias_tau_s, p.gyro_bias_sigma_rad_s)
+    F = np.diag([1.0, a_v, a_b, a_b, a_b])
+    F[0, 1] = -dt
+    F[0, 2:5] = -row * dt               # H turns with the bias error: psi' = e_z^T C_HB (b_hat - b)
+    P = F @ st.P @ F.T
+    P[0, 0] += (p.gyro_noise_rad_s_rt_hz ** 2 + p.heading_process_floor_rad_s_rt_hz ** 2) * dt
+    P[1, 1] += q_v
+    P[2:5, 2:5] += np.eye(3) * q_b
+    xn = x.copy()
+    xn[0] = wrap_2pi(x[0] - x[1] * dt)
+    xn[1] = x[1] * a_v
+    xn[2:5] = x[2:5] * a_b
+    return replace(st, x=xn, P=P)
+
+
+def _measure_platform(st, u, q, p):
+    m = np.asarray(u.mag_body_gauss, float)
+    if m.shape != (3,) or not np.all(np.isfinite(m)):
+        return st, HeadingDiag(reason="non-finite magnetometer", source_available=st.source_available)
+    if not math.isfinite(u.declination_rad):
+        raise ValueError("declination_rad must be finite when a magnetometer sample is given")
+    st = replace(st, last_mag_time_s=u.time_s)
+    C_PB = dcm_from_quat(q)
+    if u.level_with_roll_pitch:
+        if not (math.isfinite(u.roll_rad) and math.isfinite(u.pitch_rad)):
+            return st, HeadingDiag(reason="non-finite input", source_available=st.source_available)
+        C_lev = dcm_from_euler(u.roll_rad, u.pitch_rad, euler_from_dcm(C_PB)[2])
+        P_tilt = np.asarray(u.cov_roll_pitch_rad2, float)
+    else:
+        C_lev = C_PB
+        Pe = np.zeros((3, 3)) if u.cov_att_body_rad2 is None else np.asarray(u.cov_att_body_rad2, float)
+        P_tilt = (C_PB @ Pe @ C_PB.T)[:2, :2]
+    mp = C_lev @ m
+    H = math.hypot(mp[0], mp[1])
+    if H < p.min_horizontal_field_gauss:
+        st = replace(st, source_available=False)
+        return st, HeadingDiag(measured=False, source_available=False, horizontal_field_gauss=H,
+                               reason=f"horizontal field {H:.4f} G < {p.min_horizontal_field_gauss} G")
+    G = -mp[2] / (H * H) * mp[:2]       # d psi_m / d(tilt in P), module docstring
+    r_white = (p.mag_noise_gauss / H) ** 2
+    r_corr = u.declination_sigma_rad ** 2 + float(G @ P_tilt @ G) + p.mag_heading_floor_rad ** 2
+    R = r_white + r_corr * max(1.0, p.mag_error_tau_s / p.mag_update_period_s)
+    R_single = r_white + r_corr
+    z = wrap_2pi(-math.atan2(mp[1], mp[0]) + u.declination_rad)    # azimuth of P's x axis
+    st = replace(st, r_uncal_rad2=uncalibrated_heading_var(m, H, u.mag_residual_sigma_gauss, p))
+    return _fuse_heading(st, u, z, H, R, R_single, r_corr, p)
+
+
+def polar_heading_attitude(state: PolarHeadingState, heading_rad: float | None = None) -> np.ndarray | None:
+    """q_nav_from_body of the platform formulation, R_z(heading - yaw(C_HB)) C_HB: the filter's own
+    attitude turned about the vertical to ``heading_rad`` (default: its own estimate). Composing the
+    quaternion avoids the Euler angles, whose roll and yaw are one degree of freedom at pitch +-90
+    deg (recombining a roll and a yaw taken from two different attitudes is then arbitrary). None
+    outside the platform formulation."""
+    if not (state.platform and state.initialised and state.q_P_from_body is not None):
+        return None
+    if heading_rad is None:
+        heading_rad = polar_heading_estimate(state).heading_rad
+    yaw_H = euler_from_dcm(dcm_from_quat(state.q_P_from_body))[2]
+    return quat_normalize(quat_mul(quat_from_euler(0.0, 0.0, heading_rad - yaw_H), state.q_P_from_body))
