@@ -41,16 +41,18 @@ from estimators.levelling import LevellingParams, LevellingState
 from estimators.mag_deviation import (DeviationParams, DeviationState, corrected_mag, deviation_coverage,
                                       deviation_init, deviation_step, residual_sigma_gauss)
 from estimators.mag_error_kf import Kf1State
+from estimators.mag_disturbance import (MagDisturbanceState, mag_disturbance_params_for_field,
+                                        mag_disturbance_step)
 from estimators.mag_usability import (MagUsabilityState, mag_usability_params_for_field, mag_usability_stale,
                                       mag_usability_step)
 from estimators.polar_attitude import (PolarAttitudeParams, polar_attitude_estimate,
                                        polar_attitude_init, polar_attitude_init_at, polar_attitude_step,
                                        polar_attitude_unseen)
-from estimators.polar_heading import (HeadingInputs, PolarHeadingParams, polar_heading_estimate,
+from estimators.polar_heading import (HeadingInputs, PolarHeadingParams, polar_heading_attitude, polar_heading_estimate,
                                       polar_heading_init, polar_heading_step, polar_heading_unseen,
                                       vertical_rate_sigma_for_site)
 from estimators.rotations import (dcm_from_quat, euler_from_quat, quat_conj, quat_from_euler,
-                                  quat_mul, wrap_2pi)
+                                  quat_mul, wrap_2pi, wrap_pi)
 from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init, strapdown_step
 from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent, HeadingEvent, ImuEvent,
                                        SyntheticAhrsOutput, SyntheticAhrsParams, synthetic_ahrs_init,
@@ -231,6 +233,11 @@ class Pipeline:
         # magnetometer while it is not, and coast on the gyros with a growing sigma
         self.mag_usability_params = mag_usability_params_for_field(self.field.e_ned_gauss)
         self.mag_usability = MagUsabilityState()
+        # magnetic disturbances in motion (estimators/mag_disturbance): the hard iron learnt (and
+        # re-learnt when a magnet is attached), the field checked against the recent undisturbed one
+        self.mag_dist_params = mag_disturbance_params_for_field(
+            self.field.e_ned_gauss, hard_iron_prior_sigma_gauss=max(heading["uncalibrated_hard_iron_gauss"], 1e-4))
+        self.mag_dist = MagDisturbanceState()
         self.mag_status = "no magnetometer sample yet"
         """'usable', or why not ('rejected: field norm 0.870 G vs ...'): published on health."""
 
@@ -243,6 +250,8 @@ class Pipeline:
         self.use_fc_yaw = heading.get("use_fc_yaw", True)
         """False: the FC's yaw is used nowhere ([heading] use_fc_yaw, or ``exclude_fc_yaw``)."""
         self._b1_heading_s = -math.inf
+        self._yaw_P_prev = None
+        """(time, yaw of the attitude filter's platform attitude) at the last solution: the heading rate."""
         self._b_air_fused, self._b_air_fused_s, self._b_mag_hist = 0, -math.inf, deque()
 
         self.filter_period_s = 1.0 / cfg["heading"]["filter_rate_hz"]
@@ -343,8 +352,11 @@ class Pipeline:
         self.polar_att, _ = polar_attitude_step(self.polar_att, t, gyro_b, accel_b, self.polar_att_params)
         att = polar_attitude_estimate(self.polar_att)
         tilt = self._heading_tilt(t, att, gyro_b)
-        if not self._mag_usable(mag_b, t, tilt, gyro_b):
+        mag_b_hi = self._mag_disturbance(mag_b, t, att)   # m - learnt hard iron, None when disturbed
+        if not self._mag_usable(mag_b, t, tilt, gyro_b) or mag_b_hi is None:
             mag_b = mag_s = None
+        else:
+            mag_b, mag_s = mag_b_hi, C.T @ mag_b_hi
         mag_b_raw = mag_b
         if mag_b is not None:
             mag_b = self._deviation_corrected(mag_b)
@@ -354,7 +366,9 @@ class Pipeline:
                                               mag_b, self.declination_rad, self.declination_sigma_rad,
                                               # D applied: its residual; else C's uncalibrated model
                                               float(np.max(residual_sigma_gauss(self.deviation)))
-                                              if mag_b is not mag_b_raw else None),
+                                              if mag_b is not mag_b_raw else self._mag_hard_iron_residual(mag_b, att),
+                                              # heading in every attitude: the platform formulation
+                                              *self._heading_platform(att, tilt)),
                 self.polar_hdg_params)
             if hdiag.measured and hdiag.source_available != self._hdg_available:
                 self._hdg_available = hdiag.source_available
@@ -653,6 +667,50 @@ class Pipeline:
             return None
         return att.roll_rad, att.pitch_rad, att.cov_roll_pitch_rad2
 
+    def _mag_disturbance(self, mag_body_gauss, t: float, att):
+        """The magnetometer with its learnt hard iron removed (estimators/mag_disturbance: a magnet
+        attached is re-learnt), or None while the field departs from the recent undisturbed one (a
+        magnet nearby) or the hard iron is being re-learnt; one 'magnetometer' event per change."""
+        if mag_body_gauss is None or att is None:
+            return mag_body_gauss if att is None else None
+        self.mag_dist, v = mag_disturbance_step(self.mag_dist, t, mag_body_gauss, att.q_P_from_body,
+                                                self.mag_dist_params)
+        if v.relearned:
+            self._event("magnetic_disturbance", f"hard iron changed (a magnet attached?): re-learning it, "
+                        f"the heading coasts on the gyros meanwhile")
+        if v.changed:
+            self._event("magnetic_disturbance", "undisturbed: used again, hard iron [" + ", ".join(
+                f"{x:+.3f}" for x in v.hard_iron_gauss) + f"] G +- {v.hard_iron_sigma_gauss:.3f} G"
+                if v.usable else f"rejected ({v.reason}): the heading coasts on the gyros, its sigma growing")
+        return v.mag_corrected_gauss
+
+    def _mag_hard_iron_residual(self, mag_body_gauss, att) -> float | None:
+        """Per-axis sigma (gauss) of what the learnt hard iron leaves in the magnetometer, as the
+        heading sees it: the hard iron's covariance P_b turns the heading by g^T C_PB db,
+        g = [m_y, -m_x, 0] / H^2 (levelled field m), so its heading variance is
+        g^T C_PB P_b C_BP g = s_eq^2 / H^2 with s_eq = H sqrt(g^T C_PB P_b C_BP g); plus the
+        uncompensated soft iron (polar_heading's ``uncalibrated_soft_iron`` of |m|)."""
+        P = self.mag_dist.P_hard_iron
+        if mag_body_gauss is None or P is None or att is None:
+            return None
+        C = dcm_from_quat(att.q_P_from_body)
+        m = C @ mag_body_gauss
+        H2 = float(m[0] ** 2 + m[1] ** 2)
+        if H2 <= 0.0:
+            return None
+        g = np.array([m[1], -m[0], 0.0]) / H2
+        s_eq = math.sqrt(H2 * float(g @ C @ P @ C.T @ g))
+        return math.hypot(s_eq, self.polar_hdg_params.uncalibrated_soft_iron * float(np.linalg.norm(mag_body_gauss)))
+
+    def _heading_platform(self, att, tilt) -> tuple:
+        """HeadingInputs' platform fields (estimators/polar_heading): the attitude filter's full
+        attitude in its platform frame, its attitude-error covariance and gyro bias, and whether the
+        magnetometer is levelled with ``tilt`` (the trusted FC's) rather than that attitude."""
+        if att is None:
+            return None, None, None, False
+        return (att.q_P_from_body, self.polar_att.P[0:3, 0:3], att.gyro_bias_rad_s,
+                tilt is not None and tilt[2] is not att.cov_roll_pitch_rad2)
+
     def _mag_usable(self, mag_body_gauss: np.ndarray | None, t: float, tilt, gyro_body_rad_s: np.ndarray) -> bool:
         """The magnetometer usability verdict for this filter step (estimators/mag_usability, on the
         raw body-axes field levelled with C's roll/pitch); one 'magnetometer' event per change."""
@@ -662,10 +720,16 @@ class Pipeline:
         else:
             self.mag_usability, v = mag_usability_step(
                 self.mag_usability, t, mag_body_gauss, tilt[0] if tilt is not None else None,
-                tilt[1] if tilt is not None else None, p, gyro_body_rad_s)
+                tilt[1] if tilt is not None else None, p, gyro_body_rad_s,
+                # a NEW hard iron learnt (a magnet attached) is removed before the model tests; the
+                # airframe's own, within its uncalibrated prior, is what those tests allow for
+                self.mag_dist.hard_iron_gauss if self.mag_dist.n_relearns > 0 and not self.mag_dist.relearning
+                else None)
         if v is not None:
             pending = self.mag_usability.usable is None
             self.mag_status = "usable" if v.usable else (v.reason if pending else f"rejected: {v.reason}")
+            if v.usable and self.mag_dist.reason and self.mag_dist.P_hard_iron is not None:
+                self.mag_status = f"rejected: {self.mag_dist.reason}"
         if v is not None and v.changed:
             self._event("magnetometer", "usable" if v.usable else
                         f"rejected ({v.reason}): the heading coasts on the gyros, its sigma growing")
@@ -765,8 +829,10 @@ class Pipeline:
                                      (MAG_GROUP, FC_REF_GROUP) if self.use_fc_yaw else MAG_GROUP, consistent, why))
         h = polar_heading_estimate(self.polar_hdg)
         if mag_sources and h.initialised and math.isfinite(h.heading_rad):
-            rej = self.polar_hdg.rejected_since_s
-            consistent = rej is None or t - rej < SOURCE_INCONSISTENT_AFTER_S
+            rej, last = self.polar_hdg.rejected_since_s, self.polar_hdg.last_mag_time_s
+            # inconsistent: its measurements keep failing its gate (not: none come, a disturbance)
+            consistent = (rej is None or t - rej < SOURCE_INCONSISTENT_AFTER_S
+                          or last is None or t - last > SOURCE_INCONSISTENT_AFTER_S / 4)
             out.append(SourceReading("heading_filter", h.heading_rad, math.sqrt(h.variance_rad2), True, t, MAG_GROUP,
                                      consistent, "" if consistent else
                                      f"its magnetometer innovations gated out for {t - rej:.1f} s"))
@@ -832,7 +898,13 @@ class Pipeline:
             roll_sigma, pitch_sigma = max(roll_sigma or 0.0, wide), max(pitch_sigma or 0.0, wide)
 
         heading_rate = None
-        if abs(math.cos(pitch)) > 1e-3:  # psi_dot = (q sin(phi) + r cos(phi)) / cos(theta)
+        yaw_P = euler_from_quat(att.q_P_from_body)[2] if att is not None else None
+        prev, self._yaw_P_prev = self._yaw_P_prev, (t, yaw_P) if yaw_P is not None else None
+        if prev is not None and yaw_P is not None and t > prev[0]:
+            # the yaw's change over the step from the full attitude: exact through pitch +-90 deg,
+            # where the Euler rate below is singular
+            heading_rate = wrap_pi(yaw_P - prev[1]) / (t - prev[0])
+        elif abs(math.cos(pitch)) > 1e-3:  # psi_dot = (q sin(phi) + r cos(phi)) / cos(theta)
             heading_rate = (rates_body[1] * math.sin(roll) + rates_body[2] * math.cos(roll)) / math.cos(pitch)
         readings = self._readings(t)
         self.arb, arb_out = arbitrate(self.arb, readings, t, self.arb_params, heading_rate)
@@ -853,7 +925,9 @@ class Pipeline:
         flags["magnetometer"] = self.mag_status
         valid = arb_out.valid and arb_out.heading_rad is not None
         heading = arb_out.heading_rad if valid else None
-        q_nb = quat_from_euler(roll, pitch, heading if valid else 0.0)
+        q_nb = polar_heading_attitude(self.polar_hdg, heading) if valid and att is not None else None
+        if q_nb is None:   # (the platform attitude avoids the Euler split of roll and yaw at pitch +-90 deg)
+            q_nb = quat_from_euler(roll, pitch, heading if valid else 0.0)
         return NavSolution(t, s.time_rx_s, self.phase.phase, q_nb, roll, pitch, rates_body,
                            roll_sigma_rad=roll_sigma, pitch_sigma_rad=pitch_sigma,
                            heading_rad=heading, heading_sigma_rad=arb_out.sigma_rad if valid else None,

@@ -1,0 +1,107 @@
+"""Issue 18's magnet tests through the daemon's Pipeline on the simulator's IMU (sim.offline: its
+own Earth field and sensor errors), IMU samples only (a hand-held IMU: no FC, no air data).
+Truth only scores."""
+import math
+
+import numpy as np
+import pytest
+
+from mavlink_io.samples import ImuSample
+from service.config import validate
+from service.pipeline import Pipeline
+from sim.offline import simulate
+
+IMU_HZ = 50.0
+
+
+def _pipeline(run) -> Pipeline:
+    s = run.site
+    return Pipeline(validate({
+        "site": {"lat_deg": s["lat_deg"], "lon_deg": s["lon_deg"], "alt_m": s["alt_m"],
+                 "decimal_year": s["decimal_year"]},
+        "launch": {"case": "aligned", "vehicle": "hand"}, "heading": {"use_fc_yaw": False},
+        "azimuth": {"solve_in_background": False}, "mavlink": {"imu_rate_hz": IMU_HZ}}))
+
+
+def _fly(run):
+    """(time, magnetometer status, heading valid, heading sigma deg, heading error deg) per solution,
+    and the Pipeline's events; the error is the twist of the published attitude about the vertical."""
+    p = _pipeline(run)
+    rows = []
+    for k, t in enumerate(run.time_s.tolist()):
+        sol = p.on_imu(ImuSample(t, t, run.gyro_rad_s[k].copy(), run.accel_m_s2[k].copy(),
+                                 run.mag_gauss[k].copy(), "RAW_IMU", 0))
+        if sol is None or sol.q_nav_from_body is None:
+            continue
+        qt, qe = run.truth.q_nav_from_body[k], np.asarray(sol.q_nav_from_body)
+        # q_err = q_est (x) conj(q_true): its twist about the vertical
+        w = qe[0] * qt[0] + qe[1] * qt[1] + qe[2] * qt[2] + qe[3] * qt[3]
+        z = -qe[0] * qt[3] - qe[1] * qt[2] + qe[2] * qt[1] + qe[3] * qt[0]
+        err = math.degrees(math.remainder(2.0 * math.atan2(z, w), 2 * math.pi))
+        rows.append((t, sol.flags.get("magnetometer", ""), bool(sol.heading_valid),
+                     math.degrees(sol.heading_sigma_rad) if sol.heading_sigma_rad else math.nan, err))
+    return rows, list(p.events)
+
+
+@pytest.fixture(scope="module")
+def nearby():
+    # any_motion_magnet_nearby, shortened: the magnet from 16 s to 24 s while the body turns and rests
+    run = simulate("any_motion_magnet_nearby", seed=3, imu_rate_hz=IMU_HZ, duration_s=32.0,
+                   overrides={"mag": {"disturbances": [{"start_s": 16.0, "end_s": 24.0,
+                                                        "field_ned_gauss": [0.22, -0.18, 0.10]}]}})
+    return _fly(run)
+
+
+def test_given_a_magnet_brought_close_when_the_field_norm_departs_then_rejected_and_the_sigma_grows(nearby):
+    rows, events = nearby
+    before = [r for r in rows if 12.0 <= r[0] < 16.0]
+    during = [r for r in rows if 16.5 <= r[0] < 24.0]
+    assert all(r[1] == "usable" for r in before)
+    # THEN the heading source says rejected, with the reason named: at once against the recent
+    # undisturbed field, then (its 2 s median) against the model too
+    assert all(r[1].startswith(("rejected: magnetic disturbance: field", "rejected: field norm")) for r in during), \
+        {r[1][:60] for r in during}
+    assert any(k == "magnetic_disturbance" and d.startswith("rejected (magnetic disturbance: field") and
+               "vs the recent undisturbed" in d for k, d in events)
+    assert any(k == "magnetometer" and d.startswith("rejected (field norm") and "vs the model's" in d for k, d in events)
+    first = next(r[0] for r in rows if r[0] >= 16.0 and r[1] != "usable")
+    assert first - 16.0 < 0.3
+    # ... the heading coasts on the gyros (still published) and its sigma grows all along
+    assert all(r[2] for r in during)
+    sig = np.array([r[3] for r in during])
+    assert np.all(np.diff(sig) >= 0.0) and sig[-1] > sig[0]
+    # ... and it stays honest: every error within 3 sigma, before, during and after
+    assert all(abs(r[4]) <= 3.0 * r[3] for r in rows if r[0] >= 12.0)
+
+
+def test_when_the_magnet_is_taken_away_then_the_magnetometer_is_used_again_within_1_s(nearby):
+    rows, _ = nearby
+    back = next(r[0] for r in rows if r[0] >= 24.0 and r[1] == "usable")
+    assert back - 24.0 < 1.0
+    assert all(r[1] == "usable" for r in rows if r[0] > back)
+    # the heading comes back to what the undisturbed magnetometer gave before the magnet (seed 3's
+    # site has a 3-4 deg field-model error: within its sigma, and not the magnet's doing)
+    before = abs(next(r[4] for r in reversed(rows) if r[0] < 16.0))
+    assert max(abs(r[4]) for r in rows if r[0] > rows[-1][0] - 3.0) <= before + 0.5
+
+
+def test_given_a_magnet_attached_when_the_body_turns_then_learnt_again_and_used():
+    # any_motion_magnet_attached, shortened: a new hard iron of 0.29 G from 14 s while the body turns
+    run = simulate("any_motion_magnet_attached", seed=3, imu_rate_hz=IMU_HZ, duration_s=40.0,
+                   overrides={"mag": {"disturbances": [{"start_s": 14.0, "hard_iron_gauss": [0.18, -0.20, 0.12]}]}})
+    rows, events = _fly(run)
+    assert any(k == "magnetic_disturbance" and d.startswith("hard iron changed") for k, d in events)
+    relearning = [r for r in rows if r[1].startswith("rejected: re-learning its hard iron")]
+    assert relearning and all(r[2] for r in relearning)          # coasting meanwhile, not lost
+    # learnt again within a stated time: usable for good from at most 30 s after the magnet came
+    # (measured 25.1 s on these slow rotations with pauses: the change is confirmed by three 30 deg
+    # turns inconsistent with the old hard iron (15 s here), then learnt once the body has turned
+    # about its z axis too (10 s); rejected meanwhile by the field tests, never fused)
+    last_bad = max(r[0] for r in rows if r[0] >= 14.0 and r[1] != "usable")
+    assert last_bad - 14.0 < 30.0, last_bad - 14.0
+    # the 25 s coast on the gyros cost 3 deg here (-4.4 -> -7.7 deg; seed 3's site field-model error
+    # is the -4.4), inside the grown sigma: every error within 3 sigma, and the relearnt
+    # magnetometer pulls the heading back, not further off
+    after = [r for r in rows if r[0] > last_bad]
+    assert after and abs(after[-1][4]) <= abs(after[0][4])
+    assert all(abs(r[4]) <= 3.0 * r[3] for r in rows if r[0] >= 12.0)
