@@ -56,28 +56,25 @@ from the source (reported in the diagnostics: ``reset=True`` with the jump).
 
 Platform formulation (issue 18: heading in every attitude; used when the caller gives the attitude
 filter's ``q_P_from_body``). The Euler rate above divides by cos(theta) and has no meaning at pitch
-+-90 deg. The attitude filter (estimators/polar_attitude.py) already carries the FULL attitude of
-the body in its floating platform frame P (level, azimuth arbitrary, propagated by the
-bias-corrected gyros, nothing Euler in it). The body's attitude in NED is then
-    C_nav_from_body = R_z(psi_P) C_PB,
-so the heading filter needs to estimate only psi_P, the azimuth of P from true north, and nothing
-divides by cos(pitch). Kinematics (derivation: C_NP = C_NB C_BP with C_NB' = C_NB[w x] - [W_N x]C_NB
-and P's mechanisation C_PB' = C_PB[w_hat x] - [W_hat x]C_PB, w_hat = w_meas - b_hat; to first
-order in the tilt, C_NP' = C_NP[(C_PB d) x] + C_NP[W_hat x] - [W_N x]C_NP, d = b_hat - b):
-
-    psi_P' = e_z^T C_PB d - w_v,     w_v = W_N,down - W_hat,z   (GM, as above)
-
-States (5): [psi_P, w_v, d_x, d_y, d_z]; d is the error of the attitude filter's gyro bias (body,
-GM). When the attitude filter corrects its bias by db_hat the error moves by the same amount
-(d += db_hat, exact bookkeeping). Measurement: the magnetometer levelled by the full rotation,
-m_P = C_PB m_B, psi_m = D - atan2(m_P_y, m_P_x). A tilt error t (the horizontal components of
-C_PB eps, eps the attitude filter's body-frame error, covariance C_PB P_eps C_BP) turns it by
++-90 deg. Here the filter keeps its OWN body attitude C_HB in a level frame H (nothing Euler in it):
+each step it is turned by the gyro increment (w - b_hat) dt, b_hat the filter's own 3-axis bias,
+and then given the attitude filter's tilt by the smallest body rotation (axis g_att x g_pred, g the
+down direction in body axes: normal to the vertical, so it never turns H about the vertical; the
+attitude filter's corrections about its own unobservable vertical, and its vertical bias, never
+reach the heading). The body's attitude in NED is then
+    C_nav_from_body = R_z(psi_H) C_HB,
+and the filter estimates psi_H, the azimuth of H from true north. States (5):
+[psi_H, w_v, b_x, b_y, b_z]; kinematics (C_NH = C_NB C_BH, to first order in the tilt)
+    psi_H' = e_z^T C_HB (b_hat - b) - w_v        (error model: F[psi, b] = -e_z^T C_HB dt),
+w_v as above (GM). Measurement: the magnetometer levelled by the full rotation, m_H = C_HB m_B,
+psi_m = D - atan2(m_H_y, m_H_x). A tilt error t (the horizontal components of C_HB eps, eps the
+attitude filter's body-frame error, covariance C_HB P_eps C_BH) turns it by
     d psi_m = -m_z (m_x t_x + m_y t_y) / H^2      (G = -m_z/H^2 [m_x, m_y]; |G| = tan(dip)),
-the same consider/inflation rules as above apply (R, r_uncal). Heading observable in every
+and the same consider/inflation rules as above apply (R, r_uncal). Heading observable in every
 attitude; unobservable (no update, sigma grows) only where the levelled horizontal field is below
-``min_horizontal_field_gauss``. The published heading is the Euler yaw of R_z(psi_P) C_PB,
-psi_P + yaw(C_PB), so R_z(heading) R_y(pitch) R_x(roll) with the attitude filter's roll/pitch is
-exactly R_z(psi_P) C_PB (also at pitch +-90 deg, where roll and yaw share one degree of freedom).
+``min_horizontal_field_gauss``. The published attitude is composed, R_z(psi_H) C_HB
+(``polar_heading_attitude``), never from Euler angles, whose roll and yaw are one degree of freedom
+at pitch +-90 deg; the heading is its Euler yaw, psi_H + yaw(C_HB).
 
 Pure: ``polar_heading_step(state, inputs, params) -> (state, diag)``.
 """
@@ -206,9 +203,9 @@ class PolarHeadingState:
     platform: bool = False
     """True: the platform formulation (x = [psi_P, w_v, d_x, d_y, d_z], module docstring)."""
     q_P_from_body: np.ndarray | None = None
-    """Platform mode: the attitude filter's attitude at the last step."""
+    """Platform mode: the filter's own body attitude C_HB (level frame H) at the last step."""
     gyro_bias_prev_rad_s: np.ndarray | None = None
-    """Platform mode: the attitude filter's gyro bias at the last step (for d's bookkeeping)."""
+    """Unused (kept so saved states still load)."""
 
     def to_dict(self) -> dict:
         return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()}
@@ -248,7 +245,8 @@ class HeadingInputs:
     cov_att_body_rad2: np.ndarray | None = None
     """Platform mode: 3x3 covariance of the attitude filter's body-frame attitude error eps."""
     gyro_bias_rad_s: np.ndarray | None = None
-    """Platform mode: the attitude filter's gyro-bias estimate (body, rad/s)."""
+    """Platform mode: the attitude filter's gyro-bias estimate (body, rad/s); informational: the
+    filter integrates with its own bias (module docstring)."""
     level_with_roll_pitch: bool = False
     """Platform mode: level the magnetometer with R_z(yaw of C_PB) R_y(pitch) R_x(roll) and
     ``cov_roll_pitch_rad2`` (e.g. a trusted FC's tilt) instead of C_PB's own tilt."""
