@@ -53,11 +53,12 @@ from estimators.polar_heading import (HeadingInputs, PolarHeadingParams, polar_h
                                       vertical_rate_sigma_for_site)
 from estimators.rotations import (dcm_from_quat, euler_from_quat, quat_conj, quat_from_euler,
                                   quat_mul, wrap_2pi, wrap_pi)
-from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init, strapdown_step
+from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init
 from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent, HeadingEvent, ImuEvent,
                                        SyntheticAhrsOutput, SyntheticAhrsParams, synthetic_ahrs_init,
                                        synthetic_ahrs_output, synthetic_ahrs_step, synthetic_ahrs_unseen)
 from mavlink_io.samples import FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, ImuSample, PressureSample
+from service.core_backend import select as select_core
 from service.input_checks import ImuInputChecks, InputCheckParams
 from service.heading_arbitration import (ArbitrationParams, ArbitrationState, SourceReading,
                                          arbitrate)
@@ -154,6 +155,8 @@ class Pipeline:
         self.vehicle = VehicleResolver(launch["vehicle"])
         """The take-off model: configured, or "auto" from the FC's HEARTBEAT (service/vehicle_type.py)."""
         self.strapdown_params = StrapdownParams(max_dt_s=cfg["mavlink"]["imu_gap_s"])
+        self.core = select_core()
+        """The compiled core or the Python reference for the ported parts (service/core_backend.py)."""
         # q_body_from_sensor: the sensor axes' attitude in the body frame (configured mount)
         self.q_body_from_sensor = quat_from_euler(math.radians(imu["mount_roll_deg"]),
                                                   math.radians(imu["mount_pitch_deg"]),
@@ -218,7 +221,9 @@ class Pipeline:
         self._ahrs_trusted: bool | None = None
 
         # method C
-        self.polar_att_params = PolarAttitudeParams()
+        # holes up to imu_gap_s are bridged on the rates around them (as the strapdown does); a
+        # longer gap is an interval not seen (the link reports it as a time_gap)
+        self.polar_att_params = PolarAttitudeParams(max_dt_s=cfg["mavlink"]["imu_gap_s"])
         self.polar_att = polar_attitude_init(self.polar_att_params)
         lat = cfg["site"]["lat_deg"]
         vr_sigma = (vertical_rate_sigma_for_site(math.radians(lat), heading["cruise_speed_m_s"])
@@ -318,8 +323,8 @@ class Pipeline:
         elif prev_phase == PRE_LAUNCH and self.phase.started_in_flight:
             self._start_in_flight(t, accel_s)
         elif self.phase.phase in (LAUNCH, IN_FLIGHT) and self.strapdown is not None:
-            self.strapdown, diag = strapdown_step(self.strapdown, gyro_s - self.gyro_bias_rad_s, t,
-                                                  self.strapdown_params)
+            self.strapdown, diag = self.core.strapdown_step(self.strapdown, gyro_s - self.gyro_bias_rad_s, t,
+                                                            self.strapdown_params)
             if not diag.integrated and diag.reason != "first sample":
                 self.counters.strapdown_gaps += 1
                 self._event("strapdown", diag.reason)
@@ -349,7 +354,9 @@ class Pipeline:
         C = self.C_body_from_sensor
         gyro_b, accel_b = C @ gyro_s, C @ accel_s
         mag_b = C @ mag_s if mag_s is not None else None
-        self.polar_att, _ = polar_attitude_step(self.polar_att, t, gyro_b, accel_b, self.polar_att_params)
+        self.polar_att, adiag = polar_attitude_step(self.polar_att, t, gyro_b, accel_b, self.polar_att_params)
+        if adiag.relevelled:
+            self._event("attitude", adiag.reason)
         att = polar_attitude_estimate(self.polar_att)
         tilt = self._heading_tilt(t, att, gyro_b)
         mag_b_hi = self._mag_disturbance(mag_b, t, att)   # m - learnt hard iron, None when disturbed
@@ -800,8 +807,8 @@ class Pipeline:
         self.gyro_bias_rad_s = level.gyro_bias_rad_s.copy()
         # yaw unknown at launch: 0 until a heading source exists
         self.strapdown = strapdown_init(quat_from_euler(level.roll_rad, level.pitch_rad, 0.0))
-        self.strapdown, _ = strapdown_step(self.strapdown, s.gyro_rad_s - self.gyro_bias_rad_s,
-                                           s.time_fc_s, self.strapdown_params)
+        self.strapdown, _ = self.core.strapdown_step(self.strapdown, s.gyro_rad_s - self.gyro_bias_rad_s,
+                                                     s.time_fc_s, self.strapdown_params)
 
     def _tilt_sigma_rad(self, time_s: float) -> float | None:
         """1-sigma roll/pitch of the levelled + strapdown attitude: levelling error, then growing
