@@ -154,12 +154,17 @@ def _motion(state: MagUsabilityState, t: float, m: np.ndarray, gyro_body_rad_s, 
         return exp_all, exp_axis, turned, marks
     w = np.asarray(gyro_body_rad_s, float)
     dt = t - state.last_call_s
-    if (w.shape == (3,) and np.all(np.isfinite(w)) and 0.0 < dt <= params.rate_window_s
-            and float(np.linalg.norm(w)) >= params.motion_rate_floor_rad_s):
-        dm = np.abs(np.cross(m, w)) * dt
-        exp_all += float(np.linalg.norm(dm))
-        exp_axis = tuple(exp_axis[i] + float(dm[i]) for i in range(3))
-        step = float(np.linalg.norm(w)) * dt
+    if w.shape != (3,):
+        return exp_all, exp_axis, turned, marks
+    # 3-vectors on Python floats (np.cross / np.linalg.norm cost ~10 us a call: replay speed)
+    w0, w1, w2 = float(w[0]), float(w[1]), float(w[2])
+    wn = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    if math.isfinite(wn) and 0.0 < dt <= params.rate_window_s and wn >= params.motion_rate_floor_rad_s:
+        m0, m1, m2 = float(m[0]), float(m[1]), float(m[2])
+        dm = (abs(m1 * w2 - m2 * w1) * dt, abs(m2 * w0 - m0 * w2) * dt, abs(m0 * w1 - m1 * w0) * dt)
+        exp_all += math.sqrt(dm[0] * dm[0] + dm[1] * dm[1] + dm[2] * dm[2])
+        exp_axis = (exp_axis[0] + dm[0], exp_axis[1] + dm[1], exp_axis[2] + dm[2])
+        step = wn * dt
         if math.floor((turned + step) / params.motion_step_rad) > math.floor(turned / params.motion_step_rad):
             marks = tuple(x for x in marks if t - x < params.rate_window_s) + (t,)
         turned += step
