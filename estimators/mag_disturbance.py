@@ -63,8 +63,9 @@ class MagDisturbanceParams:
     """What the reference may differ from the model (the same bounds as estimators/mag_usability)."""
     mag_noise_gauss: float = 0.003
     """Per-sample magnetometer noise (gauss, per axis)."""
-    hard_iron_prior_sigma_gauss: float = 0.013
-    """Per-axis sigma of the hard iron at start (an uncompensated airframe; 0 mean)."""
+    hard_iron_prior_sigma_gauss: float = 0.016
+    """Per-axis sigma of the hard iron at start (0 mean): what a compass calibration leaves (as
+    polar_heading's ``uncalibrated_hard_iron_gauss``; the daemon passes its config value)."""
     hard_iron_walk_gauss_rt_s: float = 1e-5
     """Random walk of the hard iron (gauss/sqrt(s)): slow thermal drift."""
     soft_iron_fraction: float = 0.01

@@ -142,12 +142,13 @@ class PolarHeadingParams:
     heading variance never goes (1 = the full consider bound, very conservative when the vehicle
     turns and tilt errors average out; 0 = off: only the inflated fusion above limits the
     confidence; bench/polar_accuracy.py: heading NEES ~1.3 consumer, ~0.1 tactical with 0)."""
-    uncalibrated_hard_iron_gauss: float = 0.013
+    uncalibrated_hard_iron_gauss: float = 0.016
     """Per-axis sigma of the hard iron an uncompensated magnetometer carries (gauss, body axes),
-    for the consider term r_uncal of the published heading variance (module docstring). 0.013 G
-    (~6 % of a mid-latitude horizontal field, ~3.4 deg of heading at 0.22 G) is the mean per-axis
-    RMS of the hard iron in the shipped scenarios (0.008-0.016 G: a small airframe, magnetometer
-    away from the motor); an airframe known to be worse needs a larger value (no config key yet)."""
+    for the consider term r_uncal of the published heading variance (module docstring). 0.016 G:
+    ArduPilot's compass calibration accepts a fit whose RMS residual is up to COMPASS_CAL_FIT =
+    16 mGauss (its default; MAG_CAL_REPORT.fitness is that residual in mGauss), and RAW_IMU carries
+    that residual (was 0.013, the mean hard iron of the shipped scenarios: fitted to them). The
+    daemon takes it from ``[heading] uncalibrated_hard_iron_gauss``."""
     uncalibrated_soft_iron: float = 0.01
     """Per-element sigma of the soft-iron matrix I + S of an uncompensated magnetometer
     (dimensionless; 0.01 = 1 % scale/cross-coupling, the RMS element of inclined_rail's)."""

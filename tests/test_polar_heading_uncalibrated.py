@@ -85,7 +85,7 @@ def test_consider_term_grows_towards_the_magnetic_pole_and_validates():
     v_mid = uncalibrated_heading_var(m_mid, 0.21, None, p)
     v_pol = uncalibrated_heading_var(m_pol, 0.05, None, p)
     assert math.isclose(math.degrees(math.sqrt(v_mid)), math.degrees(math.sqrt(
-        (0.013 ** 2 + 0.01 ** 2 * (0.21 ** 2 + 0.43 ** 2)) / 0.21 ** 2)), rel_tol=1e-12)
+        (0.016 ** 2 + 0.01 ** 2 * (0.21 ** 2 + 0.43 ** 2)) / 0.21 ** 2)), rel_tol=1e-12)
     assert v_pol > 15.0 * v_mid
     with pytest.raises(ValueError, match="mag_residual_sigma_gauss"):
         uncalibrated_heading_var(m_mid, 0.21, -0.001, p)
