@@ -852,9 +852,12 @@ class Pipeline:
 
     def _b_health(self, b: SyntheticAhrsOutput, t: float) -> tuple[bool, bool, str]:
         """Method B as a heading source: (has a reference, consistent, why not). B integrates the
-        gyros and corrects roll/pitch only from the trusted FC attitude or from air data; with
-        neither for ``B_REFERENCE_MAX_AGE_S`` its tilt (and so its levelled magnetometer heading)
-        drifts with nothing to say so: not a candidate. Inconsistent: most of its magnetometer
+        gyros and corrects roll/pitch only from the trusted FC attitude or from air data; without
+        them its tilt (and so its levelled magnetometer heading) drifts with nothing to say so: not
+        a candidate. The allowance ``B_REFERENCE_MAX_AGE_S`` runs from B's last air-data fusion only;
+        a B that never fused air data is dropped as soon as the FC attitude stops being trusted
+        (measured: the same 30 s after an FC loss made the RTL log's FC-excluded heading worse,
+        5.15 -> 8.04 deg RMS: B ended 26.6 deg off with a 2.15 deg sigma). Inconsistent: most of its magnetometer
         updates over the last ``B_CONSISTENCY_WINDOW_S`` were gated out (it disagrees with its
         own measurements)."""
         if b.air_fused != self._b_air_fused:
