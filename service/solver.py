@@ -12,8 +12,46 @@ from __future__ import annotations
 import concurrent.futures as cf
 import logging
 import multiprocessing
+import os
 
 log = logging.getLogger("azimuthd.solver")
+
+
+def _die_with_daemon(daemon_pid: int) -> None:
+    """Worker initializer: the worker ends when the daemon does, even a SIGKILLed daemon (no
+    close() then). Its parent is the forkserver, not the daemon, and the forkserver stays up while
+    any worker holds its pipe: PR_SET_PDEATHSIG cannot see the daemon go, so a watcher thread waits
+    on a pidfd of the daemon (Linux >= 5.3) or, where there is none, checks it every 2 s."""
+    import os
+    import select
+    import threading
+
+    def watch() -> None:
+        try:
+            fd = os.pidfd_open(daemon_pid)
+        except (AttributeError, OSError):
+            fd = None
+        if fd is not None:
+            select.select([fd], [], [])               # readable when the daemon has exited
+        else:
+            import time
+            while True:
+                try:
+                    os.kill(daemon_pid, 0)
+                except ProcessLookupError:
+                    break
+                except PermissionError:
+                    pass
+                time.sleep(2.0)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="daemon-watch", daemon=True).start()
+
+
+def _new_pool() -> cf.ProcessPoolExecutor:
+    # forkserver: the worker does not inherit the daemon's sockets and threads (zenoh)
+    return cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver"),
+                                  initializer=_die_with_daemon, initargs=(os.getpid(),))
 
 
 def _solve_job(state, time_s):
@@ -48,9 +86,7 @@ class BackgroundSolver:
     background = True
 
     def __init__(self):
-        # forkserver: the worker does not inherit the daemon's sockets and threads (zenoh)
-        ctx = multiprocessing.get_context("forkserver")
-        self._pool = cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx)
+        self._pool = _new_pool()
         self._future: cf.Future | None = None
         self._inline: InlineSolver | None = None
         self.failures = 0
@@ -92,7 +128,7 @@ class BackgroundSolver:
         self._pool.shutdown(wait=False, cancel_futures=True)
         self._future = None
         try:
-            self._pool = cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver"))
+            self._pool = _new_pool()
         except OSError as exc2:
             self._pool = None
             self._inline = InlineSolver()
