@@ -416,15 +416,24 @@ class Pipeline:
         if self.vehicle.pending:
             self._vehicle_chosen(self.vehicle.on_params(values, done, time_rx_s))
 
-    def _vehicle_chosen(self, choice) -> None:
+    def on_fc_identity(self, mav_type: int, autopilot: str, params: dict, time_rx_s: float,
+                       source: str = "") -> None:
+        """What a log says of its FC where it has no HEARTBEAT (service/logreaders FcIdentity): the
+        HEARTBEAT's type and the FC's take-off parameters for ``[launch] vehicle = "auto"``, nothing else."""
+        if self.vehicle.pending:
+            self.vehicle.on_params(params, True, time_rx_s)
+            self._vehicle_chosen(self.vehicle.on_heartbeat(mav_type, autopilot, time_rx_s),
+                                 f" (the log's {source}: it has no HEARTBEAT)" if source else "")
+
+    def _vehicle_chosen(self, choice, said_by: str = "") -> None:
         """``[launch] vehicle = "auto"`` decided (once): the take-off detector it selects, and why."""
         if choice is None:
             return
         if choice.vehicle is None:
-            self._event("vehicle", f"no take-off model: {choice.reason}")
+            self._event("vehicle", f"no take-off model: {choice.reason}{said_by}")
             return
         self.phase_params = dc_replace(self.phase_params, vehicle=choice.vehicle)
-        self._event("vehicle", f"{choice.vehicle} take-off (auto): {choice.reason}")
+        self._event("vehicle", f"{choice.vehicle} take-off (auto): {choice.reason}{said_by}")
 
     def on_fc_flight_state(self, st: FcFlightState) -> None:
         """The FC's armed/landed state (EXTENDED_SYS_STATE, or a log's own records): phase evidence."""

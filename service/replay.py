@@ -289,9 +289,14 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
     perf = time.perf_counter
     last_phase = None
     cols = res.cols
+    ident = getattr(reader.summary, "fc_identity", None)
+    identity_due = ident is not None and pipe.vehicle.pending   # a log without HEARTBEAT: its own word
     try:
         for item in _guarded(reader):
             cls = type(item)
+            if identity_due:
+                identity_due = False
+                pipe.on_fc_identity(ident.mav_type, ident.autopilot, ident.params, item.time_rx_s, ident.source)
             if cls is ImuSample:
                 cnt["imu"] += 1
                 cnt["imu_with_mag"] += item.mag_gauss is not None

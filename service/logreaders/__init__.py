@@ -48,6 +48,17 @@ class LogSite:
     """Which message gave it, e.g. "GPS_RAW_INT (fix 3)"."""
 
 
+@dataclass(frozen=True)
+class FcIdentity:
+    """What a log says of its FC where it carries no HEARTBEAT (DataFlash, ULog): its MAV_TYPE, its
+    autopilot and its take-off parameters (service/vehicle_type.py), for ``[launch] vehicle = "auto"``."""
+    mav_type: int
+    autopilot: str
+    params: dict
+    source: str
+    """Where it was read, for the user (e.g. "PARM FRAME_CLASS", "vehicle_status.system_type")."""
+
+
 @dataclass
 class LogSummary:
     """What a reader found: per-stream sample counts, missing streams, notes for the user."""
@@ -56,6 +67,7 @@ class LogSummary:
     counts: dict = field(default_factory=dict)
     missing: list = field(default_factory=list)
     notes: list = field(default_factory=list)
+    fc_identity: FcIdentity | None = None
 
 
 class LogReader(Protocol):

@@ -48,8 +48,8 @@ from typing import Iterator
 import numpy as np
 
 from mavlink_io.samples import FcAttitude, FcFlightState, ImuSample, PressureSample
-from service.logreaders import (GPS_EPOCH_UNIX_S, GPS_LEAP_S, FlightStateTrack, LogError, LogSite, LogSummary,
-                                decimal_year_from_unix, one_line)
+from service.logreaders import (GPS_EPOCH_UNIX_S, GPS_LEAP_S, FcIdentity, FlightStateTrack, LogError, LogSite,
+                                LogSummary, decimal_year_from_unix, one_line)
 from service.logreaders.dataflash_format import WalkStats, walk
 
 MAG_MAX_AGE_S = 0.5
@@ -79,6 +79,28 @@ def _f(rec: dict, key: str) -> float:
     return float(v) if isinstance(v, (int, float)) else math.nan
 
 
+_FIRMWARE_MAV_TYPE = {"ArduPlane": 1, "ArduCopter": 2, "ArduHeli": 4, "ArduRover": 10, "ArduSub": 12,
+                      "Blimp": 7}
+"""The firmware named by the log's first MSG (e.g. "ArduPlane V4.5.7") -> a HEARTBEAT MAV_TYPE."""
+
+
+def _identity(firmware: str | None, params: dict) -> FcIdentity | None:
+    """The FC's MAV_TYPE from its firmware message, else from a parameter only that firmware has
+    (Q_ENABLE: ArduPlane; FRAME_CLASS: ArduCopter, 6 = helicopter); the take-off parameters with it."""
+    take = {n: params[n] for n in ("Q_ENABLE", "TKOFF_THR_MINACC") if n in params}
+    if firmware is not None:
+        mav_type, src = _FIRMWARE_MAV_TYPE[firmware], f"MSG {firmware}"
+        if firmware == "ArduCopter" and params.get("FRAME_CLASS") == 6.0:
+            mav_type = 4
+    elif "Q_ENABLE" in params:
+        mav_type, src = 1, "PARM Q_ENABLE (ArduPlane)"
+    elif "FRAME_CLASS" in params:
+        mav_type, src = (4 if params["FRAME_CLASS"] == 6.0 else 2), f"PARM FRAME_CLASS {params['FRAME_CLASS']:g} (ArduCopter)"
+    else:
+        return None
+    return FcIdentity(mav_type, "ardupilot", take, src)
+
+
 class DataflashReader:
     """``items()`` yields ImuSample, PressureSample, FcAttitude and FcFlightState in log order."""
 
@@ -104,7 +126,9 @@ class DataflashReader:
 
     def _scan(self) -> None:
         st = WalkStats()
-        wanted = {n for names in _KINDS.values() for n in names} | _STATE_MSGS | {"ATT"}  # ATT: times as items()
+        wanted = {n for names in _KINDS.values() for n in names} | _STATE_MSGS | {"ATT", "MSG", "PARM"}  # ATT: times as items()
+        firmware: str | None = None
+        params: dict[str, float] = {}
         instances: dict[str, set] = {}
         track = FlightStateTrack()
         last_t = 0.0
@@ -124,10 +148,19 @@ class DataflashReader:
                                 first_change.setdefault(key, (new, last_t))
                 elif name == "GPS" and self._site is None:
                     self._gps(rec)
+                elif name == "MSG" and firmware is None:
+                    m = str(rec.get("Message", ""))
+                    firmware = next((fw for fw in _FIRMWARE_MAV_TYPE if m.startswith(fw)), None)
+                elif name == "PARM":
+                    try:
+                        params[str(rec["Name"])] = float(rec["Value"])
+                    except (KeyError, TypeError, ValueError):
+                        pass
         except (struct.error, ValueError, TypeError, KeyError) as exc:
             raise LogError(f"{self.path}: unreadable DataFlash records ({one_line(exc)})") from None
         self._stats = st
         self._takeoffs = track.takeoffs_s
+        self.summary.fc_identity = _identity(firmware, params)
         self._infer_start_state(first_change)
         names = st.names()
         self._use: dict[str, tuple[str, int | None]] = {}

@@ -54,7 +54,7 @@ from typing import Iterator
 import numpy as np
 
 from mavlink_io.samples import FcAttitude, FcFlightState, ImuSample, PressureSample
-from service.logreaders import (FlightStateTrack, LogError, LogSite, LogSummary, decimal_year_from_unix,
+from service.logreaders import (FcIdentity, FlightStateTrack, LogError, LogSite, LogSummary, decimal_year_from_unix,
                                 one_line)
 
 MAG_MAX_AGE_S = 0.5
@@ -155,6 +155,18 @@ class UlogReader:
         if getattr(self.ulog, "file_corruption", False) or "corrupt" in said.getvalue().lower():
             self.summary.notes.append("pyulog reports file corruption: data after the damage may be missing")
         self._imu_check()
+        self.summary.fc_identity = self._identity()
+
+    def _identity(self) -> FcIdentity | None:
+        """PX4's MAV_TYPE (its parameter, else vehicle_status.system_type) and its launch detection."""
+        par = getattr(self.ulog, "initial_parameters", {}) or {}
+        take = {"FW_LAUN_DETCN_ON": float(par["FW_LAUN_DETCN_ON"])} if "FW_LAUN_DETCN_ON" in par else {}
+        if "MAV_TYPE" in par:
+            return FcIdentity(int(par["MAV_TYPE"]), "px4", take, "parameter MAV_TYPE")
+        vs = self._topic("vehicle_status")
+        if vs is not None and len(vs.get("system_type", ())):
+            return FcIdentity(int(vs["system_type"][0]), "px4", take, "vehicle_status.system_type")
+        return None
 
     def _topic(self, name: str) -> dict | None:
         return self._data.get(name)
