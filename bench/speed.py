@@ -99,7 +99,11 @@ def site_config(run) -> dict:
     s = run.site
     return validate({"site": {"lat_deg": s["lat_deg"], "lon_deg": s["lon_deg"], "alt_m": s["alt_m"],
                               "decimal_year": s["decimal_year"]},
-                     "mavlink": {"imu_rate_hz": RATE_HZ}})
+                     "mavlink": {"imu_rate_hz": RATE_HZ},
+                     # the operator's launch config for the inclined_rail stream (as bench/sitl.py
+                     # scenario_site): with the default vehicle "auto" and no FC HEARTBEAT in this
+                     # offline feed nothing would take off and the in-flight stack would go unmeasured
+                     "launch": {"case": "inclined", "vehicle": "launcher"}})
 
 
 # --- compute-cost cases ------------------------------------------------------------------------
