@@ -193,28 +193,26 @@ def case_strapdown_core_batch(run, items):
     return one_pass
 
 
-def case_levelling(run, items):
-    from estimators.levelling import LevellingState, levelling_step
-    t, g, a = run.time_s.tolist(), list(run.gyro_rad_s), list(run.accel_m_s2)
-
-    def one_pass():
-        st = LevellingState()
-        for k in range(len(t)):
-            st = levelling_step(st, g[k], a[k], t[k])
-    return one_pass
-
-
-def case_levelling_core_step(run, items):
-    """The per-sample drop-in (state packed and unpacked every call: why it is not wired)."""
-    from estimators.core import levelling_step
+def _levelling_per_sample(run, step):
     from estimators.levelling import LevellingState
     t, g, a = run.time_s.tolist(), list(run.gyro_rad_s), list(run.accel_m_s2)
 
     def one_pass():
         st = LevellingState()
         for k in range(len(t)):
-            st = levelling_step(st, g[k], a[k], t[k])
+            st = step(st, g[k], a[k], t[k])
     return one_pass
+
+
+def case_levelling(run, items):
+    from estimators.levelling import levelling_step
+    return _levelling_per_sample(run, levelling_step)
+
+
+def case_levelling_core_step(run, items):
+    """The per-sample drop-in (state packed and unpacked every call: why it is not wired)."""
+    from estimators.core import levelling_step
+    return _levelling_per_sample(run, levelling_step)
 
 
 def case_levelling_core_batch(run, items):
