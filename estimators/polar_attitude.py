@@ -184,6 +184,11 @@ class PolarAttitudeParams:
     out at rest for this long (s) before roll/pitch are re-initialised from the accelerometer."""
     relevel_max_rate_rad_s: float = math.radians(5.0)
     """Rest test: the bias-corrected mean body rate of an update interval is below this (rad/s)."""
+    relevel_allowed: bool = True
+    """The caller's word that the vehicle may be at rest. The rest test (|f| ~ g, low rate, steady
+    residual) is met as well by steady flight with a lateral or along-track acceleration that
+    |f| hides: in flight the daemon sets this False (service/pipeline.py; measured: a rail flight
+    with 10 % packet loss re-levelled 2 s after the boost and put a 12.7 deg roll error in)."""
     relevel_norm_tol_m_s2: float = 0.1
     """Rest test: | |f - b_a| - g | of an update interval is below this (m/s^2). It also bounds
     the horizontal acceleration such a rest can hide, a_max = sqrt(2 g tol), and so the
@@ -635,7 +640,7 @@ def _update(st: PolarAttitudeState, p: PolarAttitudeParams):
                       rest_s=st.rest_s + T)
     elif st.rest_gated_run:
         st2 = replace(st2, rest_gated_run=0, rest_f_sum_m_s2=np.zeros(3), rest_s=0.0)
-    if st2.rest_gated_run and st2.rest_s + 1e-9 >= p.relevel_rest_s:
+    if p.relevel_allowed and st2.rest_gated_run and st2.rest_s + 1e-9 >= p.relevel_rest_s:
         st2, moved = _relevel(st2, p)
         return st2, PolarAttitudeDiag(
             updated=True, fused=False, innovation_m_s2=z, test_ratio=ratio, settle_ratio=settle_ratio,

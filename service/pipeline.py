@@ -318,6 +318,11 @@ class Pipeline:
         for ev in events:
             self._event(*ev)
         self._step_azimuth(prev_phase, gyro_s, accel_s, mag_s, t)
+        if prev_phase != self.phase.phase or self.phase.started_in_flight:
+            # re-levelling at rest only while the vehicle may be at rest (polar_attitude relevel_allowed)
+            on_ground = self.phase.phase not in (LAUNCH, IN_FLIGHT) and not self.phase.started_in_flight
+            if self.polar_att_params.relevel_allowed != on_ground:
+                self.polar_att_params = dc_replace(self.polar_att_params, relevel_allowed=on_ground)
         if prev_phase == PRE_LAUNCH and self.phase.phase == LAUNCH:
             self._start_flight(s)
         elif prev_phase == PRE_LAUNCH and self.phase.started_in_flight:
