@@ -50,6 +50,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from estimators.rotations import dcm_from_quat
+from estimators.mag_usability import field_norm_dip
 
 
 @dataclass(frozen=True)
@@ -113,9 +114,8 @@ class MagDisturbanceParams:
 
 
 def mag_disturbance_params_for_field(field_ned_gauss, **kw) -> MagDisturbanceParams:
-    b = np.asarray(field_ned_gauss, float)
-    return MagDisturbanceParams(model_norm_gauss=float(np.linalg.norm(b)),
-                                model_dip_rad=math.atan2(float(b[2]), math.hypot(float(b[0]), float(b[1]))), **kw)
+    norm, dip = field_norm_dip(field_ned_gauss)
+    return MagDisturbanceParams(model_norm_gauss=norm, model_dip_rad=dip, **kw)
 
 
 @dataclass(frozen=True)

@@ -90,11 +90,16 @@ class MagUsabilityParams:
             raise ValueError(f"full_scale_gauss must be finite and > 0 or None, got {self.full_scale_gauss!r}")
 
 
+def field_norm_dip(field_ned_gauss) -> tuple[float, float]:
+    """(|B| gauss, dip rad, positive down) of a field vector in NED."""
+    b = np.asarray(field_ned_gauss, float)
+    return float(np.linalg.norm(b)), math.atan2(float(b[2]), math.hypot(float(b[0]), float(b[1])))
+
+
 def mag_usability_params_for_field(field_ned_gauss, **kw) -> MagUsabilityParams:
     """Params from the model field (NED, gauss)."""
-    b = np.asarray(field_ned_gauss, float)
-    return MagUsabilityParams(field_norm_gauss=float(np.linalg.norm(b)),
-                              field_dip_rad=math.atan2(float(b[2]), math.hypot(float(b[0]), float(b[1]))), **kw)
+    norm, dip = field_norm_dip(field_ned_gauss)
+    return MagUsabilityParams(field_norm_gauss=norm, field_dip_rad=dip, **kw)
 
 
 @dataclass(frozen=True)
