@@ -402,13 +402,20 @@ def _gm(dt, tau, sigma):
     return a, sigma * sigma * (1.0 - a * a)
 
 
-def _measure(st, u, Prp, p):
+def _mag_sample(st, u):
+    """(m body gauss, state with the sample's time, None) or (None, st, the diag of a refused sample)."""
     m = np.asarray(u.mag_body_gauss, float)
     if m.shape != (3,) or not np.all(np.isfinite(m)):
-        return st, HeadingDiag(reason="non-finite magnetometer", source_available=st.source_available)
+        return None, st, HeadingDiag(reason="non-finite magnetometer", source_available=st.source_available)
     if not math.isfinite(u.declination_rad):
         raise ValueError("declination_rad must be finite when a magnetometer sample is given")
-    st = replace(st, last_mag_time_s=u.time_s)
+    return m, replace(st, last_mag_time_s=u.time_s), None
+
+
+def _measure(st, u, Prp, p):
+    m, st, bad = _mag_sample(st, u)
+    if bad is not None:
+        return st, bad
     if abs(u.pitch_rad) > p.max_abs_pitch_rad:
         return st, HeadingDiag(reason="pitch beyond max_abs_pitch_rad", source_available=st.source_available)
     psi_m, H = magnetic_heading(m, u.roll_rad, u.pitch_rad)
@@ -599,12 +606,9 @@ def _predict_platform(st, dt, p):
 
 
 def _measure_platform(st, u, q, p):
-    m = np.asarray(u.mag_body_gauss, float)
-    if m.shape != (3,) or not np.all(np.isfinite(m)):
-        return st, HeadingDiag(reason="non-finite magnetometer", source_available=st.source_available)
-    if not math.isfinite(u.declination_rad):
-        raise ValueError("declination_rad must be finite when a magnetometer sample is given")
-    st = replace(st, last_mag_time_s=u.time_s)
+    m, st, bad = _mag_sample(st, u)
+    if bad is not None:
+        return st, bad
     C_PB = dcm_from_quat(q)
     if u.level_with_roll_pitch:
         if not (math.isfinite(u.roll_rad) and math.isfinite(u.pitch_rad)):
