@@ -3,6 +3,7 @@
     python bench/geofence.py [--quick] [--json PATH] [--mode headline|daemon|pipeline|offline|closed|all]
                              [--load idle|busy|both] [--busy] [--seeds N] [--seed0 S] [--speed X]
                              [--jobs N] [--imu-rate-hz HZ] [--sim-base-rate-hz HZ] [--fc-nice N] [--daemon-nice N]
+                             [--daemon-group-nice N]
 
 The issue-16 headline, on a quiet machine (1-min load < 1), as root, ~80 min per set:
 
@@ -30,8 +31,9 @@ Headline modes (truth only scores):
   the samples it processed (its "stopped" log line), and the ATTITUDE latency. ``--load busy``:
   two CPU-bound competitor processes for the whole run. The operator asks for RAW_IMU at 50 Hz
   (stock ArduPilot; the simulated FC samples at 200 Hz). The daemon runs as its systemd unit
-  does (own session, nice 0); the simulator and the tap (FC and wire) in a CPU group at autogroup
-  nice -5. Each flight records the simulator's achieved speed, the 1-min load average and the
+  does (own session; its CPU group at the unit's Nice=, -10, standing in for the unit's
+  CPUWeight); the simulator and the tap (FC and wire) in a CPU group at autogroup nice -15, above
+  the daemon's (a real FC has its own CPU). Each flight records the simulator's achieved speed, the 1-min load average and the
   daemon's CPU: a flight where the simulator fell behind real time (a real FC never does; the
   daemon then sees FC-clock lags) is invalid; a valid one where the daemon fell behind (ATTITUDE
   p99 > 5 s, or a backlog 30 s after the flight) is reported as such, apart.
@@ -543,7 +545,7 @@ def _proc_cpu_s(pid: int) -> float | None:
 def run_daemon(kind: str, seed: int, raw: dict | None = None, speed: float = 1.0, flight_s: float = 200.0,
                imu_rate_hz: float = IMU_RATE_HZ, sim_base_rate_hz: float | None = None,
                sim_nice: int | None = None, daemon_nice: int | None = None,
-               daemon_own_session: bool = True) -> dict:
+               daemon_own_session: bool = True, daemon_group_nice: int | None = None) -> dict:
     """One flight with the real daemon (``azimuthd sim`` + ``azimuthd run`` processes over UDP,
     bench/sitl.py). The daemon gets only the operator's config (site, launcher case, IMU mount,
     the RAW_IMU rate it asks for, [geofence]) and MAVLink; its own heading and phases drive its
@@ -552,10 +554,12 @@ def run_daemon(kind: str, seed: int, raw: dict | None = None, speed: float = 1.0
     simulator's truth log) only scores: the true track's clearance to the fence.
 
     ``speed`` 1: real time, as an FC runs. The daemon runs as systemd/azimuthd.service runs it: a
-    service in a session (so, with autogroup scheduling, a CPU group) of its own, nice
-    ``daemon_nice`` (the unit sets no Nice=: 0). ``sim_nice``: the simulator's nice value within
-    this process's group (daemon_flights puts the simulator and the tap, the FC and its wire, in
-    a group of their own above the daemon's: a real FC has its own CPU)."""
+    service in a session (so, with autogroup scheduling, a CPU group) of its own, that group at
+    nice ``daemon_group_nice`` (the unit's Nice=, standing in for its cgroup's CPUWeight: main()
+    reads it from systemd/azimuthd.service), the daemon's own nice ``daemon_nice``. ``sim_nice``:
+    the simulator's nice value within this process's group (daemon_flights puts the simulator and
+    the tap, the FC and its wire, in a group of their own above the daemon's: a real FC has its
+    own CPU)."""
     from sim.truthlog import load_truth_log
     from sitl import Sitl
     raw = raw or fence_raw()
@@ -593,7 +597,7 @@ def run_daemon(kind: str, seed: int, raw: dict | None = None, speed: float = 1.0
                 tap_record_to_daemon=("RAW_IMU",),
                 config_overrides={"geofence": raw, "mavlink": {"imu_rate_hz": float(imu_rate_hz)}},
                 sim_args=sim_args, sim_nice=sim_nice, daemon_nice=daemon_nice,
-                daemon_own_session=daemon_own_session)
+                daemon_own_session=daemon_own_session, daemon_group_nice=daemon_group_nice)
     with sitl as s:
         # a slow simulator is waited for (its flight must be complete) until it is hopeless
         s.wait_for(lambda: sim_done_or_hopeless(s), 6.0 * flight_s / speed + 120, poll_s=0.5)
@@ -666,6 +670,7 @@ def run_daemon(kind: str, seed: int, raw: dict | None = None, speed: float = 1.0
             "daemon_backlog_drain_s": drain_s, "daemon_backlog_drained": drained,
             "imu_rate_hz": float(imu_rate_hz), "sim_base_rate_hz": float(base_hz),
             "sim_nice": sim_nice, "daemon_nice": daemon_nice, "daemon_own_session": daemon_own_session,
+            "daemon_group_nice": daemon_group_nice,
             "fc_group_nice": _autogroup_nice(),
             "daemon_cpu_s": cpu["daemon"], "sim_cpu_s": cpu["sim"],
             "launch_azimuth_deg": sc["launcher"]["azimuth_deg"], "workdir": str(wd)}
@@ -836,11 +841,15 @@ def main(argv=None) -> int:
     ap.add_argument("--sim-base-rate-hz", type=float, default=None,
                     help="daemon mode: the simulated FC's sensor rate (default 200 for 50 Hz RAW_IMU, 500 for 200 Hz)")
     root = os.geteuid() == 0
-    ap.add_argument("--fc-nice", type=int, default=-5 if root else None,
+    from sitl import unit_nice
+    ap.add_argument("--fc-nice", type=int, default=-15 if root else None,
                     help="daemon mode: CPU-group nice of the simulator and the UDP tap, the FC and its wire "
-                         "(default -5 as root, else inherited)")
-    ap.add_argument("--daemon-nice", type=int, default=0 if root else None,
-                    help="daemon mode: nice value of the daemon (default 0: systemd/azimuthd.service sets no Nice=)")
+                         "(default -15 as root, above the daemon's group: a real FC has its own CPU; else inherited)")
+    ap.add_argument("--daemon-nice", type=int, default=None,
+                    help="daemon mode: nice value of the daemon within its own group (default: inherited)")
+    ap.add_argument("--daemon-group-nice", type=int, default=unit_nice() if root else None,
+                    help="daemon mode: nice of the daemon's CPU group, its own session (default as root: the "
+                         "Nice= of systemd/azimuthd.service, standing in for the unit's cgroup CPUWeight)")
     args = ap.parse_args(argv)
     if args.jobs < 1:
         ap.error(f"--jobs must be >= 1, got {args.jobs}")
@@ -868,7 +877,8 @@ def main(argv=None) -> int:
                 if mode == "daemon":
                     opts = {"raw": raw, "speed": args.speed or 1.0, "flight_s": flight_s,
                             "imu_rate_hz": args.imu_rate_hz, "sim_base_rate_hz": args.sim_base_rate_hz,
-                            "fc_group_nice": args.fc_nice, "daemon_nice": args.daemon_nice}
+                            "fc_group_nice": args.fc_nice, "daemon_nice": args.daemon_nice,
+                            "daemon_group_nice": args.daemon_group_nice}
                     for r in daemon_flights(flights, opts, args.jobs):
                         print(f"{label:12s} {r['kind']:8s} seed {r['seed']:2d} az {r.get('launch_azimuth_deg', 0):5.1f}  "
                               f"{_line(mode, r)}", flush=True)
@@ -882,6 +892,7 @@ def main(argv=None) -> int:
                     summary.update({f"{prefix}jobs": args.jobs, f"{prefix}imu_rate_hz": args.imu_rate_hz,
                                     f"{prefix}sim_base_rate_hz": res[0].get("sim_base_rate_hz") if res else None,
                                     f"{prefix}fc_group_nice": args.fc_nice, f"{prefix}daemon_nice": args.daemon_nice,
+                                    f"{prefix}daemon_group_nice": args.daemon_group_nice,
                                     f"{prefix}daemon_own_session": True})
                 for kind, seed in (flights if mode != "daemon" else []):
                     if mode == "pipeline":

@@ -243,11 +243,33 @@ class UdpTap:
         self.sock.close()
 
 
-def _set_nice(value: int | None):
-    """A Popen preexec_fn that sets the child's absolute nice value (None: no preexec_fn)."""
-    if value is None:
+def _set_nice(value: int | None, group_nice: int | None = None):
+    """A Popen preexec_fn that sets the child's absolute nice value and, for a child in a session
+    of its own (start_new_session: setsid runs before the preexec_fn), its CPU group's nice
+    (/proc/self/autogroup; below 0 needs root). None: that one unchanged."""
+    if value is None and group_nice is None:
         return None
-    return lambda: os.setpriority(os.PRIO_PROCESS, 0, int(value))
+
+    def preexec() -> None:
+        if value is not None:
+            os.setpriority(os.PRIO_PROCESS, 0, int(value))
+        if group_nice is not None:
+            with open("/proc/self/autogroup", "w") as f:
+                f.write(str(int(group_nice)))
+    return preexec
+
+
+UNIT_PATH = ROOT / "systemd" / "azimuthd.service"
+
+
+def unit_nice(path: Path = UNIT_PATH) -> int:
+    """The ``Nice=`` the systemd unit gives the daemon (0 when it sets none). Outside systemd a
+    bench reproduces it as the nice of the daemon's own session's CPU group (autogroup), the
+    stand-in for the unit's cgroup with its CPUWeight."""
+    for line in path.read_text().splitlines():
+        if line.strip().startswith("Nice="):
+            return int(line.split("=", 1)[1])
+    return 0
 
 
 class Sitl:
@@ -258,12 +280,14 @@ class Sitl:
                  sim_args: list[str] | None = None, daemon_args: list[str] | None = None,
                  status_interval_s: float = 0.0, capture_output: bool = True, tap: bool = False,
                  tap_record_to_daemon: tuple[str, ...] = (), sim_nice: int | None = None,
-                 daemon_nice: int | None = None, daemon_own_session: bool = False):
+                 daemon_nice: int | None = None, daemon_own_session: bool = False,
+                 daemon_group_nice: int | None = None):
         """``sim_nice`` / ``daemon_nice``: the absolute nice value each process starts with (None:
         inherit this process's; below 0 needs root). ``daemon_own_session``: the daemon starts in
         a session of its own, as systemd starts a service; with the kernel's autogroup scheduling
         (/proc/sys/kernel/sched_autogroup_enabled) that is its own CPU group, and a nice value
-        only orders processes within one group."""
+        only orders processes within one group. ``daemon_group_nice``: that group's nice (with
+        ``daemon_own_session``; as root below 0): ``unit_nice()`` runs it as the unit would."""
         import tempfile
         self.scenario = scenario
         self.workdir = Path(workdir or tempfile.mkdtemp(prefix="azimuthd-sitl-"))
@@ -289,6 +313,9 @@ class Sitl:
                            *(daemon_args or [])]
         self.capture_output = capture_output
         self.sim_nice, self.daemon_nice, self.daemon_own_session = sim_nice, daemon_nice, daemon_own_session
+        if daemon_group_nice is not None and not daemon_own_session:
+            raise ValueError("daemon_group_nice needs daemon_own_session (a CPU group of its own)")
+        self.daemon_group_nice = daemon_group_nice
         self.listener = OutputListener(self.out_port)
         self.sim: subprocess.Popen | None = None
         self.daemon: subprocess.Popen | None = None
@@ -303,7 +330,7 @@ class Sitl:
         self._sim_out = out("sim.log")
         self.daemon = subprocess.Popen(self.daemon_cmd, cwd=ROOT, env=env, stdout=self._daemon_out or None,
                                        stderr=subprocess.STDOUT if self._daemon_out else None,
-                                       preexec_fn=_set_nice(self.daemon_nice),
+                                       preexec_fn=_set_nice(self.daemon_nice, self.daemon_group_nice),
                                        start_new_session=self.daemon_own_session)
         # the simulator pushes (udpout) from its first second: start it only once the daemon
         # listens, or a slow daemon start (imports on a loaded machine) misses the launch
