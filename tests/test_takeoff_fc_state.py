@@ -20,8 +20,18 @@ def test_landed_state_decoded(landed_state, landed):
 
 
 def test_the_link_hands_it_on():
-    from mavlink_io.link import MavlinkLink
-    items = []
+    from mavlink_io.link import LinkConfig, MavlinkLink
+    from mavlink_io.transport import NullTransport
+    from mavlink_io.url import parse_url
+    # GIVEN a link that knows its autopilot (system 1, component 1)
+    url = "udpin:127.0.0.1:9"
+    link = MavlinkLink(LinkConfig(url=url), clock=lambda: 3.0, transport=NullTransport(parse_url(url)))
+    fc = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+    link.feed(fc.heartbeat_encode(mav.MAV_TYPE_FIXED_WING, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0).pack(fc),
+              rx_s=2.0)
+    # WHEN its EXTENDED_SYS_STATE arrives
     msg = mav.MAVLink_extended_sys_state_message(vtol_state=0, landed_state=2)
-    MavlinkLink._decode(object.__new__(MavlinkLink), "EXTENDED_SYS_STATE", msg, 3.0, items)
-    assert items == [FcFlightState(None, 3.0, None, False, "EXTENDED_SYS_STATE")]
+    items = link.feed(msg.pack(fc), rx_s=3.0)
+    # THEN the decoded state comes out as it is
+    assert [i for i in items if isinstance(i, FcFlightState)] == [
+        FcFlightState(None, 3.0, None, False, "EXTENDED_SYS_STATE")]
