@@ -101,7 +101,7 @@ def odometry_sender(port: int, end_s: float, rec: dict) -> None:
     import numpy as np
     from estimators.rotations import quat_from_euler
     from mavlink_io import outputs
-    from service.solution import NavSolution
+    from mavlink_io.navsolution import NavSolution
     m = mavutil.mavlink_connection(f"tcp:127.0.0.1:{port}", source_system=1, source_component=191,
                                    dialect="ardupilotmega")
     m.wait_heartbeat(timeout=60)

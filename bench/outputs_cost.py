@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 from estimators.rotations import quat_from_euler  # noqa: E402
 from mavlink_io import outputs  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
-from service.solution import NavSolution  # noqa: E402
+from mavlink_io.navsolution import NavSolution  # noqa: E402
 from service.zenoh_bus import ZenohBus  # noqa: E402
 
 SUB = r"""

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from service.solution import NavSolution
+    from mavlink_io.navsolution import NavSolution
 
 
 @dataclass(frozen=True, slots=True)

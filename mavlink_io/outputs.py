@@ -50,8 +50,8 @@ from typing import TYPE_CHECKING
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-if TYPE_CHECKING:  # the service layer owns NavSolution; encoders only read its attributes
-    from service.solution import NavSolution
+if TYPE_CHECKING:  # encoders only read its attributes
+    from mavlink_io.navsolution import NavSolution
 
 NAN = float("nan")
 

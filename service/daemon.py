@@ -41,7 +41,7 @@ from service.link_health import InputLossMonitor
 from service.logs import RateLimitedLog
 from service.pipeline import Pipeline
 from service.sdnotify import Notifier
-from service.solution import NavSolution
+from mavlink_io.navsolution import NavSolution
 
 log = logging.getLogger("azimuthd.daemon")
 

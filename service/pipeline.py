@@ -64,7 +64,7 @@ from service.heading_arbitration import (ArbitrationParams, ArbitrationState, So
                                          arbitrate)
 from service.phases import (IN_FLIGHT, LAUNCH, PRE_LAUNCH, FlightEvidence, InFlightParams, PhaseParams,
                             PhaseState, phase_step)
-from service.solution import NavSolution
+from mavlink_io.navsolution import NavSolution
 from service.vehicle_type import AUTO as AUTO_VEHICLE, VehicleResolver
 
 log = logging.getLogger("azimuthd.pipeline")

@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Any
 from service.schema import SCHEMA_VERSION, TOPICS
 
 if TYPE_CHECKING:
-    from service.solution import NavSolution
+    from mavlink_io.navsolution import NavSolution
 
 log = logging.getLogger("azimuthd.zenoh")
 

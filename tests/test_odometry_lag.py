@@ -13,7 +13,7 @@ import pytest
 from estimators.rotations import quat_from_euler
 from mavlink_io.output_gate import ODOMETRY_MAX_LAG_S, FcLagMeter
 from mavlink_io.outputs import OutputScheduler
-from service.solution import NavSolution
+from mavlink_io.navsolution import NavSolution
 
 
 def solution(t_fc: float) -> NavSolution:

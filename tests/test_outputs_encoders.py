@@ -9,7 +9,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from estimators.rotations import euler_from_quat, quat_from_euler, wrap_pi
 from mavlink_io import outputs
-from service.solution import NavSolution
+from mavlink_io.navsolution import NavSolution
 
 SYSID, COMPID = 7, mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
 

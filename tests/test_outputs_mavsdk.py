@@ -28,7 +28,7 @@ from pymavlink import mavutil
 
 from estimators.rotations import euler_from_quat, quat_from_euler
 from mavlink_io import outputs
-from service.solution import NavSolution
+from mavlink_io.navsolution import NavSolution
 
 mavsdk = pytest.importorskip("mavsdk")
 from mavsdk import ComponentType, Configuration, Mavsdk  # noqa: E402

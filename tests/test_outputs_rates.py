@@ -15,7 +15,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from mavlink_io.output_gate import OutputLimits, extrapolate_solution, gate_solution
 from mavlink_io.outputs import OutputScheduler
-from service.solution import NavSolution
+from mavlink_io.navsolution import NavSolution
 from estimators.rotations import euler_from_quat, quat_from_euler
 
 

@@ -202,7 +202,7 @@ def publish_other(stop: threading.Event, endpoint: str) -> None:
     import numpy as np
 
     from estimators.rotations import quat_from_euler
-    from service.solution import NavSolution
+    from mavlink_io.navsolution import NavSolution
     from service.zenoh_bus import ZenohBus, health_payload
 
     yaw = math.radians(OTHER_HEADING_DEG)

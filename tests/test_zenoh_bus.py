@@ -19,7 +19,7 @@ import pytest
 
 from estimators.rotations import quat_from_euler
 from service import schema
-from service.solution import NavSolution
+from mavlink_io.navsolution import NavSolution
 from service.zenoh_bus import (ZenohBus, air_data_payload, attitude_payload, azimuth_payload,
                                calibration_payload, event_payload, fence_geometry, heading_payload,
                                health_payload, json_safe, sources_payload, ZenohBusError)

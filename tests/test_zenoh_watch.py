@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from estimators.rotations import quat_from_euler
-from service.solution import NavSolution
+from mavlink_io.navsolution import NavSolution
 from service.watch import GONE_AFTER_S, WatchState, main, open_session, render, subscribe
 from service.zenoh_bus import ZenohBus, event_payload, health_payload
 

@@ -2,6 +2,10 @@
 
 Publishers (MAVLink out, Zenoh, the status line) read this and nothing else from the estimators.
 Angles in radians; sigmas are 1-sigma; None where the quantity is not (yet) available.
+
+It lives in mavlink_io because both sides need it and the layering allows only one direction:
+service (the Pipeline that builds it, Zenoh, the daemon) imports mavlink_io, whose encoders read it;
+mavlink_io imports nothing of service. numpy is its only dependency.
 """
 from __future__ import annotations
 
