@@ -206,15 +206,16 @@ def run_fuzz(stream: FuzzStream, seed: int = 0, max_chunk: int = 512, datagrams:
     semantics = datagrams if datagram_semantics is None else datagram_semantics
     n_imu = 0
     bad_values = 0
-    worst_feed_s = 0.0
-    t0 = time.perf_counter()
+    worst_feed_s = worst_feed_cpu_s = 0.0
+    t0, cpu0 = time.perf_counter(), time.thread_time()
     for i in range(len(bounds) - 1):
         clock[0] += 0.001
-        ts = time.perf_counter()
+        ts, cs = time.perf_counter(), time.thread_time()
         if reset_per_datagram:
             link._reset_parser()  # noqa: SLF001 - the measurement of a possible fix
         items = link.feed(data[bounds[i]:bounds[i + 1]], clock[0], datagram=semantics)
         worst_feed_s = max(worst_feed_s, time.perf_counter() - ts)
+        worst_feed_cpu_s = max(worst_feed_cpu_s, time.thread_time() - cs)
         for it in items:
             if isinstance(it, ImuSample):
                 n_imu += 1
@@ -223,6 +224,7 @@ def run_fuzz(stream: FuzzStream, seed: int = 0, max_chunk: int = 512, datagrams:
                                         and np.array_equal(it.gyro_rad_s, np.array(vals[3:6], float) * MRAD_TO_RAD)):
                     bad_values += 1
     elapsed = time.perf_counter() - t0
+    cpu_s = time.thread_time() - cpu0  # this thread's CPU: what a hang costs, whatever the machine's load
     s = link.stats
     problems = []
     if s.accepted + s.seq_lost != stream.fc_frames:
@@ -256,6 +258,7 @@ def run_fuzz(stream: FuzzStream, seed: int = 0, max_chunk: int = 512, datagrams:
             "intact_lost_to_neighbours": intact - s.accepted,
             "datagram_resets": s.datagram_resets, "udp_split_frames_seen": s.udp_split_frames_seen,
             "elapsed_s": elapsed, "frames_per_s": stream.frames / elapsed, "worst_feed_ms": 1e3 * worst_feed_s,
+            "cpu_s": cpu_s, "worst_feed_cpu_ms": 1e3 * worst_feed_cpu_s,
             "problems": problems}
 
 

@@ -9,7 +9,6 @@ became an ImuSample (or a counted stale drop) carrying exactly the values of the
 built from. The generator and the checks live in bench/reliability_load.py (1 M frames there).
 """
 import sys
-import time
 from pathlib import Path
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -25,11 +24,12 @@ from mavlink_io.transport import NullTransport  # noqa: E402
 def test_100k_mixed_frames_every_frame_accounted():
     seed = 0
     stream = fuzz_stream(100_000, seed)
-    t0 = time.perf_counter()
     r = run_fuzz(stream, seed)
     assert r["problems"] == []
-    assert time.perf_counter() - t0 < 30.0
-    assert r["worst_feed_ms"] < 200.0  # no hang: the slowest 512-byte fragment
+    # no hang, in CPU time (a busy machine stretches wall time, not this): ~1.2 s for the whole
+    # stream on an idle machine, the slowest 512-byte fragment well under 1 ms
+    assert r["cpu_s"] < 30.0
+    assert r["worst_feed_cpu_ms"] < 200.0
     # every kind of damage was really exercised and counted where it belongs
     assert r["kinds"]["imu_v1"] > 5000 and r["kinds"]["imu_v2"] > 20000
     assert r["crc_errors"] > 5000 and r["framing_errors"] > 5000
