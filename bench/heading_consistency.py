@@ -25,7 +25,7 @@ Targets (honest heading): >= 95 % within 3 sigma and NEES in [0.5, 2] in every w
 
 ``--random-iron``: each flight's hard and soft iron drawn from the prior method C's published
 sigma assumes for an uncompensated magnetometer ([heading] uncalibrated_hard_iron_gauss per axis,
-PolarHeadingParams.uncalibrated_soft_iron per element, seeded by the flight's seed) instead of the
+[heading] uncalibrated_soft_iron per element, seeded by the flight's seed) instead of the
 scenario's own: a calibration check of that consider model (C's input NEES ~1 on average when the
 airframes are drawn from the prior; a scenario's fixed iron is one draw).
 """
@@ -102,13 +102,12 @@ def items_for(run, case: dict) -> list:
 
 def random_iron_overrides(case: dict, seed: int) -> dict:
     """``case`` with its magnetometer's hard/soft iron drawn from method C's uncalibrated prior."""
-    from estimators.polar_heading import PolarHeadingParams
     from service.config import SPEC
-    p = PolarHeadingParams()
     rng = np.random.default_rng(7919 + seed)
     hard_sigma = SPEC["heading"]["uncalibrated_hard_iron_gauss"].default   # what the Pipeline is given
+    soft_sigma = SPEC["heading"]["uncalibrated_soft_iron"].default
     mag = {"hard_iron_gauss": rng.normal(0.0, hard_sigma, 3).tolist(),
-           "soft_iron": (np.eye(3) + rng.normal(0.0, p.uncalibrated_soft_iron, (3, 3))).tolist()}
+           "soft_iron": (np.eye(3) + rng.normal(0.0, soft_sigma, (3, 3))).tolist()}
     return {**case, "overrides": {**case["overrides"], "mag": {**case["overrides"].get("mag", {}), **mag}}}
 
 

@@ -149,9 +149,17 @@ class PolarHeadingParams:
     16 mGauss (its default; MAG_CAL_REPORT.fitness is that residual in mGauss), and RAW_IMU carries
     that residual (was 0.013, the mean hard iron of the shipped scenarios: fitted to them). The
     daemon takes it from ``[heading] uncalibrated_hard_iron_gauss``."""
-    uncalibrated_soft_iron: float = 0.01
+    uncalibrated_soft_iron: float = 0.0175
     """Per-element sigma of the soft-iron matrix I + S of an uncompensated magnetometer
-    (dimensionless; 0.01 = 1 % scale/cross-coupling, the RMS element of inclined_rail's)."""
+    (dimensionless), equally the per-axis sigma (rad) of a rotation of the magnetometer's axes
+    against the IMU's: a rotation r gives dm = r x m, whose heading part is r . (m x u) / H with u
+    the horizontal unit vector normal to the field and |m x u| = |m|, so its variance s^2 |m|^2 / H^2
+    is the iid-element soft-iron term of r_uncal (module docstring). An ellipsoid compass calibration
+    (ArduPilot's COMPASS_CAL, PX4's) fits offsets, scales and cross-coupling from the field's norm and
+    cannot see that rotation. 0.0175 = 1 deg per axis, the low end of the 1-2 deg OpenPilot's
+    calibration work measured between a magnetometer and its accelerometer (OpenPilot README of its
+    calibration branch). Was 0.01, the RMS element of the inclined_rail scenario's soft iron (fitted
+    to it). The daemon takes it from ``[heading] uncalibrated_soft_iron``."""
     gate_chi2: float = 11.0
     """Innovation gate (1 dof NIS, 99.9 %)."""
     reset_after_s: float = 10.0

@@ -122,7 +122,7 @@ SPEC: dict[str, dict[str, Key]] = {
         "mount_pitch_deg": Key(_F, 0.0, "IMU mounting: pitch of the sensor axes in the body frame", _range(-90, 90)),
         "mount_yaw_deg": Key(_F, 0.0, "IMU mounting: yaw of the sensor axes in the body frame", _range(-180, 180)),
         "still_seconds": Key(_F, 2.0, "at-rest data needed for levelling and gyro bias", _range(0.2, 600)),
-        "accel_bias_sigma_m_s2": Key(_F, 0.1, "1-sigma accelerometer bias after the FC's calibration (tilt error ~ bias/g)", _range(0, 5)),
+        "accel_bias_sigma_m_s2": Key(_F, 0.1, "1-sigma accelerometer bias after the FC's calibration (tilt error ~ bias/g; 0.1 = 10 mg = 0.58 deg). The FC calibrates the offset at one temperature; what it leaves is the offset's temperature coefficient times the warming since: 0.5 mg/K (x, y) and 1 mg/K (z) for an ICM-20602 over 10-20 K, 0.15 mg/K for an ICM-42688-P over 68 K", _range(0, 5)),
         "gyro_bias_sigma_deg_s": Key(_F, 0.01, "1-sigma gyro bias left after the at-rest estimate (in-run drift + Earth rate): the at-rest mean holds Earth rate (15.04 deg/h = 0.0042 deg/s), wrong by up to twice that once the airframe turns, plus a consumer MEMS gyro's in-run bias instability (a few deg/h)", _range(0, 10)),
     },
     "launch": {
@@ -147,6 +147,7 @@ SPEC: dict[str, dict[str, Key]] = {
         "cruise_speed_m_s": Key(_F, 25.0, "typical ground speed, for the transport-rate allowance of the heading filter near the poles", _range(0, 400)),
         "filter_rate_hz": Key(_F, 50.0, "rate of the attitude/heading filters and of the NavSolution (the IMU is integrated at its full rate)", _range(5, 1000)),
         "uncalibrated_hard_iron_gauss": Key(_F, 0.016, "per-axis 1-sigma of the magnetometer hard iron nobody has compensated yet (before method D's coefficients apply): widens the heading filter's sigma. 0.016 G: ArduPilot's compass calibration accepts a fit whose RMS residual is up to COMPASS_CAL_FIT = 16 mGauss (its default; MAG_CAL_REPORT.fitness), and RAW_IMU carries that residual", _range(0.0, 0.5)),
+        "uncalibrated_soft_iron": Key(_F, 0.0175, "per-element 1-sigma of the soft iron the magnetometer's compensation leaves, equally the per-axis misalignment (rad) of its axes against the IMU's (the same heading variance, estimators/polar_heading.py): widens the heading filter's sigma. 0.0175 = 1 deg: an ellipsoid compass calibration cannot see a rotation of the magnetometer's axes; OpenPilot measured 1-2 deg between a magnetometer and its accelerometer. 0 for a magnetometer compensated and aligned (method D, a lab calibration)", _range(0.0, 0.5)),
         "fc_yaw_sigma_deg": Key(_F, 1.5, "1-sigma error of the FC's own yaw while trusted (its reading in the fusion and what method B copies from it). Measured on ArduPilot's own EKF3 in ArduPlane SITL (bench/ardupilot_sitl.py, 4 flights): 0.6 deg RMS with GNSS, 1.6-1.9 deg in the 80 s after a GNSS cut; 1.5 covers the seconds before the loss is seen", _range(0.1, 20)),
         "use_fc_when_trusted": Key(bool, True, "fuse the FC's own yaw while its estimator is trusted (GNSS healthy, agrees with our gyros)", None),
         "use_fc_yaw": Key(bool, True, "false: the FC's yaw is used nowhere (not a heading source, not method B's reference yaw or magnetometer-calibration reference); its roll/pitch may still be used", None),

@@ -230,7 +230,8 @@ class Pipeline:
                     if lat is not None else PolarHeadingParams().vertical_rate_sigma_rad_s)
         self.polar_hdg_params = PolarHeadingParams(min_horizontal_field_gauss=heading["min_horizontal_field_gauss"],
                                                    vertical_rate_sigma_rad_s=vr_sigma,
-                                                   uncalibrated_hard_iron_gauss=heading["uncalibrated_hard_iron_gauss"])
+                                                   uncalibrated_hard_iron_gauss=heading["uncalibrated_hard_iron_gauss"],
+                                                   uncalibrated_soft_iron=heading["uncalibrated_soft_iron"])
         self.polar_hdg = polar_heading_init(params=self.polar_hdg_params)
         self._hdg_available: bool | None = None
 

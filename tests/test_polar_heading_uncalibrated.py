@@ -42,8 +42,12 @@ def test_uncalibrated_hard_iron_is_inside_the_published_sigma():
     r = np.abs(err) / sig
     assert np.degrees(np.abs(err)).max() > 2.5              # the deviation is there ...
     assert np.mean(r <= 3.0) == 1.0                          # ... and covered
-    assert 0.2 <= np.mean(r * r) <= 2.0                      # without being useless
-    assert np.degrees(np.median(sig)) < 5.0
+    assert 0.2 <= np.mean(r * r) <= 2.0                      # without being useless:
+    # the published sigma is the consider term of the prior plus a converged filter P (was "< 5 deg",
+    # which the 1-deg soft-iron prior of session 5 makes 5.2 deg: 4.9 deg of it is the prior)
+    m = FIELD_NED_GAUSS
+    prior = math.sqrt(uncalibrated_heading_var(m, math.hypot(m[0], m[1]), None, PolarHeadingParams()))
+    assert np.median(sig) <= 1.1 * prior
 
 
 def test_compensated_magnetometer_keeps_the_filter_sigma():
@@ -85,7 +89,7 @@ def test_consider_term_grows_towards_the_magnetic_pole_and_validates():
     v_mid = uncalibrated_heading_var(m_mid, 0.21, None, p)
     v_pol = uncalibrated_heading_var(m_pol, 0.05, None, p)
     assert math.isclose(math.degrees(math.sqrt(v_mid)), math.degrees(math.sqrt(
-        (0.016 ** 2 + 0.01 ** 2 * (0.21 ** 2 + 0.43 ** 2)) / 0.21 ** 2)), rel_tol=1e-12)
+        (0.016 ** 2 + 0.0175 ** 2 * (0.21 ** 2 + 0.43 ** 2)) / 0.21 ** 2)), rel_tol=1e-12)
     assert v_pol > 15.0 * v_mid
     with pytest.raises(ValueError, match="mag_residual_sigma_gauss"):
         uncalibrated_heading_var(m_mid, 0.21, -0.001, p)
@@ -94,3 +98,33 @@ def test_consider_term_grows_towards_the_magnetic_pole_and_validates():
     # 0 switches the term off (a magnetometer calibrated by other means)
     assert uncalibrated_heading_var(m_mid, 0.21, None, PolarHeadingParams(uncalibrated_hard_iron_gauss=0.0,
                                                                            uncalibrated_soft_iron=0.0)) == 0.0
+
+
+def test_soft_iron_term_is_the_heading_error_of_a_misaligned_magnetometer():
+    """GIVEN a magnetometer whose axes are turned against the IMU's by a small rotation r with iid
+    per-axis sigma s (what an ellipsoid calibration cannot see), WHEN the heading is levelled with
+    the IMU's attitude, THEN its variance is the soft-iron term s^2 |m|^2 / H^2 of r_uncal (the
+    equivalence the ``uncalibrated_soft_iron`` default rests on; 4000 seeded draws, ~2 % sampling
+    error)."""
+    from estimators.rotations import dcm_from_quat, quat_from_rotvec
+    s = math.radians(1.0)
+    p = PolarHeadingParams(uncalibrated_hard_iron_gauss=0.0, uncalibrated_soft_iron=s)
+    roll, pitch, yaw = -0.3, 0.25, 4.0
+    m_true = dcm_from_euler(roll, pitch, yaw).T @ FIELD_NED_GAUSS
+    psi0, H = magnetic_heading(m_true, roll, pitch)
+    rng = np.random.default_rng(12)
+    d = np.array([wrap_pi(magnetic_heading(dcm_from_quat(quat_from_rotvec(r)) @ m_true, roll, pitch)[0] - psi0)
+                  for r in rng.normal(0.0, s, (4000, 3))])
+    assert abs(float(np.mean(d * d)) / uncalibrated_heading_var(m_true, H, None, p) - 1.0) < 0.06
+
+
+def test_pipeline_takes_the_soft_iron_from_the_config():
+    """[heading] uncalibrated_soft_iron reaches method C's params (0: a magnetometer compensated and
+    aligned, as bench/polar_accuracy.py's flights have it); the default is the documented 1 deg."""
+    from service.config import SPEC, validate
+    from service.pipeline import Pipeline
+    site = {"lat_deg": 47.4, "lon_deg": 8.5, "decimal_year": 2026.9}
+    assert Pipeline(validate({"site": site, "heading": {"uncalibrated_soft_iron": 0.0}})
+                    ).polar_hdg_params.uncalibrated_soft_iron == 0.0
+    assert validate({"site": site})["heading"]["uncalibrated_soft_iron"] == 0.0175
+    assert PolarHeadingParams().uncalibrated_soft_iron == SPEC["heading"]["uncalibrated_soft_iron"].default
