@@ -718,8 +718,7 @@ class Daemon:
         """A new solution: Zenoh at once; MAVLink from the loop at its own rates (_publish_due)."""
         now = sol.time_rx_s
         if self.bus is not None:
-            arb = getattr(self.pipeline, "arb_out", None)
-            self.bus.publish_solution(sol, now, arb.per_source if arb is not None else None)
+            self.bus.publish_solution(sol, now, getattr(self.pipeline, "aiding", None))
 
     _LINK_COUNTERS = ("seq_lost", "crc_errors", "framing_errors", "kernel_rx_drops", "signed_accepted",
                       "signature_bad", "signature_replay", "unsigned_rejected", "unsigned_commands_rejected",

@@ -1,8 +1,10 @@
 """Heading arbitration: one published heading, its sigma and its source, from the available
 heading sources (azimuth method A, synthetic AHRS B, heading filter C, the FC's own when trusted).
 
-Pure (no I/O, no clock): ``arbitrate(state, readings, time_s, params, heading_rate_rad_s=None)
--> (state, output)``; the daemon calls it once per output cycle.
+Pure (no I/O, no clock): ``arbitrate(state, readings, time_s, params, heading_rate_rad_s=None,
+not_offered=()) -> (state, output)``; the daemon calls it once per output cycle. Every source,
+offered or not, gets one aiding record in ``output.records`` (service/aiding.py: its innovation
+against the reference, test ratio, fused or the stable code of why not, time of its last fusion).
 
 The rule
 --------
@@ -60,6 +62,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from service.aiding import AidingRecord
+
 TWO_PI = 2.0 * math.pi
 
 
@@ -89,6 +93,14 @@ class SourceReading:
     """False: the source's own filter disagrees with its own measurements (not a candidate)."""
     why_not: str = ""
     """Why the reading is not valid or not consistent (reported in ``per_source``)."""
+    why_code: str = ""
+    """The aiding record's code for ``valid`` / ``consistent`` False (service/aiding.WHY_NOT;
+    default 'not_valid' / 'inconsistent')."""
+    source_innovation_rad: float = math.nan
+    """The source's own last measurement innovation, variance and gate ratio (aiding record's
+    ``source_*``); NaN where the source computes none."""
+    source_innovation_variance_rad2: float = math.nan
+    source_test_ratio: float = math.nan
 
     @property
     def groups(self) -> tuple:
@@ -143,13 +155,16 @@ class ArbitrationState:
     offset_rad: float = 0.0
     sources: tuple = ()
     gated_since_s: float | None = None
+    last_fused_s: tuple = ()
+    """((name, time_s), ...): when each source was last fused (its aiding record's time_last_fused_s)."""
 
     def to_dict(self) -> dict:
-        return dict(self.__dict__, sources=list(self.sources))
+        return dict(self.__dict__, sources=list(self.sources), last_fused_s=[list(p) for p in self.last_fused_s])
 
     @classmethod
     def from_dict(cls, d: dict) -> "ArbitrationState":
-        return cls(**dict(d, sources=tuple(d["sources"])))
+        return cls(**dict(d, sources=tuple(d["sources"]),
+                          last_fused_s=tuple(tuple(p) for p in d.get("last_fused_s", ()))))
 
 
 @dataclass(frozen=True)
@@ -162,8 +177,10 @@ class ArbitrationOutput:
     valid: bool
     offset_rad: float = 0.0
     per_source: dict = field(default_factory=dict)
-    """name -> {'candidate': bool, 'nis': float, 'used': bool, 'reason': str}."""
+    """name -> {'candidate': bool, 'nis': float, 'used': bool, 'reason': str, 'code': str}."""
     events: tuple = ()
+    records: dict = field(default_factory=dict)
+    """name -> AidingRecord (service/aiding.py), for every reading and every ``not_offered`` source."""
 
 
 def _rank(r: SourceReading, params: ArbitrationParams) -> tuple:
@@ -235,25 +252,30 @@ def _decorrelate(readings: list, params: ArbitrationParams) -> list:
 
 def arbitrate(state: ArbitrationState, readings: list, time_s: float,
               params: ArbitrationParams = ArbitrationParams(),
-              heading_rate_rad_s: float | None = None) -> tuple[ArbitrationState, ArbitrationOutput]:
+              heading_rate_rad_s: float | None = None,
+              not_offered: tuple = ()) -> tuple[ArbitrationState, ArbitrationOutput]:
+    """``not_offered``: NotOffered entries (service/aiding.py) for the sources the caller did not
+    offer this step and why: they only get their aiding record."""
     if not math.isfinite(time_s):
         raise ValueError(f"time_s must be finite, got {time_s}")
     dt = 0.0 if state.time_s is None else max(0.0, time_s - state.time_s)
     per = {}
     cands = []
     for r in readings:
-        reason = ""
+        reason, code = "", ""
         if not r.valid:
             reason = f"not valid: {r.why_not}" if r.why_not else "not valid"
+            code = r.why_code or "not_valid"
         elif not r.consistent:
             reason = f"inconsistent: {r.why_not}" if r.why_not else "inconsistent with its own measurements"
+            code = r.why_code or "inconsistent"
         elif not (math.isfinite(r.heading_rad) and math.isfinite(r.sigma_rad) and math.isfinite(r.time_s)):
-            reason = "non-finite"
+            reason, code = "non-finite", "non_finite"
         elif not 0.0 < r.sigma_rad <= params.max_sigma_rad:
-            reason = f"sigma {math.degrees(r.sigma_rad):.1f} deg out of range"
+            reason, code = f"sigma {math.degrees(r.sigma_rad):.1f} deg out of range", "sigma_out_of_range"
         elif time_s - r.time_s > params.max_age_s:
-            reason = f"stale ({time_s - r.time_s:.2f} s)"
-        per[r.name] = {"candidate": not reason, "nis": math.nan, "used": False, "reason": reason}
+            reason, code = f"stale ({time_s - r.time_s:.2f} s)", "stale"
+        per[r.name] = {"candidate": not reason, "nis": math.nan, "used": False, "reason": reason, "code": code}
         if not reason:
             cands.append(r)
     events = []
@@ -262,8 +284,9 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
         if state.sources or state.fused_rad is not None:
             events.append(ArbitrationEvent(time_s, "lost", state.sources, (), 0.0,
                                            "no heading source available"))
-        st = ArbitrationState(time_s=time_s)
-        return st, ArbitrationOutput(None, math.inf, "none", False, 0.0, per, tuple(events))
+        st = ArbitrationState(time_s=time_s, last_fused_s=state.last_fused_s)
+        return st, ArbitrationOutput(None, math.inf, "none", False, 0.0, per, tuple(events),
+                                     _records(readings, not_offered, per, time_s, params, st.last_fused_s))
 
     # --- reference -----------------------------------------------------------------------------
     # not called for longer than a reading may be old (an input gap): the old fusion says nothing
@@ -280,18 +303,21 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
         ref = state.fused_rad
         ref_var = state.fused_var_rad2 + (params.max_turn_rate_rad_s * dt) ** 2
 
+    gate_ref = [ref, ref_var]
+    """The reference of the last gate: the aiding records' innovations are against it."""
+
     def gate(ref_h, ref_v, anchor_name=None):
+        gate_ref[:] = ref_h, ref_v
         ok = []
         for r in cands:
-            if r.name == anchor_name:
-                nis = 0.0
-            else:
-                nis = _wrap_pi(r.heading_rad - ref_h) ** 2 / (r.sigma_rad ** 2 + ref_v)
-            per[r.name]["nis"] = nis
+            innov = 0.0 if r.name == anchor_name else _wrap_pi(r.heading_rad - ref_h)
+            nis = innov ** 2 / (r.sigma_rad ** 2 + ref_v)
+            per[r.name].update(nis=nis, innov=innov, innov_var=r.sigma_rad ** 2 + ref_v)
             if nis <= params.gate_chi2:
                 ok.append(r)
             else:
                 per[r.name]["reason"] = f"gated out (NIS {nis:.1f})"
+                per[r.name]["code"] = "gated_out"
         return ok
 
     passing = gate(ref, ref_var, best.name if anchored else None)
@@ -303,7 +329,7 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
         # the published heading disagrees with a consistent majority it is no part of: re-anchor
         best = min(majority, key=lambda r: _rank(r, params))
         for r in cands:
-            per[r.name]["reason"] = ""
+            per[r.name]["reason"] = per[r.name]["code"] = ""
         passing = gate(best.heading_rad, best.sigma_rad ** 2, best.name)
         kind = "reset"
         events.append(ArbitrationEvent(
@@ -318,14 +344,16 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
                 per[r.name]["used"] = False
             st = ArbitrationState(time_s=time_s, fused_rad=ref, fused_var_rad2=ref_var,
                                   offset_rad=_bleed(state.offset_rad, dt, params), sources=state.sources,
-                                  gated_since_s=gated_since)
+                                  gated_since_s=gated_since, last_fused_s=state.last_fused_s)
             pub = _wrap_2pi(ref + st.offset_rad)
             return st, ArbitrationOutput(pub, math.sqrt(ref_var + st.offset_rad ** 2), "coast", True,
-                                         st.offset_rad, per, ())
+                                         st.offset_rad, per, (),
+                                         _records(readings, not_offered, per, time_s, params, st.last_fused_s,
+                                                  *gate_ref))
         # re-anchor on the best candidate
         best = min(cands, key=lambda r: _rank(r, params))
         for r in cands:
-            per[r.name]["reason"] = ""
+            per[r.name]["reason"] = per[r.name]["code"] = ""
         passing = gate(best.heading_rad, best.sigma_rad ** 2, best.name)
         gated_since = None
         kind = "reset"
@@ -338,6 +366,7 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
             per[r.name]["used"] = True
         else:
             per[r.name]["reason"] = f"correlated with a better source (group {'+'.join(r.groups)})"
+            per[r.name]["code"] = "correlated"
 
     offset = _bleed(state.offset_rad, dt, params)
     if stale:
@@ -362,10 +391,38 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
             f"heading source {'+'.join(state.sources) or 'none'} -> {'+'.join(names)}: "
             f"jump {math.degrees(jump):+.2f} deg, blended at <= "
             f"{math.degrees(params.blend_rate_rad_s):.1f} deg/s"))
+    last_fused = tuple(sorted({**dict(state.last_fused_s), **{n: time_s for n in names}}.items()))
     st = ArbitrationState(time_s=time_s, fused_rad=fused, fused_var_rad2=var, offset_rad=offset,
-                          sources=names, gated_since_s=gated_since)
+                          sources=names, gated_since_s=gated_since, last_fused_s=last_fused)
     return st, ArbitrationOutput(_wrap_2pi(fused + offset), math.sqrt(var + offset * offset),
-                                 "+".join(names), True, offset, per, tuple(events))
+                                 "+".join(names), True, offset, per, tuple(events),
+                                 _records(readings, not_offered, per, time_s, params, last_fused, *gate_ref))
+
+
+def _records(readings: list, not_offered, per: dict, time_s: float, params: ArbitrationParams,
+             last_fused_s: tuple, ref_rad: float = math.nan, ref_var_rad2: float = math.nan) -> dict:
+    """One AidingRecord per reading and per ``not_offered`` source (service/aiding.py). A
+    candidate's innovation is the one its gate used; a reading that is no candidate but has a
+    finite heading and sigma is compared with the same reference (as PX4 reports a rejected
+    observation's innovation), NaN without a reference (no candidate at all)."""
+    last = dict(last_fused_s)
+    out = {}
+    for n in not_offered:
+        out[n.source] = AidingRecord(n.source, time_s, n.why_not, n.detail,
+                                     time_last_fused_s=last.get(n.source, math.nan))
+    for r in readings:
+        v = per[r.name]
+        innov, innov_var = v.get("innov", math.nan), v.get("innov_var", math.nan)
+        if (not v["candidate"] and math.isfinite(ref_rad) and math.isfinite(r.heading_rad)
+                and math.isfinite(r.sigma_rad)):
+            innov, innov_var = _wrap_pi(r.heading_rad - ref_rad), r.sigma_rad ** 2 + ref_var_rad2
+        ratio = innov * innov / innov_var / params.gate_chi2 if innov_var > 0.0 else math.nan
+        used = bool(v["used"])
+        out[r.name] = AidingRecord(
+            r.name, time_s, "" if used else v["code"], "" if used else v["reason"], bool(v["candidate"]), used,
+            last.get(r.name, math.nan), r.heading_rad, r.sigma_rad, innov, innov_var, ratio,
+            r.source_innovation_rad, r.source_innovation_variance_rad2, r.source_test_ratio)
+    return out
 
 
 def _bleed(offset: float, dt: float, params: ArbitrationParams) -> float:

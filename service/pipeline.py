@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -52,7 +51,7 @@ from estimators.polar_heading import (HeadingInputs, PolarHeadingParams, polar_h
                                       polar_heading_init, polar_heading_step, polar_heading_unseen,
                                       vertical_rate_sigma_for_site)
 from estimators.rotations import (dcm_from_quat, euler_from_quat, quat_conj, quat_from_euler,
-                                  quat_mul, wrap_2pi, wrap_pi)
+                                  quat_mul, wrap_pi)
 from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init
 from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent, HeadingEvent, ImuEvent,
                                        SyntheticAhrsOutput, SyntheticAhrsParams, synthetic_ahrs_init,
@@ -62,6 +61,8 @@ from service.core_backend import select as select_core
 from service.input_checks import ImuInputChecks, InputCheckParams
 from service.heading_arbitration import (ArbitrationParams, ArbitrationState, SourceReading,
                                          arbitrate)
+from service.heading_sources import (SyntheticAhrsHealth, azimuth_source, deviation_record, fc_source,
+                                     heading_filter_source, synthetic_ahrs_source)
 from service.phases import (IN_FLIGHT, LAUNCH, PRE_LAUNCH, FlightEvidence, InFlightParams, PhaseParams,
                             PhaseState, phase_step)
 from mavlink_io.navsolution import NavSolution
@@ -77,16 +78,6 @@ DEVIATION_MAX_REF_SIGMA_RAD = math.radians(2.0)
 B1_HEADING_PERIOD_S = 0.1
 """How often variant B1 is handed the heading of the other sources (s)."""
 
-MAG_GROUP = "magnetometer"
-"""Sources that share the magnetometer's errors (B, C and the FC's compass yaw): fused as one."""
-FC_REF_GROUP = "fc_reference"
-"""Sources tied to the FC's yaw (the FC itself; B, whose alignment and KF1 are learnt against it)."""
-B_REFERENCE_MAX_AGE_S = 30.0
-"""Method B with no trusted FC attitude and no air-data fusion for this long (s) lost its reference."""
-B_CONSISTENCY_WINDOW_S = 5.0
-"""Window (s) over which method B's gated-out magnetometer updates are counted."""
-SOURCE_INCONSISTENT_AFTER_S = 2.0
-"""Method C's magnetometer innovations gated out this long (s): not a heading candidate."""
 FC_TILT_MAX_AGE_S = 0.2
 """The FC's roll/pitch older than this (FC time, s) does not level C's magnetometer."""
 
@@ -258,7 +249,12 @@ class Pipeline:
         self._b1_heading_s = -math.inf
         self._yaw_P_prev = None
         """(time, yaw of the attitude filter's platform attitude) at the last solution: the heading rate."""
-        self._b_air_fused, self._b_air_fused_s, self._b_mag_hist = 0, -math.inf, deque()
+        self.b_health = SyntheticAhrsHealth()
+        """Method B's reference and consistency as a heading source (service/heading_sources.py)."""
+        self._hdg_measurement = None
+        """(time, HeadingDiag) of C's last magnetometer heading measurement: its aiding record."""
+        self.aiding: dict = {}
+        """name -> AidingRecord (service/aiding.py) of the last arbitration, method D's included."""
 
         self.filter_period_s = 1.0 / cfg["heading"]["filter_rate_hz"]
         self._filter_due_s = -math.inf
@@ -383,6 +379,8 @@ class Pipeline:
                                               # heading in every attitude: the platform formulation
                                               *self._heading_platform(att, tilt)),
                 self.polar_hdg_params)
+            if hdiag.measured:
+                self._hdg_measurement = (t, hdiag)
             if hdiag.measured and hdiag.source_available != self._hdg_available:
                 self._hdg_available = hdiag.source_available
                 self._event("heading_filter", "magnetometer heading available" if hdiag.source_available
@@ -835,59 +833,26 @@ class Pipeline:
             return level.roll_sigma_rad
         return math.hypot(level.roll_sigma_rad, self.gyro_bias_sigma_rad_s * (time_s - self.phase.launch_time_s))
 
-    def _readings(self, t: float) -> list[SourceReading]:
-        out = []
+    def _readings(self, t: float) -> tuple[list[SourceReading], list]:
+        """Every heading source offered to the arbitration (service/heading_sources.py), and the
+        ones not offered with why (NotOffered): (readings, not_offered)."""
         az = self.azimuth_out
-        if az is not None and az.valid:
-            out.append(SourceReading("azimuth", az.heading_rad, az.heading_sigma_rad, True, t))
-        b = self.ahrs_out
-        # While method A has a solution, the magnetometer sources that do not model the
-        # distortions (B's KF1 only from older flights, C not at all) are not fused: A solves the
-        # distortions with psi_s, and a biased magnetometer heading would drag the fusion.
-        mag_sources = not (az is not None and az.valid)
-        if mag_sources and b is not None and b.valid and math.isfinite(b.heading_rad):
-            has_ref, consistent, why = self._b_health(b, t)
-            out.append(SourceReading("synthetic_ahrs", b.heading_rad, b.heading_sigma_rad, has_ref, t,
-                                     (MAG_GROUP, FC_REF_GROUP) if self.use_fc_yaw else MAG_GROUP, consistent, why))
-        h = polar_heading_estimate(self.polar_hdg)
-        if mag_sources and h.initialised and math.isfinite(h.heading_rad):
-            rej, last = self.polar_hdg.rejected_since_s, self.polar_hdg.last_mag_time_s
-            # inconsistent: its measurements keep failing its gate (not: none come, a disturbance)
-            consistent = (rej is None or t - rej < SOURCE_INCONSISTENT_AFTER_S
-                          or last is None or t - last > SOURCE_INCONSISTENT_AFTER_S / 4)
-            out.append(SourceReading("heading_filter", h.heading_rad, math.sqrt(h.variance_rad2), True, t, MAG_GROUP,
-                                     consistent, "" if consistent else
-                                     f"its magnetometer innovations gated out for {t - rej:.1f} s"))
-        fc = self.fc_attitude
-        if (self.use_fc_heading and self.use_fc_yaw and fc is not None and b is not None and b.reference_trusted
-                and abs(t - fc.time_fc_s) < self.arb_params.max_age_s):
-            out.append(SourceReading("fc", wrap_2pi(fc.yaw_rad), self.ahrs_params.fc_sigma_yaw_rad, True,
-                                     fc.time_fc_s, (MAG_GROUP, FC_REF_GROUP)))
-        return out
+        superseded = az is not None and az.valid  # A's solution: B and C are not offered
+        out = [azimuth_source(az, self.azimuth_status(), t),
+               synthetic_ahrs_source(self.ahrs_out, self.b_health, t, superseded, self.use_fc_yaw),
+               heading_filter_source(polar_heading_estimate(self.polar_hdg), self.polar_hdg, self._hdg_measurement,
+                                     t, superseded, self.polar_hdg_params.mag_update_period_s),
+               fc_source(self.fc_attitude, self.ahrs_out, t, self.use_fc_heading, self.use_fc_yaw,
+                         self.ahrs_params.fc_sigma_yaw_rad, self.arb_params.max_age_s)]
+        return [r for r in out if isinstance(r, SourceReading)], [r for r in out if not isinstance(r, SourceReading)]
 
-    def _b_health(self, b: SyntheticAhrsOutput, t: float) -> tuple[bool, bool, str]:
-        """Method B as a heading source: (has a reference, consistent, why not). B integrates the
-        gyros and corrects roll/pitch only from the trusted FC attitude or from air data; without
-        them its tilt (and so its levelled magnetometer heading) drifts with nothing to say so: not
-        a candidate. The allowance ``B_REFERENCE_MAX_AGE_S`` runs from B's last air-data fusion only;
-        a B that never fused air data is dropped as soon as the FC attitude stops being trusted
-        (measured: the same 30 s after an FC loss made the RTL log's FC-excluded heading worse,
-        5.15 -> 8.04 deg RMS: B ended 26.6 deg off with a 2.15 deg sigma). Inconsistent: most of its magnetometer
-        updates over the last ``B_CONSISTENCY_WINDOW_S`` were gated out (it disagrees with its
-        own measurements)."""
-        if b.air_fused != self._b_air_fused:
-            self._b_air_fused, self._b_air_fused_s = b.air_fused, t
-        hist = self._b_mag_hist
-        hist.append((t, b.mag_fused, b.mag_gated))
-        while t - hist[0][0] > B_CONSISTENCY_WINDOW_S:
-            hist.popleft()
-        if not b.reference_trusted and t - self._b_air_fused_s > B_REFERENCE_MAX_AGE_S:
-            return False, True, "lost its reference (no trusted FC attitude, no air data)"
-        fused, rejected = hist[-1][1] - hist[0][1], hist[-1][2] - hist[0][2]   # (gated: innovation gate only)
-        if rejected >= 10 and rejected > 4 * fused:
-            return True, False, f"its magnetometer updates gated out ({rejected} of {fused + rejected} in " \
-                                f"{B_CONSISTENCY_WINDOW_S:.0f} s)"
-        return True, True, ""
+    def _deviation_record(self, t: float):
+        """Method D's aiding record: is its correction applied to C's magnetometer (or why not)."""
+        prev = self.aiding.get("deviation")
+        cov = (deviation_coverage(self.deviation, self.deviation_params).overall
+               if self.deviation is not None and self._deviation_in_use is False else None)
+        return deviation_record(t, self.deviation, self.deviation_apply, self._deviation_in_use, cov,
+                                self.deviation_min_coverage, prev.time_last_fused_s if prev else math.nan)
 
     def _feed_b1_heading(self, readings: list[SourceReading], t: float) -> None:
         """Variant B1 takes its heading from another source (METHODS.md B1): the most certain
@@ -931,9 +896,10 @@ class Pipeline:
             heading_rate = wrap_pi(yaw_P - prev[1]) / (t - prev[0])
         elif abs(math.cos(pitch)) > 1e-3:  # psi_dot = (q sin(phi) + r cos(phi)) / cos(theta)
             heading_rate = (rates_body[1] * math.sin(roll) + rates_body[2] * math.cos(roll)) / math.cos(pitch)
-        readings = self._readings(t)
-        self.arb, arb_out = arbitrate(self.arb, readings, t, self.arb_params, heading_rate)
+        readings, not_offered = self._readings(t)
+        self.arb, arb_out = arbitrate(self.arb, readings, t, self.arb_params, heading_rate, not_offered)
         self.arb_out = arb_out
+        self.aiding = {**arb_out.records, "deviation": self._deviation_record(t)}
         if self.ahrs_params.variant == "b1":
             self._feed_b1_heading(readings, t)
         for ev in arb_out.events:

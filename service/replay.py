@@ -28,9 +28,15 @@ from pathlib import Path
 
 import numpy as np
 
-CSV_COLUMNS = ["time_s", "phase", "roll_deg", "pitch_deg", "heading_deg", "heading_sigma_deg",
-               "heading_source", "azimuth_deg", "azimuth_sigma_deg", "ref_roll_deg", "ref_pitch_deg",
-               "ref_heading_deg"]
+from service import aiding
+
+SOLUTION_COLUMNS = ["time_s", "phase", "roll_deg", "pitch_deg", "heading_deg", "heading_sigma_deg",
+                    "heading_source", "azimuth_deg", "azimuth_sigma_deg", "ref_roll_deg", "ref_pitch_deg",
+                    "ref_heading_deg"]
+CSV_COLUMNS = SOLUTION_COLUMNS + aiding.csv_columns()
+"""The solution, the log's reference, then each heading source's aiding record (service/aiding.py:
+``aid_<source>_<field>``, degrees; fused 1/0; why_not a code) of the arbitration step that row's
+solution came from."""
 REF_MAX_AGE_S = 1.0
 LOW_IMU_RATE_HZ = 50.0
 """Below this IMU rate the summary warns that the estimators cannot work as designed."""
@@ -175,7 +181,7 @@ class ReplayResult:
     """Arrays, one entry per output row (degrees; NaN where empty), and the run's figures."""
     time_s: list = field(default_factory=list)
     phase: list = field(default_factory=list)
-    cols: dict = field(default_factory=lambda: {c: [] for c in CSV_COLUMNS[2:] if c != "heading_source"})
+    cols: dict = field(default_factory=lambda: {c: [] for c in SOLUTION_COLUMNS[2:] if c != "heading_source"})
     heading_source: list = field(default_factory=list)
     roll_sigma_deg: list = field(default_factory=list)
     pitch_sigma_deg: list = field(default_factory=list)
@@ -344,7 +350,8 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
                                      _fmt(vals["pitch_deg"]), _fmt(vals["heading_deg"]),
                                      _fmt(vals["heading_sigma_deg"]), src, _fmt(vals["azimuth_deg"]),
                                      _fmt(vals["azimuth_sigma_deg"]), _fmt(vals["ref_roll_deg"]),
-                                     _fmt(vals["ref_pitch_deg"]), _fmt(vals["ref_heading_deg"])])
+                                     _fmt(vals["ref_pitch_deg"]), _fmt(vals["ref_heading_deg"]),
+                                     *aiding.csv_row(pipe.aiding, fmt=_fmt)])
             elif cls is FcAttitude:
                 cnt["attitude"] += 1
                 ref = item

@@ -37,6 +37,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from service.aiding import AidingRecord, payload as aiding_payload
 from service.schema import SCHEMA_VERSION, TOPICS
 
 if TYPE_CHECKING:
@@ -121,18 +122,13 @@ def heading_payload(sol: NavSolution) -> dict:
             "heading_source": sol.heading_source, "flags": dict(sol.flags)}
 
 
-def sources_payload(per_source: Mapping[str, Mapping[str, Any]]) -> dict:
-    """The arbitration's verdict per heading source (ArbitrationOutput.per_source) for the
-    ``heading`` topic: name -> {used, candidate, reason, nis_ratio}. ``reason`` says why a source
-    is not used ("" when used); ``nis_ratio`` is its normalised innovation squared against the
-    reference (null when not gated)."""
-    out = {}
-    for name, v in per_source.items():
-        nis = v.get("nis")
-        out[str(name)] = {"used": bool(v.get("used")), "candidate": bool(v.get("candidate")),
-                          "reason": str(v.get("reason") or ""),
-                          "nis_ratio": float(nis) if nis is not None and math.isfinite(nis) else None}
-    return out
+def sources_payload(records: Mapping[str, AidingRecord]) -> dict:
+    """Every heading source's aiding record (service/aiding.py, the Pipeline's ``aiding``) for the
+    ``heading`` topic: name -> {fused, candidate, why_not, detail, time_last_fused_s,
+    observation_deg, observation_sigma_deg, innovation_deg, innovation_sigma_deg, test_ratio,
+    source_innovation_deg, source_innovation_sigma_deg, source_test_ratio}; degrees, null where
+    unknown."""
+    return {str(name): aiding_payload(rec) for name, rec in records.items()}
 
 
 def air_data_payload(air: Any, time_rx_s: float, press_abs_pa: float | None = None,
@@ -302,19 +298,19 @@ class ZenohBus:
         return True
 
     def publish_solution(self, sol: NavSolution, now_s: float,
-                         per_source: Mapping[str, Mapping[str, Any]] | None = None) -> list[str]:
+                         aiding: Mapping[str, AidingRecord] | None = None) -> list[str]:
         """Publish attitude / heading / azimuth from one NavSolution when each is due at local
-        monotonic time ``now_s`` (rates ``DEFAULT_SOLUTION_RATES_HZ``); ``per_source`` (the
-        arbitration's verdict per source) goes into ``heading`` as ``sources``. Returns the topics
-        sent."""
+        monotonic time ``now_s`` (rates ``DEFAULT_SOLUTION_RATES_HZ``); ``aiding`` (the aiding
+        record of every heading source, Pipeline.aiding) goes into ``heading`` as ``sources``.
+        Returns the topics sent."""
         sent = []
         for topic, build in (("attitude", attitude_payload), ("heading", heading_payload),
                              ("azimuth", azimuth_payload)):
             if not self._due(topic, now_s):
                 continue
             payload = build(sol)
-            if topic == "heading" and per_source is not None:
-                payload["sources"] = sources_payload(per_source)
+            if topic == "heading" and aiding:
+                payload["sources"] = sources_payload(aiding)
             if self.publish(topic, payload):
                 sent.append(topic)
         return sent

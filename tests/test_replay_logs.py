@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from service.aiding import WHY_NOT
 from service.replay import CSV_COLUMNS, main
 
 DATA = Path("/work/shared/data")
@@ -75,8 +76,13 @@ def test_csv_has_the_exact_header_and_a_row_per_output_sample(which, request):
     assert np.all(np.isfinite(t))
     for r in rows[1:]:
         assert r[1] in ("boot", "pre-launch", "launch", "in-flight")
-        for v in r[2:6] + r[7:]:
-            assert v == "" or math.isfinite(float(v))
+        for name, v in zip(rows[0][2:], r[2:]):
+            if name.endswith("_why_not"):  # the aiding records' codes (service/aiding.py)
+                assert v in WHY_NOT, (name, v)
+            elif name.endswith("_fused"):  # empty: no arbitration yet (not levelled)
+                assert v in ("0", "1", ""), (name, v)
+            elif name != "heading_source":
+                assert v == "" or math.isfinite(float(v)), (name, v)
 
 
 @pytest.mark.parametrize("which,log", [("bench_run", BENCH), ("vtol_run", VTOL)])

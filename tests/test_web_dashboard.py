@@ -336,11 +336,11 @@ def test_page_shows_what_the_daemon_publishes(live):
     # the sources of that same payload: every one shown, used as reported, a reason when unused
     rows = {name: (used, why) for name, _, used, why in shown["sources"]}
     assert set(rows) == set(published["sources"])
-    assert {"synthetic_ahrs", "heading_filter"} <= set(rows)  # B and C always report
+    assert set(rows) == {"azimuth", "synthetic_ahrs", "heading_filter", "fc", "deviation"}  # every source reports
     for name, s in published["sources"].items():
-        assert rows[name][0] == ("yes" if s["used"] else "no"), name
-        if not s["used"]:
-            assert rows[name][1] == s["reason"] and s["reason"], name
+        assert rows[name][0] == ("yes" if s["fused"] else "no"), name
+        if not s["fused"]:
+            assert rows[name][1] == s["detail"] and s["detail"] and s["why_not"], name
     assert set(published["heading_source"].split("+")) <= {n for n, (u, _) in rows.items() if u == "yes"} | {"coast"}
     # the second vehicle on the same page, in its own card, in name order
     other = page(d, OTHER)

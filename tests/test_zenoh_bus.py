@@ -255,7 +255,12 @@ BAD = [
     ("attitude", {"yaw_deg": 360.0}),                     # [0, 360)
     ("heading", {"heading_source": "gps"}),               # not a source name
     ("heading", {"heading_source": "azimuth+"}),          # a dangling '+'
-    ("heading", {"sources": {"fc": {"used": "yes", "reason": ""}}}),  # used must be a boolean
+    ("heading", {"sources": {"fc": {"fused": "yes", "candidate": True, "why_not": "", "detail": "",
+                                    "time_last_fused_s": 1.0, "observation_deg": 1.0, "observation_sigma_deg": 1.0,
+                                    "innovation_deg": 0.0, "innovation_sigma_deg": 1.0, "test_ratio": 0.0}}}),  # fused: a boolean
+    ("heading", {"sources": {"fc": {"fused": False, "candidate": True, "why_not": "it felt wrong", "detail": "",
+                                    "time_last_fused_s": None, "observation_deg": 1.0, "observation_sigma_deg": 1.0,
+                                    "innovation_deg": 0.0, "innovation_sigma_deg": 1.0, "test_ratio": 0.0}}}),  # not a code
     ("air_data", {"usable": 1.0}),                        # a flag, not a number
     ("heading", {"heading_valid": "yes"}),                # wrong type
     ("attitude", {"q_nav_from_body": [1.0, 0.0, 0.0]}),   # 3 items
@@ -307,15 +312,30 @@ def test_sources_air_data_calibration_and_fence_payloads_match_the_schema():
     from service.geofence import GeofenceMonitor
     from service.geofence_config import validate_geofence
 
-    per_source = {"azimuth": {"candidate": True, "nis": 0.4, "used": True, "reason": ""},
-                  "fc": {"candidate": True, "nis": 31.0, "used": False, "reason": "gated out (NIS 31.0)"},
-                  "heading_filter": {"candidate": False, "nis": math.nan, "used": False,
-                                     "reason": "not valid"}}
+    from service.aiding import NotOffered
+    from service.heading_arbitration import ArbitrationState, SourceReading, arbitrate
+    from service.heading_sources import deviation_record
+
+    # the arbitration's records: A fused, the FC gated out, C inconsistent, B not offered, and D
+    st, _ = arbitrate(ArbitrationState(), [SourceReading("azimuth", math.radians(100.0), math.radians(0.5), True, 9.9)], 9.9)
+    _, out = arbitrate(st, [SourceReading("azimuth", math.radians(100.0), math.radians(0.5), True, 10.0),
+                            SourceReading("fc", math.radians(120.0), math.radians(2.0), True, 10.0),
+                            SourceReading("heading_filter", math.radians(101.0), math.radians(3.0), True, 10.0,
+                                          consistent=False, why_not="its magnetometer innovations gated out for 2.1 s",
+                                          source_innovation_rad=math.radians(25.0),
+                                          source_innovation_variance_rad2=math.radians(4.0) ** 2,
+                                          source_test_ratio=4.3)],
+                       10.0, not_offered=(NotOffered("synthetic_ahrs", "superseded", "method A has a solution"),))
+    records = dict(out.records, deviation=deviation_record(10.0, None, True, None, None, 0.8, math.nan))
     heading = heading_payload(solution())
-    heading["sources"] = sources_payload(per_source)
-    assert heading["sources"]["fc"] == {"used": False, "candidate": True,
-                                        "reason": "gated out (NIS 31.0)", "nis_ratio": 31.0}
-    assert heading["sources"]["heading_filter"]["nis_ratio"] is None
+    heading["sources"] = sources_payload(records)
+    fc = heading["sources"]["fc"]
+    assert (fc["fused"], fc["candidate"], fc["why_not"]) == (False, True, "gated_out")
+    assert fc["innovation_deg"] == pytest.approx(20.0) and fc["test_ratio"] > 1.0
+    assert heading["sources"]["azimuth"]["time_last_fused_s"] == 10.0
+    c = heading["sources"]["heading_filter"]
+    assert (c["why_not"], c["source_innovation_deg"], c["source_test_ratio"]) == ("inconsistent", pytest.approx(25.0), 4.3)
+    assert heading["sources"]["synthetic_ahrs"]["innovation_deg"] is None
     air = AirData(time_s=42.5, pressure_altitude_m=412.0, density_kg_m3=1.18, temperature_used_k=285.0,
                   tas_m_s=23.5, alt_rate_m_s=1.5, tas_noise_std_m_s=0.2, airspeed_low=False,
                   pitot_blocked=False, pitot_noisy=False, rate_valid=True)

@@ -133,7 +133,7 @@ function renderSources(v, p) {
   body.textContent = "";
   const used = new Set((p.heading_source || "").split("+"));
   const sources = p.sources || Object.fromEntries(
-    [...used].filter((s) => s && s !== "none" && s !== "coast").map((s) => [s, {used: true, reason: ""}]));
+    [...used].filter((s) => s && s !== "none" && s !== "coast").map((s) => [s, {fused: true, detail: ""}]));
   const names = Object.keys(sources).sort();
   if (!names.length) {
     const tr = body.insertRow(); const td = tr.insertCell(); td.colSpan = 3;
@@ -145,10 +145,10 @@ function renderSources(v, p) {
     tr.dataset.source = name;
     tr.insertCell().textContent = name;
     const u = tr.insertCell();
-    u.textContent = s.used ? "yes" : "no";
-    u.className = s.used ? "used-yes" : "used-no";
-    tr.insertCell().textContent = s.used ? (p.heading_source === "coast" ? "coasting" : "fused")
-      : (s.reason || "-");
+    u.textContent = s.fused ? "yes" : "no";
+    u.className = s.fused ? "used-yes" : "used-no";
+    tr.insertCell().textContent = s.fused ? (p.heading_source === "coast" ? "coasting" : "fused")
+      : (s.detail || s.why_not || "-");
   }
 }
 

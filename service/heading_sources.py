@@ -1,0 +1,161 @@
+"""The heading sources as the arbitration sees them: one function per source, turning what its
+estimator already computed into a SourceReading (offered to service/heading_arbitration) or a
+NotOffered with the reason (service/aiding.py), so every source gets its aiding record.
+
+    azimuth_source        method A (estimators/azimuth): its gated solution
+    synthetic_ahrs_source method B (estimators/synthetic_ahrs), with SyntheticAhrsHealth: has it a
+                          reference, does it agree with its own magnetometer
+    heading_filter_source method C (estimators/polar_heading), with its last magnetometer
+                          innovation, variance and test ratio (the source-level fields)
+    fc_source             the FC's own yaw while method B's reference health trusts the FC
+    deviation_record      method D (estimators/mag_deviation): no heading; whether its correction
+                          of C's magnetometer is applied
+
+No estimator math here: each function only reads the estimators' outputs. Pure (no I/O, no clock);
+SyntheticAhrsHealth holds the window of B's magnetometer counters.
+
+Correlation groups: the magnetometer sources (B, C and the FC's compass yaw) share MAG_GROUP; B
+and the FC share FC_REF_GROUP while B learns against the FC's yaw. While method A has a solution,
+B and C are not offered ('superseded'): A solves the magnetometer distortions with psi_s, they do
+not, and a biased magnetometer heading would drag the fusion.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+
+from estimators.rotations import wrap_2pi
+from service.aiding import AidingRecord, NotOffered
+from service.heading_arbitration import SourceReading
+
+MAG_GROUP = "magnetometer"
+"""Sources that share the magnetometer's errors (B, C and the FC's compass yaw): fused as one."""
+FC_REF_GROUP = "fc_reference"
+"""Sources tied to the FC's yaw (the FC itself; B, whose alignment and KF1 are learnt against it)."""
+B_REFERENCE_MAX_AGE_S = 30.0
+"""Method B with no trusted FC attitude and no air-data fusion for this long (s) lost its reference."""
+B_CONSISTENCY_WINDOW_S = 5.0
+"""Window (s) over which method B's gated-out magnetometer updates are counted."""
+SOURCE_INCONSISTENT_AFTER_S = 2.0
+"""Method C's magnetometer innovations gated out this long (s): not a heading candidate."""
+SUPERSEDED = "method A has a solution (it solves the magnetometer distortions; this source does not)"
+
+
+def azimuth_source(az, status: str, t: float) -> SourceReading | NotOffered:
+    """Method A: its heading while its solution is valid; else why not (``status``: the
+    Pipeline's one-line state of method A)."""
+    if az is not None and az.valid:
+        return SourceReading("azimuth", az.heading_rad, az.heading_sigma_rad, True, t)
+    return NotOffered("azimuth", "no_estimate", status)
+
+
+class SyntheticAhrsHealth:
+    """Method B as a heading source: (has a reference, consistent, why not). B integrates the
+    gyros and corrects roll/pitch only from the trusted FC attitude or from air data; without
+    them its tilt (and so its levelled magnetometer heading) drifts with nothing to say so: not
+    a candidate. The allowance ``B_REFERENCE_MAX_AGE_S`` runs from B's last air-data fusion only;
+    a B that never fused air data is dropped as soon as the FC attitude stops being trusted
+    (measured: the same 30 s after an FC loss made the RTL log's FC-excluded heading worse,
+    5.15 -> 8.04 deg RMS: B ended 26.6 deg off with a 2.15 deg sigma). Inconsistent: most of its
+    magnetometer updates over the last ``B_CONSISTENCY_WINDOW_S`` were gated out (it disagrees with
+    its own measurements)."""
+
+    def __init__(self) -> None:
+        self.air_fused, self.air_fused_s, self.mag_hist = 0, -math.inf, deque()
+
+    def check(self, b, t: float) -> tuple[bool, bool, str]:
+        if b.air_fused != self.air_fused:
+            self.air_fused, self.air_fused_s = b.air_fused, t
+        hist = self.mag_hist
+        hist.append((t, b.mag_fused, b.mag_gated))
+        while t - hist[0][0] > B_CONSISTENCY_WINDOW_S:
+            hist.popleft()
+        if not b.reference_trusted and t - self.air_fused_s > B_REFERENCE_MAX_AGE_S:
+            return False, True, "lost its reference (no trusted FC attitude, no air data)"
+        fused, rejected = hist[-1][1] - hist[0][1], hist[-1][2] - hist[0][2]   # (gated: innovation gate only)
+        if rejected >= 10 and rejected > 4 * fused:
+            return True, False, f"its magnetometer updates gated out ({rejected} of {fused + rejected} in " \
+                                f"{B_CONSISTENCY_WINDOW_S:.0f} s)"
+        return True, True, ""
+
+
+def synthetic_ahrs_source(b, health: SyntheticAhrsHealth, t: float, superseded: bool,
+                          use_fc_yaw: bool) -> SourceReading | NotOffered:
+    """Method B: its heading with its reference and consistency verdict (SyntheticAhrsHealth,
+    checked only while B is offered). B's KF2 reports no magnetometer innovation, only counters:
+    its source-level fields stay NaN."""
+    if superseded:
+        return NotOffered("synthetic_ahrs", "superseded", SUPERSEDED)
+    if b is None:
+        return NotOffered("synthetic_ahrs", "no_estimate", "no output yet")
+    if not b.valid:
+        return NotOffered("synthetic_ahrs", "no_estimate", f"not initialised ({b.reference_reason})"
+                          if b.reference_reason else "not initialised")
+    if not math.isfinite(b.heading_rad):
+        return NotOffered("synthetic_ahrs", "non_finite", "heading not finite")
+    has_ref, consistent, why = health.check(b, t)
+    return SourceReading("synthetic_ahrs", b.heading_rad, b.heading_sigma_rad, has_ref, t,
+                         (MAG_GROUP, FC_REF_GROUP) if use_fc_yaw else MAG_GROUP, consistent, why,
+                         why_code="no_reference" if not has_ref else "inconsistent" if not consistent else "")
+
+
+def heading_filter_source(h, state, last_measurement, t: float, superseded: bool,
+                          mag_update_period_s: float) -> SourceReading | NotOffered:
+    """Method C: the heading filter's estimate ``h`` (HeadingEstimate) of ``state``
+    (PolarHeadingState). Inconsistent: its measurements keep failing its gate (not: none come, a
+    disturbance). ``last_measurement``: (time, HeadingDiag) of its last magnetometer heading
+    measurement; its innovation, variance and test ratio are the record's source-level fields
+    while it is from the current measurement cycle (no older than two ``mag_update_period_s``)."""
+    if superseded:
+        return NotOffered("heading_filter", "superseded", SUPERSEDED)
+    if not h.initialised:
+        return NotOffered("heading_filter", "no_estimate", "no magnetometer heading yet")
+    if not math.isfinite(h.heading_rad):
+        return NotOffered("heading_filter", "non_finite", "heading not finite")
+    rej, last = state.rejected_since_s, state.last_mag_time_s
+    consistent = (rej is None or t - rej < SOURCE_INCONSISTENT_AFTER_S
+                  or last is None or t - last > SOURCE_INCONSISTENT_AFTER_S / 4)
+    own = {}
+    if last_measurement is not None and t - last_measurement[0] <= 2.0 * mag_update_period_s:
+        d = last_measurement[1]
+        own = dict(source_innovation_rad=d.innovation_rad, source_innovation_variance_rad2=d.innovation_var_rad2,
+                   source_test_ratio=d.test_ratio)
+    return SourceReading("heading_filter", h.heading_rad, math.sqrt(h.variance_rad2), True, t, MAG_GROUP,
+                         consistent, "" if consistent else f"its magnetometer innovations gated out for {t - rej:.1f} s",
+                         **own)
+
+
+def fc_source(fc, b, t: float, use_fc_heading: bool, use_fc_yaw: bool, sigma_rad: float,
+              max_age_s: float) -> SourceReading | NotOffered:
+    """The FC's own yaw (ATTITUDE ``fc``) while method B's reference health trusts the FC (``b``:
+    SyntheticAhrsOutput) and the FC's attitude is fresh. No innovation of its own (the FC's EKF
+    does not send one here): its source-level fields stay NaN."""
+    if not use_fc_heading:
+        return NotOffered("fc", "excluded", "[heading] use_fc_when_trusted is off")
+    if not use_fc_yaw:
+        return NotOffered("fc", "excluded", "the FC's yaw is excluded")
+    if fc is None:
+        return NotOffered("fc", "no_estimate", "no FC attitude received")
+    if b is None or not b.reference_trusted:
+        return NotOffered("fc", "no_reference", f"FC attitude not trusted ({b.reference_reason})"
+                          if b is not None else "FC attitude not checked yet (method B has no output)")
+    if abs(t - fc.time_fc_s) >= max_age_s:
+        return NotOffered("fc", "stale", f"FC attitude {t - fc.time_fc_s:.2f} s from this sample")
+    return SourceReading("fc", wrap_2pi(fc.yaw_rad), sigma_rad, True, fc.time_fc_s, (MAG_GROUP, FC_REF_GROUP))
+
+
+def deviation_record(t: float, deviation, apply: bool, in_use: bool | None, coverage: float | None,
+                     min_coverage: float, last_fused_s: float) -> AidingRecord:
+    """Method D: no heading of its own (observation and innovation NaN); fused = its correction is
+    applied to C's magnetometer (``in_use``: the Pipeline's coverage verdict, None before a
+    magnetometer sample reached it); ``coverage``: its overall coverage when known."""
+    if deviation is None:
+        return AidingRecord("deviation", t, "no_estimate", "no deviation coefficients ([deviation] calibrate "
+                            "off and none stored)", time_last_fused_s=last_fused_s)
+    if not apply:
+        return AidingRecord("deviation", t, "excluded", "[deviation] apply is off", time_last_fused_s=last_fused_s)
+    if in_use:
+        return AidingRecord("deviation", t, "", "", True, True, t)
+    detail = ("no magnetometer sample has reached it yet" if in_use is None or coverage is None
+              else f"coverage {coverage:.2f} < {min_coverage:.2f} needed")
+    return AidingRecord("deviation", t, "not_applied", detail, True, False, last_fused_s)
