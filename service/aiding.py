@@ -23,7 +23,7 @@ person reads (numbers included). Pure: no I/O, no clock. Radians inside; ``paylo
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
 SOURCES = ("azimuth", "synthetic_ahrs", "heading_filter", "fc", "deviation")
 """Every source that reports a record, in the order of the CSV columns."""
@@ -46,8 +46,7 @@ WHY_NOT = {
 """Stable ``why_not`` codes and what each means (docs/OUTPUTS.md and docs/REPLAY.md list them)."""
 
 
-@dataclass(frozen=True)
-class AidingRecord:
+class _AidingFields(NamedTuple):
     source: str
     time_s: float
     """FC time of the arbitration step that wrote the record (s)."""
@@ -70,15 +69,22 @@ class AidingRecord:
     source_innovation_variance_rad2: float = math.nan
     source_test_ratio: float = math.nan
 
-    def __post_init__(self) -> None:
-        if self.why_not not in WHY_NOT:
-            raise ValueError(f"why_not must be one of {sorted(WHY_NOT)}, got {self.why_not!r}")
-        if self.fused != (self.why_not == ""):
-            raise ValueError(f"{self.source}: fused={self.fused} contradicts why_not={self.why_not!r}")
+
+class AidingRecord(_AidingFields):
+    """One source's aiding record (fields above). A NamedTuple, not a dataclass: the Pipeline
+    writes five at every filter step, and a frozen dataclass costs ~5x more to build."""
+    __slots__ = ()
+
+    def __new__(cls, *args, **kwargs):
+        rec = super().__new__(cls, *args, **kwargs)
+        if rec.why_not not in WHY_NOT:
+            raise ValueError(f"why_not must be one of {sorted(WHY_NOT)}, got {rec.why_not!r}")
+        if rec.fused != (rec.why_not == ""):
+            raise ValueError(f"{rec.source}: fused={rec.fused} contradicts why_not={rec.why_not!r}")
+        return rec
 
 
-@dataclass(frozen=True)
-class NotOffered:
+class NotOffered(NamedTuple):
     """A source the caller did not offer to the arbitration this step, and why."""
     source: str
     why_not: str
@@ -130,17 +136,22 @@ def csv_columns(sources=SOURCES) -> list[str]:
     return [f"aid_{s}_{f}" for s in sources for f in CSV_FIELDS]
 
 
-def csv_row(records: dict, sources=SOURCES, fmt=lambda v: "" if v is None else format(v, ".12g")) -> list[str]:
-    """The ``csv_columns`` cells of one row: numbers in degrees (empty where unknown), fused 1/0,
-    why_not its code; every cell empty for a source with no record."""
+def _cell(v: float | None) -> str:
+    return "" if v is None or not math.isfinite(v) else format(v, ".12g")
+
+
+def csv_row(records: dict, sources=SOURCES) -> list[str]:
+    """The ``csv_columns`` cells of one row (``CSV_FIELDS`` per source): numbers in degrees (empty
+    where unknown, 12 significant digits), fused 1/0, why_not its code; every cell empty for a
+    source with no record. Written out field by field: replay writes one per output row."""
     out = []
     for s in sources:
-        rec = records.get(s)
-        if rec is None:
+        r = records.get(s)
+        if r is None:
             out += [""] * len(CSV_FIELDS)
             continue
-        p = payload(rec)
-        for f in CSV_FIELDS:
-            v = p[f]
-            out.append(("1" if v else "0") if f == "fused" else v if f == "why_not" else fmt(v))
+        out += [_cell(_deg_0_360(r.observation_rad)), _cell(_deg(r.observation_sigma_rad)),
+                _cell(_deg(r.innovation_rad)), _cell(_sqrt_deg(r.innovation_variance_rad2)), _cell(r.test_ratio),
+                "1" if r.fused else "0", _cell(r.time_last_fused_s), r.why_not, _cell(_deg(r.source_innovation_rad)),
+                _cell(r.source_test_ratio)]
     return out

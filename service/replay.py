@@ -351,7 +351,7 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
                                      _fmt(vals["heading_sigma_deg"]), src, _fmt(vals["azimuth_deg"]),
                                      _fmt(vals["azimuth_sigma_deg"]), _fmt(vals["ref_roll_deg"]),
                                      _fmt(vals["ref_pitch_deg"]), _fmt(vals["ref_heading_deg"]),
-                                     *aiding.csv_row(pipe.aiding, fmt=_fmt)])
+                                     *aiding.csv_row(pipe.aiding)])
             elif cls is FcAttitude:
                 cnt["attitude"] += 1
                 ref = item

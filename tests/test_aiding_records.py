@@ -15,7 +15,7 @@ import pytest
 
 from mavlink_io.samples import FcAttitude, ImuSample, PressureSample
 from service import schema
-from service.aiding import WHY_NOT, AidingRecord, NotOffered, csv_columns, csv_row, payload
+from service.aiding import CSV_FIELDS, WHY_NOT, AidingRecord, NotOffered, csv_columns, csv_row, payload
 from service.config import validate
 from service.heading_arbitration import ArbitrationParams, ArbitrationState, SourceReading, arbitrate
 from service.pipeline import Pipeline, site_field
@@ -182,4 +182,11 @@ def test_csv_cells_are_degrees_codes_and_flags():
     assert float(cells["aid_fc_innovation_sigma_deg"]) == pytest.approx(2.5, rel=1e-12)
     assert (cells["aid_fc_fused"], cells["aid_fc_why_not"], cells["aid_fc_time_last_fused_s"]) == ("0", "gated_out", "1.5")
     assert cells["aid_fc_source_test_ratio"] == "" and cells["aid_azimuth_fused"] == ""
-    assert payload(rec["fc"])["source_innovation_deg"] is None
+    assert (cells["aid_fc_observation_sigma_deg"], cells["aid_fc_test_ratio"]) == ("2", "7.1")
+    # the CSV cells and the Zenoh payload say the same
+    p = payload(rec["fc"])
+    assert p["source_innovation_deg"] is None
+    for f in CSV_FIELDS:
+        want = ("1" if p[f] else "0") if f == "fused" else p[f] if f == "why_not" else \
+            "" if p[f] is None else format(p[f], ".12g")
+        assert cells[f"aid_fc_{f}"] == want, f
