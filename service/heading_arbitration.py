@@ -92,7 +92,7 @@ class SourceReading:
     consistent: bool = True
     """False: the source's own filter disagrees with its own measurements (not a candidate)."""
     why_not: str = ""
-    """Why the reading is not valid or not consistent (reported in ``per_source``)."""
+    """Why the reading is not valid or not consistent (its aiding record's ``detail``)."""
     why_code: str = ""
     """The aiding record's code for ``valid`` / ``consistent`` False (service/aiding.WHY_NOT;
     default 'not_valid' / 'inconsistent')."""
@@ -176,11 +176,10 @@ class ArbitrationOutput:
     """'+'-joined names of the fused sources, 'coast', or 'none'."""
     valid: bool
     offset_rad: float = 0.0
-    per_source: dict = field(default_factory=dict)
-    """name -> {'candidate': bool, 'nis': float, 'used': bool, 'reason': str, 'code': str}."""
     events: tuple = ()
     records: dict = field(default_factory=dict)
-    """name -> AidingRecord (service/aiding.py), for every reading and every ``not_offered`` source."""
+    """name -> AidingRecord (service/aiding.py), for every reading and every ``not_offered`` source:
+    fused or why not (code and detail), innovation against the reference, test ratio = NIS / gate."""
 
 
 def _rank(r: SourceReading, params: ArbitrationParams) -> tuple:
@@ -285,7 +284,7 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
             events.append(ArbitrationEvent(time_s, "lost", state.sources, (), 0.0,
                                            "no heading source available"))
         st = ArbitrationState(time_s=time_s, last_fused_s=state.last_fused_s)
-        return st, ArbitrationOutput(None, math.inf, "none", False, 0.0, per, tuple(events),
+        return st, ArbitrationOutput(None, math.inf, "none", False, 0.0, tuple(events),
                                      _records(readings, not_offered, per, time_s, params, st.last_fused_s))
 
     # --- reference -----------------------------------------------------------------------------
@@ -347,7 +346,7 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
                                   gated_since_s=gated_since, last_fused_s=state.last_fused_s)
             pub = _wrap_2pi(ref + st.offset_rad)
             return st, ArbitrationOutput(pub, math.sqrt(ref_var + st.offset_rad ** 2), "coast", True,
-                                         st.offset_rad, per, (),
+                                         st.offset_rad, (),
                                          _records(readings, not_offered, per, time_s, params, st.last_fused_s,
                                                   *gate_ref))
         # re-anchor on the best candidate
@@ -395,7 +394,7 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
     st = ArbitrationState(time_s=time_s, fused_rad=fused, fused_var_rad2=var, offset_rad=offset,
                           sources=names, gated_since_s=gated_since, last_fused_s=last_fused)
     return st, ArbitrationOutput(_wrap_2pi(fused + offset), math.sqrt(var + offset * offset),
-                                 "+".join(names), True, offset, per, tuple(events),
+                                 "+".join(names), True, offset, tuple(events),
                                  _records(readings, not_offered, per, time_s, params, last_fused, *gate_ref))
 
 

@@ -242,7 +242,7 @@ class Pipeline:
         self.arb_params = ArbitrationParams()
         self.arb = ArbitrationState()
         self.arb_out = None
-        """The last ArbitrationOutput: its per_source verdicts (used, or why not) go to dashboards."""
+        """The last ArbitrationOutput (its aiding records, method D's added, are ``aiding``)."""
         self.use_fc_heading = heading["use_fc_when_trusted"]
         self.use_fc_yaw = heading.get("use_fc_yaw", True)
         """False: the FC's yaw is used nowhere ([heading] use_fc_yaw, or ``exclude_fc_yaw``)."""

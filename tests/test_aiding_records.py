@@ -61,7 +61,7 @@ def test_each_reading_gets_fused_or_a_code_and_its_innovation_against_the_refere
     fc = rec["fc"]
     assert (fc.fused, fc.candidate, fc.why_not) == (False, True, "gated_out")
     assert fc.innovation_rad == pytest.approx(D2R(20.0), rel=1e-12) and fc.test_ratio > 1.0
-    assert fc.test_ratio == pytest.approx(out.per_source["fc"]["nis"] / p.gate_chi2, rel=1e-12)
+    assert fc.test_ratio == pytest.approx(fc.innovation_rad ** 2 / fc.innovation_variance_rad2 / p.gate_chi2, rel=1e-12)
     assert math.isnan(fc.time_last_fused_s)
     c = rec["heading_filter"]
     assert (c.candidate, c.fused, c.why_not) == (False, False, "inconsistent")

@@ -32,14 +32,14 @@ def test_correlated_group_uses_only_the_best_member():
     rs = [R("synthetic_ahrs", 10.0, 2.0, 0.0, group="mag"), R("heading_filter", 11.0, 1.5, 0.0, group="mag")]
     st, out = arbitrate(ArbitrationState(), rs, 0.0)
     assert out.source == "heading_filter" and abs(out.sigma_rad - D(1.5)) < 1e-12
-    assert "correlated" in out.per_source["synthetic_ahrs"]["reason"]
+    assert out.records["synthetic_ahrs"].why_not == "correlated" and "correlated" in out.records["synthetic_ahrs"].detail
 
 
 def test_outlier_is_gated_out():
     st, _ = arbitrate(ArbitrationState(), [R("azimuth", 50.0, 1.0, 0.0), R("fc", 50.5, 2.0, 0.0)], 0.0)
     st, out = arbitrate(st, [R("azimuth", 50.2, 1.0, 0.1), R("fc", 80.0, 2.0, 0.1)], 0.1, heading_rate_rad_s=0.0)
-    assert out.source == "azimuth" and not out.per_source["fc"]["used"]
-    assert out.per_source["fc"]["nis"] > 9.0
+    assert out.source == "azimuth" and not out.records["fc"].fused
+    assert out.records["fc"].why_not == "gated_out" and out.records["fc"].test_ratio > 1.0
     assert out.events[0].kind == "source_change" and out.events[0].to_sources == ("azimuth",)
 
 
@@ -81,7 +81,7 @@ def test_lost_then_invalid_and_validation():
     st, _ = arbitrate(ArbitrationState(), [R("fc", 10.0, 1.0, 0.0)], 0.0)
     st, out = arbitrate(st, [R("fc", 10.0, 1.0, 0.0)], 2.0)                   # stale
     assert not out.valid and out.heading_rad is None and out.events[0].kind == "lost"
-    assert "stale" in out.per_source["fc"]["reason"]
+    assert out.records["fc"].why_not == "stale" and "stale" in out.records["fc"].detail
     assert ArbitrationState.from_dict(st.to_dict()) == st
     with pytest.raises(ValueError, match="gate_chi2"):
         ArbitrationParams(gate_chi2=0.0)

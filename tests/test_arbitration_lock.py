@@ -31,8 +31,8 @@ def test_given_b_lost_its_reference_and_c_right_then_output_follows_c():
     st, out = arbitrate(ArbitrationState(), [B(3.3, 14.0, 0.0, valid=False, why="lost its reference (no FC, no air data)"),
                                              C(97.4, 5.5, 0.0)], 0.0)
     assert out.source == "heading_filter" and err_deg(out, 97.4) < 1e-9
-    assert out.per_source["synthetic_ahrs"]["reason"] == "not valid: lost its reference (no FC, no air data)"
-    assert not out.per_source["synthetic_ahrs"]["candidate"]
+    assert out.records["synthetic_ahrs"].detail == "not valid: lost its reference (no FC, no air data)"
+    assert not out.records["synthetic_ahrs"].candidate
 
 
 def test_given_output_on_b_when_b_turns_inconsistent_then_c_takes_over_with_a_reported_jump():
@@ -42,7 +42,7 @@ def test_given_output_on_b_when_b_turns_inconsistent_then_c_takes_over_with_a_re
     st, out = arbitrate(st, [B(100.0, 1.0, 0.1, consistent=False, why="its magnetometer updates gated out (40 of 45 in 5 s)"),
                              C(104.0, 5.0, 0.1)], 0.1, p, heading_rate_rad_s=0.0)
     assert out.source == "heading_filter"
-    assert out.per_source["synthetic_ahrs"]["reason"].startswith("inconsistent: its magnetometer updates gated out")
+    assert out.records["synthetic_ahrs"].detail.startswith("inconsistent: its magnetometer updates gated out")
     assert [e.kind for e in out.events] == ["source_change"] and abs(math.degrees(out.events[0].jump_rad) - 4.0) < 1e-6
 
 
@@ -58,7 +58,8 @@ def test_given_output_locked_on_a_drifting_b_when_a_consistent_majority_disagree
         t = 0.1 * k
         st, out = arbitrate(st, [B(100.0 + t, 1.0, t), C(100.0, 5.0, t)], t, p, heading_rate_rad_s=0.0)
     assert out.source == "synthetic_ahrs" and err_deg(out, 100.0) > 55.0         # locked onto the drift
-    assert out.per_source["heading_filter"]["reason"].startswith("gated out")
+    assert out.records["heading_filter"].detail.startswith("gated out")
+    assert out.records["heading_filter"].why_not == "gated_out" and out.records["heading_filter"].test_ratio > 1.0
     kinds = []
     for k in range(1, 401):
         t = 60.0 + 0.1 * k

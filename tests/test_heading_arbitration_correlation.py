@@ -29,7 +29,7 @@ def test_fc_and_b_sharing_the_fc_reference_are_not_fused_as_independent():
     _, out = arbitrate(ArbitrationState(), rs, 0.0)
     assert out.source == "synthetic_ahrs" and abs(out.sigma_rad - D(1.2)) < 1e-12
     assert abs(math.degrees(out.heading_rad) - 100.5) < 1e-9
-    assert not out.per_source["fc"]["used"] and "correlated" in out.per_source["fc"]["reason"]
+    assert not out.records["fc"].fused and out.records["fc"].why_not == "correlated"
 
 
 def test_several_groups_select_greedily_and_independent_sources_still_fuse():

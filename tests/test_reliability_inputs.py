@@ -312,7 +312,7 @@ def test_daemon_publishes_input_counters_on_health_and_logs_once(tmp_path, caplo
         def publish(self, topic, payload):
             self.out.append((topic, payload))
 
-        def publish_solution(self, sol, now, per_source=None):  # ZenohBus.publish_solution's signature
+        def publish_solution(self, sol, now, aiding=None):  # ZenohBus.publish_solution's signature
             pass
 
     keep = {sec: {k: v for k, v in CFG[sec].items() if v is not None} for sec in ("site", "imu", "launch")}
