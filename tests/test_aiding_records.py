@@ -15,7 +15,7 @@ import pytest
 
 from mavlink_io.samples import FcAttitude, ImuSample, PressureSample
 from service import schema
-from service.aiding import CSV_FIELDS, WHY_NOT, AidingRecord, NotOffered, csv_columns, csv_row, payload
+from service.aiding import CSV_FIELDS, SOURCES, WHY_NOT, AidingRecord, NotOffered, csv_columns, csv_row, payload
 from service.config import validate
 from service.heading_arbitration import ArbitrationParams, ArbitrationState, SourceReading, arbitrate
 from service.pipeline import Pipeline, site_field
@@ -81,6 +81,12 @@ def test_time_last_fused_survives_a_step_without_candidates_and_a_save_restore()
     assert (c.fused, c.why_not, c.time_last_fused_s) == (False, "inconsistent", 1.0)
     assert math.isnan(c.innovation_rad)  # no candidate: no reference to compare with
     assert ArbitrationState.from_dict(st.to_dict()) == st and dict(st.last_fused_s) == {"heading_filter": 1.0}
+
+
+def test_the_schema_lists_the_same_codes_and_sources_as_the_code():
+    d = schema.load_schema()["$defs"]
+    assert set(d["aiding_record"]["properties"]["why_not"]["enum"]) == set(WHY_NOT)
+    assert set(d["heading"]["properties"]["sources"]["propertyNames"]["enum"]) == set(SOURCES)
 
 
 def test_a_record_rejects_an_unknown_code_and_a_fused_flag_that_contradicts_it():
