@@ -14,7 +14,9 @@ Arbitration-level fields (the gate that decides ``fused``; docstring steps 2-3 t
 Source-level fields (``source_*``): the source's OWN last measurement against its own filter,
 where it computes one (method C: the magnetometer heading against its heading filter,
 estimators/polar_heading HeadingDiag; its gate also rejects at a ratio > 1). NaN where the source
-computes none (A, B, the FC, D): nothing is made up.
+computes none (A, B, the FC, D): nothing is made up. C's two differ in one way, as its filter
+does: its gate asks whether ONE measurement is plausible, nu^2 / (P + R_single) / gate_chi2, while
+the variance it reports is the fusion's S = P + R, R inflated for the correlated error.
 
 ``why_not`` is a stable code (below, ``WHY_NOT``; "" when fused); ``detail`` is the one line a
 person reads (numbers included). Pure: no I/O, no clock. Radians inside; ``payload`` and
