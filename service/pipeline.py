@@ -222,7 +222,8 @@ class Pipeline:
         self.polar_hdg_params = PolarHeadingParams(min_horizontal_field_gauss=heading["min_horizontal_field_gauss"],
                                                    vertical_rate_sigma_rad_s=vr_sigma,
                                                    uncalibrated_hard_iron_gauss=heading["uncalibrated_hard_iron_gauss"],
-                                                   uncalibrated_soft_iron=heading["uncalibrated_soft_iron"])
+                                                   uncalibrated_soft_iron=heading["uncalibrated_soft_iron"],
+                                                   mag_heading_floor_rad=math.radians(heading["mag_heading_floor_deg"]))
         self.polar_hdg = polar_heading_init(params=self.polar_hdg_params)
         self._hdg_available: bool | None = None
 

@@ -118,13 +118,18 @@ def test_soft_iron_term_is_the_heading_error_of_a_misaligned_magnetometer():
     assert abs(float(np.mean(d * d)) / uncalibrated_heading_var(m_true, H, None, p) - 1.0) < 0.06
 
 
-def test_pipeline_takes_the_soft_iron_from_the_config():
-    """[heading] uncalibrated_soft_iron reaches method C's params (0: a magnetometer compensated and
-    aligned, as bench/polar_accuracy.py's flights have it); the default is the documented 1 deg."""
+def test_pipeline_takes_the_soft_iron_and_the_floor_from_the_config():
+    """[heading] uncalibrated_soft_iron and mag_heading_floor_deg reach method C's params (soft iron
+    0: a magnetometer compensated and aligned, as bench/polar_accuracy.py's flights have it); the
+    defaults are the documented 1 deg of misalignment and PolarHeadingParams' 1 deg floor."""
     from service.config import SPEC, validate
     from service.pipeline import Pipeline
     site = {"lat_deg": 47.4, "lon_deg": 8.5, "decimal_year": 2026.9}
-    assert Pipeline(validate({"site": site, "heading": {"uncalibrated_soft_iron": 0.0}})
-                    ).polar_hdg_params.uncalibrated_soft_iron == 0.0
+    params = Pipeline(validate({"site": site, "heading": {"uncalibrated_soft_iron": 0.0,
+                                                          "mag_heading_floor_deg": 0.5}})).polar_hdg_params
+    assert params.uncalibrated_soft_iron == 0.0
+    assert params.mag_heading_floor_rad == pytest.approx(math.radians(0.5), rel=1e-12)
+    assert PolarHeadingParams().mag_heading_floor_rad == pytest.approx(
+        math.radians(SPEC["heading"]["mag_heading_floor_deg"].default), rel=1e-12)
     assert validate({"site": site})["heading"]["uncalibrated_soft_iron"] == 0.0175
     assert PolarHeadingParams().uncalibrated_soft_iron == SPEC["heading"]["uncalibrated_soft_iron"].default
