@@ -332,6 +332,14 @@ class OutputScheduler:
         dues = [d if d is not None else -math.inf for n, d in self._next_due_s.items() if self.rates_hz[n] > 0]
         return min(dues) if dues else math.inf
 
+    def next_slot_after(self, now_s: float) -> float | None:
+        """The earliest slot of an enabled message later than ``now_s`` (None: none). A slot
+        already past belongs to a message the last solution did not produce (ATTITUDE_QUATERNION
+        without a valid heading, ODOMETRY not allowed): it passes when a solution that has it comes,
+        and is no reason to wake the daemon's loop (Daemon.loop_wait_s)."""
+        later = [d for n, d in self._next_due_s.items() if self.rates_hz[n] > 0 and d is not None and d > now_s]
+        return min(later) if later else None
+
     def _heading_jumped(self, sol: NavSolution) -> bool:
         if self._last_heading is None:
             return False

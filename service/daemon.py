@@ -67,6 +67,11 @@ SD_STATUS_PERIOD_S = 5.0
 WAITING_LOG_S = 10.0
 """Period of the "waiting for heartbeat" message until the FC's first HEARTBEAT."""
 IMU_SILENCE_SHOWN_S = 1.0
+LOOP_MAX_WAIT_S = 0.1
+"""The loop blocks on the FC link until input arrives or a timer is due (the link's own: heartbeat,
+link timeout, rate and parameter retries; the next MAVLink output; the command protocol's next try),
+and at most this long: the periodic work (watchdog, status, health, saves: periods >= 0.5 s) and a
+stop or reload signal wait at most this when no input comes. It used to wake every 5 ms."""
 _SHOWN_RATES = ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU", "SCALED_PRESSURE", "ATTITUDE")
 _EVENT_SEVERITY = {"rates_limited": "warning", "link_lost": "warning", "fc_reboot": "warning", "time_gap": "warning",
                    "transport_error": "error", "not_still": "info", "strapdown": "warning",
@@ -397,7 +402,7 @@ class Daemon:
         t_end = None if duration_s is None else self.clock() + duration_s
         try:
             while not self.stop_requested:
-                self.step(0.005)
+                self.step(self.loop_wait_s())
                 if t_end is not None and self.clock() >= t_end:
                     break
         finally:
@@ -419,6 +424,24 @@ class Daemon:
             for o in self.commands.poll(now):
                 self._command_outcome(o, now)
         self._periodic(now)
+
+    def loop_wait_s(self) -> float:
+        """How long the next step may block on the link (it returns at once on input, and the link
+        shortens the wait to its own next timer): until the next MAVLink output slot, the command
+        protocol's next try, else LOOP_MAX_WAIT_S. A time already past was declined by the step
+        that just ran (an output: no fresh solution, FC time not past the last sent, a message this
+        solution does not have; a command: no target yet) and waits for input: never a busy loop."""
+        now = self.clock()
+        due = now + LOOP_MAX_WAIT_S
+        if self.last_solution is not None:
+            out_due = self.scheduler.next_slot_after(now)
+            if out_due is not None and out_due < due:
+                due = out_due
+        if self.commands is not None:
+            cmd_due = self.commands.next_due_s()
+            if cmd_due is not None and now < cmd_due < due:
+                due = cmd_due
+        return max(0.0, due - now)
 
     def _due(self, name: str, now: float, period_s: float) -> bool:
         if now < self._next[name]:
