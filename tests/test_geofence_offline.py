@@ -19,7 +19,9 @@ import geofence as bench  # noqa: E402
 
 
 def test_outbound_latches_before_the_true_crossing_on_the_daemons_heading():
-    r = bench.run_pipeline("outbound", 1, flight_s=140.0)
+    # without a divert the true track crosses the fence 103.4 s after the launch (108.4 s of the
+    # 115 s simulated): the flight ends soon after, what comes later cannot change the verdict
+    r = bench.run_pipeline("outbound", 1, flight_s=110.0)
     assert r["true_cross_time_s"] is not None, "the scenario must cross the fence without a divert"
     assert r["latch_time_s"] is not None and r["latch_time_s"] > r["gnss_lost_time_s"]  # on dead reckoning
     assert r["first_command"] == "rtl"
