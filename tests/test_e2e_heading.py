@@ -37,8 +37,12 @@ at 30 deg of bank (~9 s, what method A needs to solve), then level flight."""
 HANG_S = 900.0
 """Only a hang detector: the flight takes what the machine gives it."""
 DRAIN_QUIET_S = 10.0
-"""After the simulator's end the daemon works off what it has queued; it is done when no ATTITUDE
-came for this long (a hang detector: nothing is counted per wall-clock second)."""
+"""After the simulator's end the daemon works off what it has queued: it is done when its ATTITUDE
+reaches the simulator's last FC time (DRAIN_END_S), or, when it lost the tail of the input, when
+no ATTITUDE came for this long (a hang detector: nothing is counted per wall-clock second)."""
+DRAIN_END_S = 0.5
+"""The daemon has worked off its queue when its newest ATTITUDE is this close to the FC time of
+the simulator's last truth row (ATTITUDE goes out at 50 Hz of the daemon's clock)."""
 
 MAX_HEADING_RMS_DEG = 2.1
 MAX_HEADING_ERR_DEG = 4.2
@@ -63,11 +67,15 @@ def flight(tmp_path_factory):
     path = write_scenario_toml(sc, wd / "scenario.toml")
     with Sitl(scenario=str(path), speed=SPEED, seed=5, tap=True, workdir=wd) as s:
         finished = s.wait_for(lambda: s.sim.poll() is not None, HANG_S)
+        t_end_fc = s.truth()["time_boot_s"][-1] - DRAIN_END_S if finished else math.inf
         n, t_quiet = -1, time.monotonic()
         while time.monotonic() - t_quiet < DRAIN_QUIET_S and s.daemon.poll() is None:
-            if len(s.listener.attitude) != n:
-                n, t_quiet = len(s.listener.attitude), time.monotonic()
-            time.sleep(0.5)
+            att = s.listener.attitude
+            if att and att[-1][0] >= t_end_fc:
+                break
+            if len(att) != n:
+                n, t_quiet = len(att), time.monotonic()
+            time.sleep(0.1)
     assert finished and s.sim.returncode == 0, f"simulator hung or failed; see {s.workdir}"
     return s
 
