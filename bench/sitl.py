@@ -333,9 +333,10 @@ class Sitl:
                                        preexec_fn=_set_nice(self.daemon_nice, self.daemon_group_nice),
                                        start_new_session=self.daemon_own_session)
         # the simulator pushes (udpout) from its first second: start it only once the daemon
-        # listens, or a slow daemon start (imports on a loaded machine) misses the launch
+        # listens, or a slow daemon start (imports on a loaded machine) misses the launch; the
+        # deadline only detects a hang (importing service.daemon took 34 s at load 13, 2026-12-02)
         if self._daemon_out:
-            t_end = time.monotonic() + 60.0
+            t_end = time.monotonic() + 300.0
             while time.monotonic() < t_end and "msg=started" not in self.log("daemon") \
                     and self.daemon.poll() is None:
                 time.sleep(0.05)
