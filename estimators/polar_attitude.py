@@ -64,6 +64,9 @@ Holes (beyond the seed): samples the link lost inside an interval (longer than 1
 one, up to ``max_dt_s``) are bridged on the rate taken linear between the samples around the hole,
 with the variance of what that line may miss added to the attitude (``_bridge_variance_rad2``);
 a longer gap is not integrated and widens the attitude covariance (``polar_attitude_unseen``).
+A sample's rate is taken as the mean over at most ``sample_span_max_s`` of its interval: a slow
+stream (RAW_IMU at 2.7 Hz over a telemetry radio, one instant of the FC's gyro every 0.37 s) is a
+stream of holes, bridged the same way, so its sigma says what the samples cannot see.
 
 Re-levelling at rest (beyond the seed): a tilt error beyond the gate (after a tumble) would be
 rejected for ever; after ``relevel_rest_s`` of gated-out updates at rest roll/pitch are reset
@@ -193,6 +196,15 @@ class PolarAttitudeParams:
     """Rest test: | |f - b_a| - g | of an update interval is below this (m/s^2). It also bounds
     the horizontal acceleration such a rest can hide, a_max = sqrt(2 g tol), and so the
     re-levelled tilt sigma (``_relevel``)."""
+    sample_span_max_s: float = 0.05
+    """Longest part of its interval one sample's rate is taken to be the mean over (s); the rest of a
+    longer interval is a hole, bridged (``gap_rate_walk_rad_s2_rt_hz``). A streamed IMU sample is the
+    FC's low-passed gyro at one instant (ArduPilot INS_GYRO_FILTER 20 Hz, PX4 IMU_GYRO_CUTOFF 40 Hz
+    by default: a memory of ~10 ms), the daemon's filter-rate samples are means over their own
+    1/filter_rate_hz (20 ms; the Pipeline raises this to its filter period if longer). At 2.7 Hz
+    (0.37 s intervals) a sample taken as the mean of its whole interval integrated the rate of one
+    instant over 0.37 s with no variance for the rest: the tilt sigma stayed ~1 deg while the error
+    grew, the specific force was gated out and roll drifted to 57 deg RMS on a real telemetry log."""
     gap_rate_walk_rad_s2_rt_hz: float = math.radians(10.0)
     """A hole in the samples (an interval longer than 1.5 x the previous one, up to ``max_dt_s``: IMU
     samples the link lost) is bridged with the rate taken linear between the samples around it;
@@ -213,7 +225,7 @@ class PolarAttitudeParams:
                      "init_tilt_sigma_rad", "init_yaw_sigma_rad", "max_platform_yaw_sigma_rad",
                      "gate_chi2", "reentry_settle_chi2", "max_dt_s", "unseen_rate_sigma_rad_s", "unseen_max_sigma_rad",
                      "relevel_rest_s", "relevel_max_rate_rad_s", "relevel_norm_tol_m_s2",
-                     "gap_rate_walk_rad_s2_rt_hz"):
+                     "gap_rate_walk_rad_s2_rt_hz", "sample_span_max_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
@@ -262,7 +274,8 @@ class PolarAttitudeState:
     """Time those updates span (s)."""
     n_relevels: int = 0
     sample_dt_s: float | None = None
-    """Interval of the last sample that was not a hole (s): what a regular interval of this stream is."""
+    """Span of the last sample that was not a hole (s), at most ``sample_span_max_s``: the part of an
+    interval a sample's rate is the mean over."""
     """Sigma of the gyro-bias prior given at init (None: params.gyro_bias_init_sigma_rad_s)."""
 
     def to_dict(self) -> dict:
@@ -447,7 +460,10 @@ def polar_attitude_step(state: PolarAttitudeState, time_s: float, gyro_body_rad_
         st = polar_attitude_unseen(state, dt, params)
         return replace(st, time_s=time_s, gyro_prev_rad_s=w, sample_dt_s=None), PolarAttitudeDiag(
             reason=f"gap of {dt:.3f} s not integrated; attitude sigma widened")
-    hole = state.sample_dt_s is not None and dt > 1.5 * state.sample_dt_s
+    # the span the sample's rate is the mean over: the stream's regular interval, at most
+    # sample_span_max_s (a slow stream's sample is one instant of the FC's gyro, not a mean)
+    span_s = min(dt if state.sample_dt_s is None else state.sample_dt_s, params.sample_span_max_s)
+    hole = dt > 1.5 * span_s
 
     xh = state.x_hat
     b_g = xh[0:3]
@@ -460,13 +476,13 @@ def polar_attitude_step(state: PolarAttitudeState, time_s: float, gyro_body_rad_
     a_prev = (state.gyro_prev_rad_s - b_g) * dt
     a_now = (w - b_g) * dt
     if hole:
-        # samples lost inside the interval: this sample's mean rate covers only its own last
-        # sample_dt_s; over the hole before it, h = dt - sample_dt_s, the rate is taken linear
-        # between the two samples' means (centred sample_dt_s / 2 before their stamps, so the mean
+        # samples lost inside the interval (or never sent: a slow stream): this sample's mean rate
+        # covers only its own last span_s; over the hole before it, h = dt - span_s, the rate is taken
+        # linear between the two samples' means (centred span_s / 2 before their stamps, so the mean
         # of that line over the hole is (w_prev + w) / 2: exact for a rate ramp), and the
         # covariance says what that line may miss (``_bridge_variance_rad2``)
-        h_s = dt - state.sample_dt_s
-        dtheta = (0.5 * ((state.gyro_prev_rad_s - b_g) + (w - b_g)) * h_s + (w - b_g) * state.sample_dt_s
+        h_s = dt - span_s
+        dtheta = (0.5 * ((state.gyro_prev_rad_s - b_g) + (w - b_g)) * h_s + (w - b_g) * span_s
                   + np.cross(a_prev, a_now) / 12.0)
     else:
         dtheta = a_now + np.cross(a_prev, a_now) / 12.0
@@ -481,11 +497,20 @@ def polar_attitude_step(state: PolarAttitudeState, time_s: float, gyro_body_rad_
     if hole:
         P_att = state.P.copy()
         P_att[I_ATT, I_ATT] += np.eye(3) * _bridge_variance_rad2(state.gyro_prev_rad_s, w, h_s, params)
+    if hole:
+        # the sample's specific force, like its rate, is the mean over its last span_s only: gravity
+        # is predicted over that span (at 50 deg/s the body turns 18 deg in a 0.37 s interval: the
+        # mean over the whole interval put ~9 deg of it into the residual)
+        dth_span = (w - b_g) * span_s
+        q_s = quat_mul(quat_from_rotvec(W_hat * span_s), quat_mul(q, quat_from_rotvec(-dth_span)))
+        down_mean = _down_mean_over_sample(q_s, q, W_hat, span_s, dth_span)
+    else:
+        down_mean = _down_mean_over_sample(state.q_P_from_body, q, W_hat, dt, dtheta)
     st = replace(state, time_s=time_s, q_P_from_body=q, x_hat=x_new, gyro_prev_rad_s=w, P=P_att,
-                 sample_dt_s=state.sample_dt_s if hole else dt,
+                 sample_dt_s=span_s if hole else min(dt, params.sample_span_max_s),
                  acc_n=state.acc_n + 1, acc_dt_s=state.acc_dt_s + dt,
                  acc_f_sum_m_s2=state.acc_f_sum_m_s2 + f,
-                 acc_down_sum=state.acc_down_sum + _down_mean_over_sample(state.q_P_from_body, q, W_hat, dt, dtheta),
+                 acc_down_sum=state.acc_down_sum + down_mean,
                  acc_q_b0_from_b=q_int)
     if st.acc_dt_s + 1e-9 < params.update_period_s:
         return st, PolarAttitudeDiag()
