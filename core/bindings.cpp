@@ -108,8 +108,11 @@ LevellingAcc unpack(const double* p) {
 
 }  // namespace
 
+void bind_synthetic_ahrs(py::module_& m);  // core/bindings_ahrs.cpp: method B
+
 PYBIND11_MODULE(_core, m) {
     m.doc() = "azimuthd's compiled estimator core (estimators/core.py is its Python face)";
+    bind_synthetic_ahrs(m);
 
     m.def("strapdown_step",
           [](const ArrayD& q, bool has_prev, double time_prev_s, const ArrayD& gyro_prev, const ArrayD& gyro,

@@ -4,8 +4,9 @@ The Python implementations in estimators/ stay the reference: every function her
 signature and returns the same values as the reference it names (tests/test_core_*.py run both
 on the same recorded flights and require equality). Two call forms:
 
-- drop-in per-sample steps (``strapdown_step``, ``levelling_step``) for callers that still step
-  one sample at a time;
+- drop-in per-sample steps (``strapdown_step``, ``levelling_step``, method B's
+  ``synthetic_ahrs_step`` / ``_output`` / ``_unseen``) for callers that still step one sample or
+  event at a time (the held forms keep the state in the core between calls);
 - batch calls (``strapdown_propagate``, ``levelling_accumulate``): typed N x 3 numpy arrays in,
   one C++ loop, arrays out; no per-sample Python.
 
@@ -14,6 +15,7 @@ logs it and runs the Python reference: service/core_backend.py). Pure: no I/O, n
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import NamedTuple
 
@@ -21,14 +23,26 @@ import numpy as np
 
 from estimators import levelling as _lev
 from estimators import strapdown as _sd
+from estimators import synthetic_ahrs as _sa
+from estimators.ahrs_kf2 import Kf2State
+from estimators.air_data import AirData, AirDataState
 from estimators.levelling import LevellingState
+from estimators.mag_error_kf import Kf1State
+from estimators.records import fast_replace
+from estimators.reference_health import ReferenceHealthState
 from estimators.strapdown import StrapdownDiag, StrapdownParams, StrapdownState
+from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent, HeadingEvent, ImuEvent,
+                                       SyntheticAhrsOutput, SyntheticAhrsParams, SyntheticAhrsState)
 
 try:
     from estimators import _core
     AVAILABLE, IMPORT_ERROR = True, ""
 except ImportError as exc:  # a build that failed or a foreign platform: the reference runs
     _core, AVAILABLE, IMPORT_ERROR = None, False, f"{type(exc).__name__}: {exc}"
+
+# method B's held state (core/synthetic_ahrs.hpp): an extension built before it lacks it (the
+# service then runs B's reference: service/core_backend.py)
+B_AVAILABLE = AVAILABLE and hasattr(_core, "SyntheticAhrs")
 
 # core/strapdown.hpp StrapdownCode
 INTEGRATED, FIRST_SAMPLE, NON_FINITE, TIME_NOT_INCREASING, GAP = 0, 1, 2, 3, 4
@@ -208,3 +222,170 @@ def levelling_step(state: LevellingState, gyro_rad_s: np.ndarray, accel_m_s2: np
     t = np.array([math.nan if time_s is None else time_s], float)
     packed, used = _core.levelling_accumulate(levelling_pack(state), g, a, t, batch_s)
     return levelling_unpack(packed) if used[0] else state
+
+
+# --- method B, the synthetic AHRS (estimators/synthetic_ahrs.py), variant b2 --------------------
+# The state is held in the core between events (HeldSyntheticAhrs): one C++ call per event, the
+# reference's SyntheticAhrsState built only when asked (to_state: a copy, a test). Variant b1 is not
+# ported: the reference runs it (a held state is handed back as the reference's record).
+
+_B_OUT_FIELDS = ("time_s", "valid", "roll_rad", "pitch_rad", "heading_rad", "roll_sigma_rad", "pitch_sigma_rad",
+                 "heading_sigma_rad", "reference_trusted", "reference_reason", "air_correction_active",
+                 "air_off_reason", "kf1_learning", "gyro_bias_rad_s", "mag_fused", "mag_rejected", "mag_gated",
+                 "air_fused", "air_rejected", "ref_fused", "kf1_rejected")
+_STALE = object()
+
+
+def _fields(obj) -> dict:
+    return {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+
+
+def _kf1_numbers(k: Kf1State) -> dict:
+    return {"x": k.x, "P": k.P, "field_norm_gauss": k.field_norm_gauss, "time_s": k.time_s,
+            "n_updates": k.n_updates, "n_rejected_chi2": k.n_rejected_chi2, "n_rejected_rate": k.n_rejected_rate}
+
+
+def _state_dict(s: SyntheticAhrsState) -> dict:
+    d = _fields(s)
+    d["air"] = _fields(s.air)
+    d["air_last"] = None if s.air_last is None else _fields(s.air_last)
+    d["health"] = _fields(s.health)
+    d["kf2"] = None if s.kf2 is None else _fields(s.kf2)
+    d["kf1_learn"] = _kf1_numbers(s.kf1_learn)
+    d["kf1_applied"] = None if s.kf1_applied is None else _kf1_numbers(s.kf1_applied)
+    return d
+
+
+class HeldSyntheticAhrs:
+    """A SyntheticAhrsState (variant b2) held in the core, stepped in place by
+    ``synthetic_ahrs_step``; it reads like the reference's state where the service reads it
+    (``air_last``, ``kf1_learn``) and ``to_state()`` gives the reference's record. Not a pure value:
+    the owner replaces it, never shares it. An event the reference refuses (ValueError) leaves it
+    as it was, as the reference's immutable state is left."""
+
+    __slots__ = ("_c", "_params", "_cp", "_kf1_learn", "_kf1_applied", "_air")
+
+    def __init__(self, state: SyntheticAhrsState, params: SyntheticAhrsParams):
+        if state.b1 is not None:
+            raise ValueError("variant b1 is not in the core: the reference runs it")
+        self._c = _core.SyntheticAhrs(_state_dict(state))
+        self._kf1_learn, self._kf1_applied = state.kf1_learn, state.kf1_applied  # flight_count, meta
+        self._params, self._cp = params, _core.SyntheticAhrsParams(params)
+        self._air = _STALE
+
+    def _p(self, params: SyntheticAhrsParams):
+        """The converted params (converted again when the owner replaced them, e.g. exclude_fc_yaw)."""
+        if params is not self._params:
+            self._params, self._cp = params, _core.SyntheticAhrsParams(params)
+        return self._cp
+
+    @property
+    def air_last(self) -> AirData | None:
+        if self._air is _STALE:
+            d = self._c.air_last()
+            self._air = None if d is None else AirData(**d)
+        return self._air
+
+    @property
+    def kf1_learn(self) -> Kf1State:
+        return fast_replace(self._kf1_learn, **self._c.kf1_learn())
+
+    def to_state(self) -> SyntheticAhrsState:
+        d = self._c.get_state(self._cp)
+        kf2 = d["kf2"]
+        d.update(air=AirDataState(**d["air"]), air_last=self.air_last, health=ReferenceHealthState(**d["health"]),
+                 kf2=None if kf2 is None else Kf2State(**kf2), kf1_learn=self.kf1_learn,
+                 kf1_applied=self._kf1_applied, b1=None)
+        return SyntheticAhrsState(**d)
+
+    @classmethod
+    def _restore(cls, state: SyntheticAhrsState, params: SyntheticAhrsParams) -> "HeldSyntheticAhrs":
+        return cls(state, params)
+
+    def __reduce__(self):  # copy.deepcopy / pickle: through the reference's record
+        return HeldSyntheticAhrs._restore, (self.to_state(), self._params)
+
+
+def _b_output(t: tuple, state: HeldSyntheticAhrs, params: SyntheticAhrsParams) -> SyntheticAhrsOutput:
+    out = object.__new__(SyntheticAhrsOutput)  # a frozen record without __post_init__ (records.fast_replace)
+    d = out.__dict__
+    d.update(zip(_B_OUT_FIELDS, t))
+    d["variant"] = params.variant
+    d["kf1_applied_flights"] = None if state._kf1_applied is None else state._kf1_applied.flight_count
+    return out
+
+
+def _v3(x) -> tuple[bool, float, float, float]:
+    """(usable, x, y, z) of a 3-vector event field; a missing or malformed one is not usable."""
+    if x is None:
+        return False, _NAN, _NAN, _NAN
+    a = np.asarray(x, dtype=float)
+    if a.shape != (3,):
+        return False, _NAN, _NAN, _NAN
+    x0, x1, x2 = a.tolist()
+    return True, x0, x1, x2
+
+
+_NAN = math.nan
+
+
+def synthetic_ahrs_step(state: SyntheticAhrsState | HeldSyntheticAhrs, event, params: SyntheticAhrsParams,
+                        output: bool = True) -> tuple[SyntheticAhrsState | HeldSyntheticAhrs,
+                                                      SyntheticAhrsOutput | None]:
+    """estimators.synthetic_ahrs.synthetic_ahrs_step with the state held in the core (a
+    SyntheticAhrsState is taken in on the first call); the same results. Variant b1 runs the
+    reference. A malformed magnetometer field (not 3 values) counts as no sample (the reference
+    also skips it, except before KF2 starts, where it raises)."""
+    if params.variant != "b2":
+        if isinstance(state, HeldSyntheticAhrs):
+            state = state.to_state()
+        return _sa.synthetic_ahrs_step(state, event, params, output)
+    t = float(event.time_s)
+    if not math.isfinite(t):
+        raise ValueError(f"event time_s must be finite, got {event.time_s!r}")
+    if not isinstance(state, HeldSyntheticAhrs):
+        state = HeldSyntheticAhrs(state, params)
+    cp = state._p(params)
+    c = state._c
+    if isinstance(event, ImuEvent):
+        ok, gx, gy, gz = _v3(event.gyro_sensor_rad_s)
+        if not ok:
+            gx = _NAN
+        has_mag, mx, my, mz = _v3(event.mag_sensor_gauss)
+        out = c.imu(cp, gx, gy, gz, has_mag, mx, my, mz, t, output)
+    elif isinstance(event, AirEvent):
+        diff, temp = event.press_diff_pa, event.temperature_k
+        state._air = _STALE
+        out = c.air(cp, float(event.press_abs_pa), diff is not None, _NAN if diff is None else float(diff),
+                    temp is not None, _NAN if temp is None else float(temp), t, output)
+    elif isinstance(event, FcAttitudeEvent):
+        _, r, p, y = _v3(event.euler_rad)
+        out = c.fc_attitude(cp, r, p, y, t, output)
+    elif isinstance(event, FcStatusEvent):
+        s, a, h = event.system_status, event.attitude_ok, event.horiz_pos_ok
+        out = c.fc_status(cp, s is not None, 0 if s is None else int(s), -1 if a is None else int(bool(a)),
+                          -1 if h is None else int(bool(h)), t, output)
+    elif isinstance(event, HeadingEvent):  # B1's heading source: nothing in b2
+        out = c.output(cp) if output else None
+    else:
+        raise ValueError(f"unknown event type {type(event).__name__}")
+    return state, (None if out is None else _b_output(out, state, params))
+
+
+def synthetic_ahrs_output(state: SyntheticAhrsState | HeldSyntheticAhrs,
+                          params: SyntheticAhrsParams) -> SyntheticAhrsOutput | None:
+    """estimators.synthetic_ahrs.synthetic_ahrs_output for either state."""
+    if not isinstance(state, HeldSyntheticAhrs):
+        return _sa.synthetic_ahrs_output(state, params)
+    out = state._c.output(state._p(params))
+    return None if out is None else _b_output(out, state, params)
+
+
+def synthetic_ahrs_unseen(state: SyntheticAhrsState | HeldSyntheticAhrs, unseen_s: float,
+                          params: SyntheticAhrsParams) -> SyntheticAhrsState | HeldSyntheticAhrs:
+    """estimators.synthetic_ahrs.synthetic_ahrs_unseen for either state."""
+    if not isinstance(state, HeldSyntheticAhrs):
+        return _sa.synthetic_ahrs_unseen(state, unseen_s, params)
+    state._c.unseen(state._p(params), float(unseen_s))
+    state._air = _STALE
+    return state

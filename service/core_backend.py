@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from estimators import core
+from estimators import synthetic_ahrs as _b_reference
 from estimators.strapdown import strapdown_step as _strapdown_step_reference
 
 log = logging.getLogger("azimuthd.core")
@@ -31,6 +32,10 @@ class Backend:
     """One line: why this one (the request, or why the core is not there)."""
     strapdown_step: Callable
     """The Pipeline's one gyro propagation (estimators.strapdown.strapdown_step's signature)."""
+    synthetic_ahrs_step: Callable = _b_reference.synthetic_ahrs_step
+    """Method B's step (estimators.synthetic_ahrs.synthetic_ahrs_step's signature)."""
+    synthetic_ahrs_unseen: Callable = _b_reference.synthetic_ahrs_unseen
+    """Method B after an FC clock restart (estimators.synthetic_ahrs.synthetic_ahrs_unseen's signature)."""
 
 
 def _say(level: int, text: str) -> None:
@@ -54,4 +59,8 @@ def select(environ=os.environ) -> Backend:
         why = f"compiled core not available ({core.IMPORT_ERROR}): the Python reference runs the estimators"
         _say(logging.WARNING, why)
         return Backend("python", why, _strapdown_step_reference)
-    return Backend("core", "compiled core (estimators._core)", core.strapdown_step_held)
+    if not core.B_AVAILABLE:  # an extension built before method B was ported: B runs the reference
+        _say(logging.WARNING, "compiled core without method B (an older build): B runs the Python reference")
+        return Backend("core", "compiled core (estimators._core), method B in Python", core.strapdown_step_held)
+    return Backend("core", "compiled core (estimators._core)", core.strapdown_step_held, core.synthetic_ahrs_step,
+                   core.synthetic_ahrs_unseen)

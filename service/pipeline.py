@@ -490,7 +490,8 @@ class Pipeline:
 
     def _step_ahrs(self, event) -> None:
         try:
-            self.ahrs, out = synthetic_ahrs_step(self.ahrs, event, self.ahrs_params, isinstance(event, ImuEvent))
+            self.ahrs, out = self.core.synthetic_ahrs_step(self.ahrs, event, self.ahrs_params,
+                                                           isinstance(event, ImuEvent))
         except ValueError as exc:  # a sample the estimator refuses is dropped with its reason
             self.counters.reject(f"synthetic AHRS: {exc}")
             return
@@ -551,7 +552,7 @@ class Pipeline:
         unseen = max(0.0, s.time_rx_s - self._last_rx_s)
         self.polar_att = polar_attitude_unseen(self.polar_att, unseen, self.polar_att_params)
         self.polar_hdg = polar_heading_unseen(self.polar_hdg, unseen, self.polar_hdg_params)
-        self.ahrs = synthetic_ahrs_unseen(self.ahrs, unseen, self.ahrs_params)
+        self.ahrs = self.core.synthetic_ahrs_unseen(self.ahrs, unseen, self.ahrs_params)
         self._disable_azimuth(f"FC clock restarted in flight ({unseen:.1f} s not seen)")
         # the filter slots restart here (the samples accumulated before belong to the old clock)
         self._filter_due_s = -math.inf

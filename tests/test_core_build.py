@@ -1,13 +1,14 @@
 """The compiled core is built and imported (a silently failed build must fail the suite), the
 service selects it, ``AZIMUTHD_CORE=python`` selects the Python reference, and a core that cannot
-be imported is said in one log line while the reference runs. pymavlink's CRC is fastcrc's."""
+be imported is said in one log line while the reference runs (an older extension without method B:
+B runs its reference). pymavlink's CRC is fastcrc's."""
 from __future__ import annotations
 
 import logging
 
 import pytest
 
-from estimators import core
+from estimators import core, synthetic_ahrs
 from service import core_backend
 from estimators.strapdown import strapdown_step as reference_strapdown_step
 
@@ -17,12 +18,28 @@ def test_the_extension_is_built_and_imported():
     assert core.AVAILABLE, core.IMPORT_ERROR
     from estimators import _core
     assert _core.__file__.endswith(".so") and hasattr(_core, "strapdown_propagate")
+    assert core.B_AVAILABLE and hasattr(_core, "SyntheticAhrs")
 
 
 def test_the_service_runs_the_core_by_default(monkeypatch):
     monkeypatch.delenv(core_backend.ENV, raising=False)
     b = core_backend.select()
     assert b.name == "core" and b.strapdown_step is core.strapdown_step_held
+    assert b.synthetic_ahrs_step is core.synthetic_ahrs_step and b.synthetic_ahrs_unseen is core.synthetic_ahrs_unseen
+
+
+def test_core_without_method_b_runs_b_in_python(monkeypatch, caplog):
+    # GIVEN an extension built before method B was ported (no SyntheticAhrs) WHEN the service
+    # selects THEN the core propagates, B runs its reference, and one warning line says so
+    monkeypatch.setattr(core_backend, "_said", set())
+    monkeypatch.setattr(core, "B_AVAILABLE", False)
+    with caplog.at_level(logging.WARNING, logger="azimuthd.core"):
+        b = core_backend.select({})
+        core_backend.select({})
+    assert b.name == "core" and b.strapdown_step is core.strapdown_step_held
+    assert b.synthetic_ahrs_step is synthetic_ahrs.synthetic_ahrs_step
+    assert [r.getMessage() for r in caplog.records] == [
+        "compiled core without method B (an older build): B runs the Python reference"]
 
 
 def test_python_reference_selectable(monkeypatch, caplog):
@@ -32,6 +49,7 @@ def test_python_reference_selectable(monkeypatch, caplog):
         b = core_backend.select({"AZIMUTHD_CORE": "python"})
         core_backend.select({"AZIMUTHD_CORE": "Python "})
     assert b.name == "python" and b.strapdown_step is reference_strapdown_step
+    assert b.synthetic_ahrs_step is synthetic_ahrs.synthetic_ahrs_step
     assert [r.getMessage() for r in caplog.records] == ["AZIMUTHD_CORE=python: the Python reference runs the estimators"]
 
 
