@@ -147,7 +147,7 @@ def run_azimuthd(run) -> dict:
     """Per IMU sample: q (NaN rows where nothing was published), heading valid, sigmas (rad)."""
     from mavlink_io.samples import ImuSample
     from service.pipeline import Pipeline
-    from sitl import feed_pipeline, pipeline_inputs
+    from sitl import pipeline_inputs
     items = [it for it in pipeline_inputs(run) if type(it) is ImuSample]  # no FC, no air data
     p = Pipeline(operator_config(run))
     n = len(run.time_s)
@@ -157,7 +157,15 @@ def run_azimuthd(run) -> dict:
     got = np.zeros(n, bool)
     idx = {t: i for i, t in enumerate(run.time_s.tolist())}
     nan = math.nan
-    for sol in feed_pipeline(p, items):
+    for it in items:
+        # the daemon's dispatch: a filter step's solution, else the last one brought to this sample
+        # by the gyros (Pipeline.propagated_solution; service/daemon.py sends that between steps)
+        sol = p.on_imu(it)
+        if sol is None:
+            sol = p.propagated_solution()
+        p.drain_events()
+        if sol is None:
+            continue
         i = idx[sol.time_fc_s]
         got[i] = True
         if sol.q_nav_from_body is None or sol.roll_rad is None:
@@ -167,7 +175,7 @@ def run_azimuthd(run) -> dict:
                   nan if sol.pitch_sigma_rad is None else sol.pitch_sigma_rad,
                   nan if sol.heading_sigma_rad is None else sol.heading_sigma_rad)
         hv[i] = bool(sol.heading_valid) and sol.heading_sigma_rad is not None
-    # Solutions come at the filter rate: each holds until the next (what a consumer of the stream has).
+    # A sample without a solution (before levelling) holds the last one (what a consumer of the stream has).
     j = np.maximum.accumulate(np.where(got, np.arange(n), -1))
     held = j >= 0
     jj = np.maximum(j, 0)

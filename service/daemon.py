@@ -515,6 +515,14 @@ class Daemon:
                 self.publish(sol)
                 if self.geofence is not None:
                     self._geofence_step(sol)
+            else:
+                # between filter steps: the last solution turned by the gyros to this sample, so the
+                # MAVLink outputs carry the newest attitude (Zenoh and the geofence keep the filter rate)
+                prop = self.pipeline.propagated_solution()
+                if prop is not None:
+                    self.last_solution = prop
+                    self._last_solution_s = self.clock()
+                    self._publish_due(self._last_solution_s)
             for kind, detail in self.pipeline.drain_events():
                 self._event(kind, detail)
                 if kind in _CALIBRATION_EVENTS:

@@ -51,7 +51,8 @@ from estimators.polar_heading import (HeadingInputs, PolarHeadingParams, polar_h
                                       polar_heading_init, polar_heading_step, polar_heading_unseen,
                                       vertical_rate_sigma_for_site)
 from estimators.rotations import (dcm_from_quat, euler_from_quat, quat_conj, quat_from_euler,
-                                  quat_mul, wrap_pi)
+                                  quat_mul, wrap_2pi, wrap_pi)
+from estimators.output_propagation import OutputState, output_reset, output_step
 from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init
 from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent, HeadingEvent, ImuEvent,
                                        SyntheticAhrsOutput, SyntheticAhrsParams, synthetic_ahrs_init,
@@ -260,6 +261,11 @@ class Pipeline:
         self.filter_period_s = 1.0 / cfg["heading"]["filter_rate_hz"]
         self._filter_due_s = -math.inf
         self._acc_gyro, self._acc_accel, self._acc_n, self._acc_mag = np.zeros(3), np.zeros(3), 0, None
+        # between filter steps: the last solution turned by the gyros (``propagated_solution``)
+        self._out: OutputState | None = None
+        self._out_sol: NavSolution | None = None
+        self._out_bias_body_rad_s = np.zeros(3)
+        self._out_sample: ImuSample | None = None
 
         self.phase = PhaseState()
         self.strapdown: StrapdownState | None = None
@@ -344,6 +350,10 @@ class Pipeline:
         if mag_s is not None:
             self._acc_mag = mag_s
         if t < self._filter_due_s - 0.05 * self.filter_period_s:  # tolerance: timestamp jitter
+            if self._out is not None:
+                self._out = output_step(self._out, t, self.C_body_from_sensor @ gyro_s, self._out_bias_body_rad_s,
+                                        self.polar_att_params.max_dt_s)
+                self._out_sample = s
             return None
         # slots advance by one period, so the mean rate is exact under timestamp jitter
         self._filter_due_s += self.filter_period_s
@@ -390,7 +400,31 @@ class Pipeline:
         sol = self._solution(s, gyro_s, att)
         if self.deviation_calibrate and mag_b_raw is not None:
             self._deviation_learn(sol, mag_b_raw, t)
+        has_q = att is not None and sol.q_nav_from_body is not None
+        self._out = output_reset(sol.q_nav_from_body, t) if has_q else None
+        self._out_sol, self._out_sample = (sol, s) if has_q else (None, None)
+        if has_q:
+            self._out_bias_body_rad_s = att.gyro_bias_rad_s
         return sol
+
+    def propagated_solution(self) -> NavSolution | None:
+        """The last filter step's solution brought to the newest IMU sample (what the daemon sends
+        between filter steps: a real AHRS publishes at its IMU rate): its attitude turned by the gyro
+        increments since (estimators/output_propagation), roll, pitch and heading from that attitude,
+        the newest body rates; sigmas, sources and flags as of the filter step (they change by far
+        less than they state over one filter period). The solution itself right after a filter step;
+        None before C's attitude filter has levelled or after a sample interval it cannot integrate."""
+        o, sol, s = self._out, self._out_sol, self._out_sample
+        if o is None or sol is None:
+            return None
+        if o.time_s == sol.time_fc_s:
+            return sol
+        q = np.array(o.q_nav_from_body)
+        roll, pitch, yaw = euler_from_quat(q)
+        return dc_replace(sol, time_fc_s=o.time_s, time_rx_s=s.time_rx_s, phase=self.phase.phase,
+                          q_nav_from_body=q, roll_rad=roll, pitch_rad=pitch,
+                          heading_rad=wrap_2pi(yaw) if sol.heading_rad is not None else None,
+                          rates_body_rad_s=self.C_body_from_sensor @ (s.gyro_rad_s - self.gyro_bias_rad_s))
 
     def on_pressure(self, s: PressureSample) -> None:
         self.pressure = s
