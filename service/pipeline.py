@@ -214,8 +214,11 @@ class Pipeline:
 
         # method C
         # holes up to imu_gap_s are bridged on the rates around them (as the strapdown does); a
-        # longer gap is an interval not seen (the link reports it as a time_gap)
-        self.polar_att_params = PolarAttitudeParams(max_dt_s=cfg["mavlink"]["imu_gap_s"])
+        # longer gap is an interval not seen (the link reports it as a time_gap); a filter-rate
+        # sample is the mean over its filter period, a longer interval (a slow IMU stream) is bridged
+        self.polar_att_params = PolarAttitudeParams(
+            max_dt_s=cfg["mavlink"]["imu_gap_s"],
+            sample_span_max_s=max(PolarAttitudeParams.sample_span_max_s, 1.0 / cfg["heading"]["filter_rate_hz"]))
         self.polar_att = polar_attitude_init(self.polar_att_params)
         lat = cfg["site"]["lat_deg"]
         vr_sigma = (vertical_rate_sigma_for_site(math.radians(lat), heading["cruise_speed_m_s"])
