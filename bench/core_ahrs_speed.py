@@ -26,21 +26,8 @@ import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-
-
-def b_events(run, items) -> list:
-    from estimators.synthetic_ahrs import AirEvent, FcAttitudeEvent, ImuEvent
-    from mavlink_io.samples import FcAttitude, ImuSample, PressureSample
-    events = []
-    for it in items:
-        c = type(it)
-        if c is ImuSample:
-            events.append(ImuEvent(it.time_fc_s, it.gyro_rad_s, it.mag_gauss))
-        elif c is PressureSample:
-            events.append(AirEvent(it.time_fc_s, it.press_abs_pa, it.press_diff_pa, it.temperature_k))
-        elif c is FcAttitude:
-            events.append(FcAttitudeEvent(it.time_fc_s, np.array([it.roll_rad, it.pitch_rad, it.yaw_rad])))
-    return events
+sys.path.insert(0, str(ROOT / "bench"))
+from speed import b_events  # noqa: E402  (one conversion of link items to B's events)
 
 
 def one_pass(step, init, events, params, imu_cls):
@@ -78,7 +65,7 @@ def main(argv=None) -> int:
         print(f"compiled core not available: {core.IMPORT_ERROR}")
         return 1
     run = make_stream(args.quick)
-    events = b_events(run, pipeline_inputs(run))
+    events = b_events(pipeline_inputs(run))
     s = run.site
     params = synthetic_ahrs_params_for_site(s["lat_deg"], s["lon_deg"], s["alt_m"], s["decimal_year"])
     n_imu = sum(1 for e in events if type(e) is ImuEvent)

@@ -258,12 +258,10 @@ def case_azimuth(run, items):
     return one_pass
 
 
-def case_synthetic_ahrs(run, items):
-    from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, ImuEvent, SyntheticAhrs,
-                                           synthetic_ahrs_params_for_site)
+def b_events(items) -> list:
+    """Method B's events from the link's items, as the Pipeline hands them over (IMU, air data, FC attitude)."""
+    from estimators.synthetic_ahrs import AirEvent, FcAttitudeEvent, ImuEvent
     from mavlink_io.samples import FcAttitude, ImuSample, PressureSample
-    s = run.site
-    params = synthetic_ahrs_params_for_site(s["lat_deg"], s["lon_deg"], s["alt_m"], s["decimal_year"])
     events = []
     for it in items:
         c = type(it)
@@ -273,6 +271,14 @@ def case_synthetic_ahrs(run, items):
             events.append(AirEvent(it.time_fc_s, it.press_abs_pa, it.press_diff_pa, it.temperature_k))
         elif c is FcAttitude:
             events.append(FcAttitudeEvent(it.time_fc_s, np.array([it.roll_rad, it.pitch_rad, it.yaw_rad])))
+    return events
+
+
+def case_synthetic_ahrs(run, items):
+    from estimators.synthetic_ahrs import SyntheticAhrs, synthetic_ahrs_params_for_site
+    s = run.site
+    params = synthetic_ahrs_params_for_site(s["lat_deg"], s["lon_deg"], s["alt_m"], s["decimal_year"])
+    events = b_events(items)
 
     def one_pass():
         f = SyntheticAhrs(params)
