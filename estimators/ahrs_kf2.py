@@ -38,8 +38,9 @@ default here is 3 because the seed's gate rejects 5-30 % of good data). After ev
 estimated errors are fed back (closed loop, seed "wire 17/18"): q <- q * q(gamma),
 b_hat <- b_hat + db_g, beta_hat <- beta_hat + dbeta, x <- 0.
 
-The Kalman mechanics are filterpy's KalmanFilter (predict/update with Joseph form), rebuilt from
-(x, P) in the state at every call, so the step functions are pure.
+The Kalman mechanics are estimators/kalman.py's predict and Joseph-form update (the same
+arithmetic as filterpy's KalmanFilter, without importing it), on the state's (x, P) at every call,
+so the step functions are pure.
 """
 from __future__ import annotations
 
@@ -48,8 +49,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from estimators.kalman import kf_predict, kf_update
 from estimators.records import fast_replace
-from filterpy.kalman import KalmanFilter
 
 from estimators.euler_kinematics import body_rate_matrix, euler_rate_matrix
 from estimators.rotations import (dcm_from_quat, euler_from_dcm, quat_from_euler, quat_from_rotvec,
@@ -186,13 +187,6 @@ def kf2_euler_and_cov(state: Kf2State) -> tuple[np.ndarray, np.ndarray]:
     return e, T @ state.P[0:3, 0:3] @ T.T
 
 
-def _filter(P: np.ndarray, dim_z: int) -> KalmanFilter:
-    kf = KalmanFilter(dim_x=N, dim_z=dim_z)
-    kf.x = np.zeros(N)
-    kf.P = P.copy()
-    return kf
-
-
 def _propagate_cov(state: Kf2State, params: Kf2Params) -> Kf2State:
     """Apply the accumulated interval to P: Phi = I + A dt + (A dt)^2/2, Q diagonal."""
     if state.cov_time_s is None or state.time_s is None or state.acc_angle_rad is None:
@@ -212,11 +206,8 @@ def _propagate_cov(state: Kf2State, params: Kf2Params) -> Kf2State:
                                                      * state.acc_omega_sq)
     q_b = 2.0 * params.gyro_bias_sigma_rad_s ** 2 / params.gyro_bias_tau_s * dt
     q_m = 2.0 * params.mag_bias_sigma ** 2 / params.mag_bias_tau_s * dt
-    kf = _filter(state.P, 1)
-    kf.F = Phi
-    kf.Q = np.diag([q_g] * 3 + [q_b] * 3 + [q_m] * 3)
-    kf.predict()
-    return _upd(state, P=0.5 * (kf.P + kf.P.T), cov_time_s=state.time_s,
+    _, P = kf_predict(np.zeros(N), state.P, Phi, np.diag([q_g] * 3 + [q_b] * 3 + [q_m] * 3))
+    return _upd(state, P=0.5 * (P + P.T), cov_time_s=state.time_s,
                    acc_angle_rad=np.zeros(3), acc_omega_sq=0.0)
 
 
@@ -297,13 +288,11 @@ def _update(state: Kf2State, z: np.ndarray, H: np.ndarray, R: np.ndarray, n_gate
     ratio = float(np.max(np.abs(z) / (n_gate * np.sqrt(s_diag))))
     if ratio > 1.0:
         return state, Kf2Diag(False, "gate", z.copy(), s_diag, ratio)
-    kf = _filter(state.P, len(z))
-    kf.update(z, R=R, H=H)
-    dx = kf.x
+    dx, P = kf_update(np.zeros(N), state.P, z, H, R)   # error state: x- = 0
     q = quat_mul(state.q_nav_from_body, quat_from_rotvec(dx[0:3]))   # C <- C (I + [gamma x])
     q = q / math.sqrt(float(q @ q))
     new = _upd(state, q_nav_from_body=q, gyro_bias_rad_s=state.gyro_bias_rad_s + dx[3:6],
-                  mag_bias=state.mag_bias + dx[6:9], P=0.5 * (kf.P + kf.P.T))
+                  mag_bias=state.mag_bias + dx[6:9], P=0.5 * (P + P.T))
     return new, Kf2Diag(True, "", z.copy(), s_diag, ratio)
 
 

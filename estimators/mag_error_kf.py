@@ -26,8 +26,8 @@ Mahalanobis distance squared y^T S^-1 y exceeds ``chi2_gate`` (3 degrees of free
 
 Using the estimate (inverse of eq. 13): B = M^-1 (B_meas - b), M = I + diag(s) + K.
 
-The Kalman mechanics are filterpy's ``KalmanFilter`` (predict + Joseph-form update). The filterpy
-object is built per call from the state's (x, P), so ``kf1_step`` is a pure function of
+The Kalman mechanics are estimators/kalman.py's predict and Joseph-form update (filterpy's
+arithmetic, without importing it), on the state's (x, P), so ``kf1_step`` is a pure function of
 (state, inputs) and ``to_dict``/``from_dict`` reproduce a run exactly.
 """
 from __future__ import annotations
@@ -36,7 +36,8 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
+
+from estimators.kalman import kf_predict, kf_update
 
 N_STATES = 12
 STATE_NAMES = ("b_x", "b_y", "b_z", "s_x", "s_y", "s_z",
@@ -145,14 +146,6 @@ def kf1_correct_mag(state_or_x, mag_body_gauss: np.ndarray,
     return np.linalg.solve(error_matrix(x), np.asarray(mag_body_gauss, float) - x[0:3] * norm)
 
 
-def _filter(state: Kf1State) -> KalmanFilter:
-    kf = KalmanFilter(dim_x=N_STATES, dim_z=3)
-    kf.x = state.x.copy()
-    kf.P = state.P.copy()
-    kf.F = np.eye(N_STATES)
-    return kf
-
-
 def kf1_step(state: Kf1State, mag_body_gauss: np.ndarray, C_nav_from_body: np.ndarray,
              field_nav_gauss: np.ndarray, omega_body_rad_s: np.ndarray, time_s: float,
              params: Kf1Params = Kf1Params()) -> tuple[Kf1State, Kf1Diag]:
@@ -187,21 +180,20 @@ def kf1_step(state: Kf1State, mag_body_gauss: np.ndarray, C_nav_from_body: np.nd
     z = C @ (m / norm) - Bn_n              # eq. 9-10
     H = C @ error_jacobian(B_body)         # eq. 16
     R = params.sigma_meas ** 2 * np.eye(3)
-    kf = _filter(state)
-    kf.Q = (params.sigma_rw_per_sqrt_s ** 2 * dt) * np.eye(N_STATES)
-    kf.predict()
-    y = z - H @ kf.x
-    S = H @ kf.P @ H.T + R
+    x, P = kf_predict(state.x, state.P, np.eye(N_STATES),
+                      (params.sigma_rw_per_sqrt_s ** 2 * dt) * np.eye(N_STATES))   # random walk
+    y = z - H @ x
+    S = H @ P @ H.T + R
     d2 = float(y @ np.linalg.solve(S, y))
     ratio = d2 / params.chi2_gate
-    base = replace(state, x=kf.x.copy(), P=kf.P.copy(), time_s=time_s,
+    base = replace(state, x=x, P=P, time_s=time_s,
                    field_norm_gauss=norm if state.field_norm_gauss is None else state.field_norm_gauss)
     if ratio > 1.0:
         return (replace(base, n_rejected_chi2=state.n_rejected_chi2 + 1),
                 Kf1Diag(False, "chi2 gate", y, np.diag(S).copy(), ratio))
-    kf.update(z, R=R, H=H)
-    P = 0.5 * (kf.P + kf.P.T)
-    return (replace(base, x=kf.x.copy(), P=P, n_updates=state.n_updates + 1),
+    x, P = kf_update(x, P, z, H, R)
+    P = 0.5 * (P + P.T)
+    return (replace(base, x=x, P=P, n_updates=state.n_updates + 1),
             Kf1Diag(True, "", y, np.diag(S).copy(), ratio))
 
 
