@@ -53,6 +53,8 @@ from estimators.polar_heading import (HeadingInputs, PolarHeadingParams, polar_h
 from estimators.rotations import (dcm_from_quat, euler_from_quat, quat_conj, quat_from_euler,
                                   quat_mul, wrap_2pi, wrap_pi)
 from estimators.output_propagation import OutputState, output_reset, output_step
+from estimators.zero_rate import (ZeroRateParams, ZeroRateState, attitude_zero_rate_update, heading_zero_rate_update,
+                                  rest_step)
 from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init
 from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent, HeadingEvent, ImuEvent,
                                        SyntheticAhrsOutput, SyntheticAhrsParams, synthetic_ahrs_init,
@@ -230,6 +232,9 @@ class Pipeline:
                                                    mag_heading_floor_rad=math.radians(heading["mag_heading_floor_deg"]))
         self.polar_hdg = polar_heading_init(params=self.polar_hdg_params)
         self._hdg_available: bool | None = None
+        # at rest, the mean gyro rate measures C's gyro biases (estimators/zero_rate)
+        self.zero_rate_params = ZeroRateParams()
+        self.zero_rate = ZeroRateState()
 
         # is the magnetometer fit for a heading at all (estimators/mag_usability): B and C get no
         # magnetometer while it is not, and coast on the gyros with a growing sigma
@@ -373,6 +378,15 @@ class Pipeline:
         self.polar_att, adiag = polar_attitude_step(self.polar_att, t, gyro_b, accel_b, self.polar_att_params)
         if adiag.relevelled:
             self._event("attitude", adiag.reason)
+        # zero-rate updates only while the vehicle may be at rest (as the re-levelling): steady
+        # flight also has a steady rate and specific force, and a slow turn is no gyro bias
+        rest_rate = None
+        if self.polar_att_params.relevel_allowed:
+            self.zero_rate, rest_rate = rest_step(self.zero_rate, t, gyro_b, accel_b, self.zero_rate_params)
+        elif self.zero_rate.time_s is not None:
+            self.zero_rate = ZeroRateState()
+        if rest_rate is not None:
+            self.polar_att, _ = attitude_zero_rate_update(self.polar_att, rest_rate, self.zero_rate_params)
         att = polar_attitude_estimate(self.polar_att)
         tilt = self._heading_tilt(t, att, gyro_b)
         mag_b_hi = self._mag_disturbance(mag_b, t, att)   # m - learnt hard iron, None when disturbed
@@ -393,6 +407,8 @@ class Pipeline:
                                               # heading in every attitude: the platform formulation
                                               *self._heading_platform(att, tilt)),
                 self.polar_hdg_params)
+            if rest_rate is not None:
+                self.polar_hdg, _ = heading_zero_rate_update(self.polar_hdg, rest_rate, self.zero_rate_params)
             if hdiag.measured:
                 self._hdg_measurement = (t, hdiag)
             if hdiag.measured and hdiag.source_available != self._hdg_available:
@@ -577,6 +593,7 @@ class Pipeline:
         self.polar_att = polar_attitude_init_at(t, roll, pitch, sigma, self.polar_att_params, bias)
         self.polar_hdg = polar_heading_init(params=self.polar_hdg_params)
         self._hdg_available = None
+        self.zero_rate = ZeroRateState()
         self._event("attitude", f"started in flight: roll/pitch from {src} (roll {math.degrees(roll):.1f} deg, "
                     f"pitch {math.degrees(pitch):.1f} deg, sigma {math.degrees(sigma):.1f} deg)")
         self._event("azimuth", "disabled: started in flight (method A needs the levelling and the launch)")
@@ -594,6 +611,7 @@ class Pipeline:
         # the filter slots restart here (the samples accumulated before belong to the old clock)
         self._filter_due_s = -math.inf
         self._acc_gyro, self._acc_accel, self._acc_n, self._acc_mag = np.zeros(3), np.zeros(3), 0, None
+        self.zero_rate = ZeroRateState()
         if unseen > 0.0:
             self._event("unseen", f"{unseen:.1f} s not seen (FC clock restarted): attitude and heading "
                         "sigma widened")
