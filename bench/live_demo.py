@@ -158,6 +158,12 @@ def stop_simulator_then_drain(sitl) -> None:
         time.sleep(0.2)
 
 
+def last_line(text: str) -> str:
+    """The daemon's last non-empty output line (for a crash: the exception), cut to 200 characters."""
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    return lines[-1][:200] if lines else ""
+
+
 def verdict(summary: dict, requested_s: float, speed: float) -> list[str]:
     """The failed checks, each as one sentence with the measured value and the threshold."""
     v, why = VERDICT, []
@@ -181,6 +187,9 @@ def verdict(summary: dict, requested_s: float, speed: float) -> list[str]:
     if got is not None and asked and got < v["attitude_rate_fraction_min"] * asked:
         why.append(f"ATTITUDE reached the ground station at {got:.1f} Hz, < {v['attitude_rate_fraction_min']:.0%} "
                    f"of the configured {asked:g} Hz")
+    if summary.get("daemon_exited_early"):
+        why.append(f"the daemon exited (code {summary.get('daemon_exit_code')}) before the harness stopped it: "
+                   f"{summary.get('daemon_last_line') or 'no output'}")
     if summary.get("daemon_errors", 0) > v["daemon_errors_max"]:
         why.append(f"the daemon logged {summary['daemon_errors']} error(s)")
     return why
@@ -212,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         shown = 0
         t0 = time.monotonic()
         t_end = t0 + limit_s
-        while time.monotonic() < t_end and sitl.sim.poll() is None:
+        while time.monotonic() < t_end and sitl.sim.poll() is None and sitl.daemon.poll() is None:
             time.sleep(0.5)
             lines = [ln for ln in sitl.log("daemon").splitlines() if ln.startswith("phase=")]
             for ln in lines[shown:]:
@@ -221,6 +230,8 @@ def main(argv: list[str] | None = None) -> int:
         finished = sitl.sim.poll() is not None
         wall_s = time.monotonic() - t0
         stop_simulator_then_drain(sitl)
+        # the daemon must outlive the flight: an exit before the harness stops it is a crash
+        daemon_exit = sitl.daemon.poll()
     truth = sitl.truth()
     launch = truth["launch_time_boot_s"]
     sim = sim_outcome(sitl.log("sim"))
@@ -237,7 +248,9 @@ def main(argv: list[str] | None = None) -> int:
                "daemon_heartbeats_seen": sitl.listener.heartbeats,
                "imu_messages_sent_by_simulator": imu_sent, "imu_messages_received_by_daemon": imu_got,
                "imu_lost_fraction": (1.0 - imu_got / imu_sent) if imu_sent and imu_got is not None else None,
-               **{f"daemon_{k}": v for k, v in health.items() if k != "warnings"}}
+               **{f"daemon_{k}": v for k, v in health.items() if k != "warnings"},
+               "daemon_exited_early": daemon_exit is not None, "daemon_exit_code": daemon_exit,
+               "daemon_last_line": last_line(sitl.log("daemon")) if daemon_exit is not None else None}
     print("\nSummary against the simulator's truth (what the daemon sent, not what it logged):")
     for k, v in summary.items():
         print(f"  {k:<48} {v:.3f}" if isinstance(v, float) else f"  {k:<48} {v}")

@@ -101,6 +101,17 @@ def test_verdict_pass_at_the_thresholds_and_each_failure_named():
                        "no heading was received from the daemon"]
 
 
+def test_a_daemon_that_died_before_the_harness_stopped_it_fails_the_verdict_with_its_last_line():
+    # GIVEN the daemon exited on its own mid-flight (a crash: its stderr ends with the exception)
+    crash = "Traceback (most recent call last):\n  File ...\nValueError: manoeuvre_speed_m_s must be > 0, got 0.0\n"
+    last = live_demo.last_line(crash)
+    # WHEN the verdict is drawn, THEN it fails and says so even though the daemon logged no error line
+    why = live_demo.verdict(_summary(daemon_exited_early=True, daemon_exit_code=1, daemon_last_line=last), 120.0, 4.0)
+    assert why == ["the daemon exited (code 1) before the harness stopped it: "
+                   "ValueError: manoeuvre_speed_m_s must be > 0, got 0.0"]
+    assert live_demo.last_line("") == ""
+
+
 def test_the_daemons_own_counters_and_warnings_are_read_from_its_log():
     log = "\n".join([
         'ts=1 level=warning logger=azimuthd.daemon msg="gap: IMU gap of 0.812 s (> 0.5 s): not integrated across" event=imu_input',
