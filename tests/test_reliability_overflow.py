@@ -47,7 +47,7 @@ def test_a_burst_the_daemon_cannot_keep_up_with_is_reported_and_accounted(tmp_pa
             assert time.monotonic() < t_end and p.poll() is None, "no input_overflow then input_ok after the burst"
             fc.pump(0.5)
         p.send_signal(signal.SIGTERM)
-        assert p.wait(20) == 0
+        assert p.wait(HANG_S) == 0
     finally:
         if p.poll() is None:
             p.kill()

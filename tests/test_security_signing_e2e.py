@@ -33,6 +33,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mav2
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 from sitl import free_udp_port, write_config  # noqa: E402
+from conftest import HANG_S, cpu_seconds, wait_progressing  # noqa: E402
 KEY = hashlib.sha256(b"azimuthd e2e test key").digest()
 WRONG_KEY = hashlib.sha256(b"not the key").digest()
 GCS = (255, 190)
@@ -92,6 +93,17 @@ class FakeFc:
         self.received += got
         return got
 
+    def pump_until(self, cond, proc: subprocess.Popen, what: str) -> list:
+        """Heartbeats at 5 Hz; collect the daemon's frames until ``cond(frames so far)``, for as
+        long as the daemon works (its CPU time): a busy machine delays its answer, never loses it."""
+        got: list = []
+
+        def done():
+            got.extend(self.pump(0.2))
+            return cond(got)
+        wait_progressing(done, lambda: cpu_seconds(proc), what)
+        return got
+
 
 def gcs_command(key: bytes | None, command: int, p1: float, timestamp: int | None = None) -> bytes:
     g = mav2.MAVLink(None, srcSystem=GCS[0], srcComponent=GCS[1])
@@ -105,6 +117,15 @@ def gcs_command(key: bytes | None, command: int, p1: float, timestamp: int | Non
 
 def acks_to_gcs(msgs: list) -> list:
     return [m for m in msgs if m.get_type() == "COMMAND_ACK" and (m.target_system, m.target_component) == GCS]
+
+
+def ours(msgs: list, mtype: str) -> list:
+    return [m for m in msgs if m.get_srcComponent() == 191 and m.get_type() == mtype]
+
+
+def first_ack(msgs: list, command: int | None = None) -> int | None:
+    """Index of the first ACK to the ground station (of ``command`` when given), None if none."""
+    return next((i for i, m in enumerate(msgs) if acks_to_gcs([m]) and command in (None, m.command)), None)
 
 
 def daemon_config(tmp: Path, port: int, mavlink: dict | None = None, log_level: str = "info") -> Path:
@@ -124,15 +145,14 @@ def _start(cfg: Path, log: Path) -> subprocess.Popen:
                             stdout=open(log, "wb"), stderr=subprocess.STDOUT, env=env)
 
 
-def _wait_started(p: subprocess.Popen, log: Path, timeout_s: float = 60.0) -> None:
-    t_end = time.monotonic() + timeout_s
-    while time.monotonic() < t_end:
-        if b"msg=started" in log.read_bytes():
-            return
+def _wait_started(p: subprocess.Popen, log: Path, timeout_s: float = HANG_S) -> None:
+    """Until the daemon logs its start, for as long as it works (its imports alone took > 60 s of
+    wall time at load 20); ``timeout_s`` only detects a hang."""
+    def started():
         if p.poll() is not None:
             raise AssertionError(f"daemon exited {p.returncode}: {log.read_text()[-2000:]}")
-        time.sleep(0.05)
-    raise AssertionError("daemon did not start")
+        return b"msg=started" in log.read_bytes()
+    wait_progressing(started, lambda: cpu_seconds(p), "daemon did not start", hang_s=timeout_s)
 
 
 @pytest.fixture(scope="module")
@@ -149,23 +169,32 @@ def flight(tmp_path_factory):
     try:
         _wait_started(p, log1)
         fc = FakeFc(port)
-        res["startup"] = fc.pump(2.0)
-        # an unsigned command, one signed with the wrong key: no answer
+        # each step waits for what the daemon does in answer (it handles its input in order), for
+        # as long as it works: a busy machine changes when, never what, it answers
+        res["startup"] = fc.pump_until(lambda f: ours(f, "HEARTBEAT") and ours(f, "COMMAND_LONG"), p,
+                                       "no HEARTBEAT and SET_MESSAGE_INTERVAL from the daemon")
+        # an unsigned command, one signed with the wrong key: no answer, each rejection logged
         fc.send(gcs_command(None, mav2.MAV_CMD_REQUEST_MESSAGE, mav2.MAVLINK_MSG_ID_HEARTBEAT))
         fc.send(gcs_command(WRONG_KEY, mav2.MAV_CMD_REQUEST_MESSAGE, mav2.MAVLINK_MSG_ID_HEARTBEAT))
-        res["after_bad"] = fc.pump(1.0)
-        # a correctly signed one: ACK + the message; then the same frame replayed: nothing
+        res["after_bad"] = fc.pump_until(lambda f: all(w in log1.read_bytes() for w in (
+            b"unsigned_command_rejected", b"signature_rejected")), p, "the bad commands' rejections not logged")
+        # a correctly signed one: ACK + the message
         good = gcs_command(KEY, mav2.MAV_CMD_REQUEST_MESSAGE, mav2.MAVLINK_MSG_ID_HEARTBEAT)
         fc.send(good)
-        res["after_good"] = fc.pump(1.0)
+        res["after_good"] = fc.pump_until(
+            lambda f: (i := first_ack(f)) is not None and ours(f[i:], "HEARTBEAT"), p,
+            "no ACK and HEARTBEAT for the signed request")
+        # the same frame replayed, then a signed command we do not provide (answered, not
+        # ignored): any answer to the replay would come before the answer to the second
         fc.send(good)
-        res["after_replay"] = fc.pump(1.0)
-        # a signed command we do not provide: answered, not ignored
         fc.send(gcs_command(KEY, mav2.MAV_CMD_DO_FENCE_ENABLE, 0))
-        res["after_fence"] = fc.pump(1.0)
+        after = fc.pump_until(lambda f: first_ack(f, mav2.MAV_CMD_DO_FENCE_ENABLE) is not None, p,
+                              "no ACK for the signed fence command")
+        i = first_ack(after, mav2.MAV_CMD_DO_FENCE_ENABLE)
+        res["after_replay"], res["after_fence"] = after[:i], after[i:]
         res["all1"] = list(fc.received)
         p.send_signal(signal.SIGTERM)
-        res["rc1"] = p.wait(20)
+        res["rc1"] = p.wait(HANG_S)
         res["log1"] = log1.read_bytes()
         # restart: the signing timestamp continues from the saved one
         res["saved"] = (tmp / "state" / "signing.json").read_text()
@@ -173,9 +202,9 @@ def flight(tmp_path_factory):
         p = _start(cfg, log2)
         _wait_started(p, log2)
         fc2 = FakeFc(port)
-        res["second_run"] = fc2.pump(1.5)
+        res["second_run"] = fc2.pump_until(lambda f: ours(f, "HEARTBEAT"), p, "no HEARTBEAT after the restart")
         p.send_signal(signal.SIGTERM)
-        res["rc2"] = p.wait(20)
+        res["rc2"] = p.wait(HANG_S)
         res["log2"] = log2.read_bytes()
         res["state_files"] = {f.name: f.read_bytes() for f in (tmp / "state").iterdir() if f.is_file()}
     finally:
