@@ -109,10 +109,14 @@ LevellingAcc unpack(const double* p) {
 }  // namespace
 
 void bind_synthetic_ahrs(py::module_& m);  // core/bindings_ahrs.cpp: method B
+void bind_checks(py::module_& m);          // core/bindings_checks.cpp: the per-sample checks
+void bind_azimuth(py::module_& m);         // core/bindings_azimuth.cpp: method A's propagation
 
 PYBIND11_MODULE(_core, m) {
     m.doc() = "azimuthd's compiled estimator core (estimators/core.py is its Python face)";
     bind_synthetic_ahrs(m);
+    bind_checks(m);
+    bind_azimuth(m);
 
     m.def("strapdown_step",
           [](const ArrayD& q, bool has_prev, double time_prev_s, const ArrayD& gyro_prev, const ArrayD& gyro,

@@ -370,26 +370,39 @@ def _solve(state: AzimuthState, time_s: float) -> AzimuthState:
                    last_gate_reason=reason, solution=sol)
 
 
+def azimuth_propagate(strapdown: StrapdownState, G_gyro: np.ndarray, C_isf_sf: np.ndarray,
+                      gyro_corrected_rad_s: np.ndarray, time_s: float, params: StrapdownParams
+                      ) -> tuple[StrapdownState, np.ndarray, np.ndarray]:
+    """Step 1 for one sample: C_ISF<-SF by the strapdown of the bias-corrected rate and the
+    sensitivity G (3 x 12) to the gyro errors. Returns (strapdown, C_isf_sf, G); C and G are the
+    inputs (unchanged) when the sample was not integrated. The compiled twin:
+    core/azimuth_propagation.hpp (estimators.core.azimuth_propagate, the same signature)."""
+    sd, diag = strapdown_step(strapdown, gyro_corrected_rad_s, time_s, params)
+    if not diag.integrated:
+        return sd, C_isf_sf, G_gyro
+    # G: bias columns -int C dt, T columns int C[:, i] w_j dt (trapezoid)
+    C1 = dcm_from_quat(sd.q_ref_from_sensor)
+    w0, w1 = strapdown.gyro_prev_rad_s, sd.gyro_prev_rad_s
+    h = 0.5 * diag.dt_s
+    G = G_gyro.copy()
+    G[:, :3] -= h * (C_isf_sf + C1)
+    G[:, 3:] += h * (C_isf_sf[:, :, None] * w0 + C1[:, :, None] * w1).reshape(3, 9)
+    return sd, C1, G
+
+
 def azimuth_step(state: AzimuthState, gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray,
-                 mag_gauss: np.ndarray | None, time_s: float) -> tuple[AzimuthState, AzimuthOutput]:
-    """One IMU sample in flight (FC time ``time_s``); ``mag_gauss`` None when there is none."""
+                 mag_gauss: np.ndarray | None, time_s: float, propagate=azimuth_propagate
+                 ) -> tuple[AzimuthState, AzimuthOutput]:
+    """One IMU sample in flight (FC time ``time_s``); ``mag_gauss`` None when there is none.
+    ``propagate``: step 1's implementation (``azimuth_propagate`` or the core's twin)."""
     if state.phase == "prelaunch":
         raise ValueError("azimuth_step before azimuth_launch")
     if state.phase == "failed":
         return state, AzimuthOutput(time_s, "failed", state.reason, False)
     p = state.params
     g = np.asarray(gyro_rad_s, float)
-    sd, diag = strapdown_step(state.strapdown, g - state.gyro_bias_rad_s, time_s, p.strapdown)
-    if diag.integrated:  # G: bias columns -int C dt, T columns int C[:, i] w_j dt (trapezoid)
-        C_isf_sf = dcm_from_quat(sd.q_ref_from_sensor)
-        C0 = state.C_isf_sf
-        w0, w1 = state.strapdown.gyro_prev_rad_s, sd.gyro_prev_rad_s
-        h = 0.5 * diag.dt_s
-        G = state.G_gyro.copy()
-        G[:, :3] -= h * (C0 + C_isf_sf)
-        G[:, 3:] += h * (C0[:, :, None] * w0 + C_isf_sf[:, :, None] * w1).reshape(3, 9)
-    else:
-        C_isf_sf, G = state.C_isf_sf, state.G_gyro
+    sd, C_isf_sf, G = propagate(state.strapdown, state.G_gyro, state.C_isf_sf, g - state.gyro_bias_rad_s, time_s,
+                                p.strapdown)
     upd = {"strapdown": sd, "G_gyro": G, "C_isf_sf": C_isf_sf}
     u_new = None
     # flight direction from the boost window (inclined case)

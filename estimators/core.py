@@ -5,8 +5,11 @@ signature and returns the same values as the reference it names (tests/test_core
 on the same recorded flights and require equality). Two call forms:
 
 - drop-in per-sample steps (``strapdown_step``, ``levelling_step``, method B's
-  ``synthetic_ahrs_step`` / ``_output`` / ``_unseen``) for callers that still step one sample or
-  event at a time (the held forms keep the state in the core between calls);
+  ``synthetic_ahrs_step`` / ``_output`` / ``_unseen``, the magnetometer usability's
+  ``mag_usability_step`` / ``_stale``, method A's ``azimuth_propagate``) for callers that still step
+  one sample or event at a time (the held forms keep the state in the core between calls); the
+  IMU input checks' decisions (``input_checks_core``, whose Python face is service/input_checks.py
+  CoreImuInputChecks: a service module);
 - batch calls (``strapdown_propagate``, ``levelling_accumulate``): typed N x 3 numpy arrays in,
   one C++ loop, arrays out; no per-sample Python.
 
@@ -22,6 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from estimators import levelling as _lev
+from estimators import mag_usability as _mu
 from estimators import strapdown as _sd
 from estimators import synthetic_ahrs as _sa
 from estimators.ahrs_kf2 import Kf2State
@@ -43,6 +47,10 @@ except ImportError as exc:  # a build that failed or a foreign platform: the ref
 # method B's held state (core/synthetic_ahrs.hpp): an extension built before it lacks it (the
 # service then runs B's reference: service/core_backend.py)
 B_AVAILABLE = AVAILABLE and hasattr(_core, "SyntheticAhrs")
+# the IMU input checks' per-sample decisions (core/input_checks.hpp; the Python face is
+# service/input_checks.py CoreImuInputChecks): an extension built before them lacks them
+CHECKS_AVAILABLE = AVAILABLE and hasattr(_core, "InputChecks")
+input_checks_core = _core.InputChecks if CHECKS_AVAILABLE else None
 
 # core/strapdown.hpp StrapdownCode
 INTEGRATED, FIRST_SAMPLE, NON_FINITE, TIME_NOT_INCREASING, GAP = 0, 1, 2, 3, 4
@@ -389,3 +397,112 @@ def synthetic_ahrs_unseen(state: SyntheticAhrsState | HeldSyntheticAhrs, unseen_
     state._c.unseen(state._p(params), float(unseen_s))
     state._air = _STALE
     return state
+
+
+# --- magnetometer usability (estimators/mag_usability.py) ----------------------------------------
+# The state is held in the core between filter steps (HeldMagUsability); the reference's
+# MagUsabilityState is built only when asked (to_state: a copy, a test).
+
+MAG_USABILITY_AVAILABLE = AVAILABLE and hasattr(_core, "MagUsability")
+
+
+class HeldMagUsability:
+    """A MagUsabilityState held in the core, stepped in place by ``mag_usability_step`` /
+    ``mag_usability_stale``; it reads like the reference's state where the service reads it
+    (``usable``, ``reason``) and ``to_state()`` gives the reference's record. Not a pure value: the
+    owner replaces it, never shares it."""
+
+    __slots__ = ("_c", "_params", "_cp")
+
+    def __init__(self, state: _mu.MagUsabilityState):
+        self._c = _core.MagUsability(state)
+        self._params = self._cp = None
+
+    def _p(self, params: _mu.MagUsabilityParams):
+        if params is not self._params:
+            self._params, self._cp = params, _core.MagUsabilityParams(params)
+        return self._cp
+
+    @property
+    def usable(self) -> bool | None:
+        return self._c.usable
+
+    @property
+    def reason(self) -> str:
+        return self._c.reason
+
+    def to_state(self) -> _mu.MagUsabilityState:
+        return _mu.MagUsabilityState(**self._c.get_state())
+
+    def __reduce__(self):  # copy.deepcopy / pickle: through the reference's record (exact)
+        return HeldMagUsability, (self.to_state(),)
+
+
+def _gyro3(gyro_body_rad_s) -> tuple[bool, bool, float, float, float]:
+    """(motion known, 3 values, x, y, z) of the reference's optional gyro argument."""
+    if gyro_body_rad_s is None:
+        return False, False, _NAN, _NAN, _NAN
+    w = np.asarray(gyro_body_rad_s, float)
+    if w.shape != (3,):
+        return True, False, _NAN, _NAN, _NAN
+    x, y, z = w.tolist()
+    return True, True, x, y, z
+
+
+def _mag_verdict(t: tuple) -> _mu.MagVerdict:
+    return _mu.MagVerdict(*t)
+
+
+def mag_usability_step(state: _mu.MagUsabilityState | HeldMagUsability, time_s: float, mag_body_gauss,
+                       roll_rad: float | None, pitch_rad: float | None, params: _mu.MagUsabilityParams,
+                       gyro_body_rad_s=None, hard_iron_gauss=None) -> tuple[HeldMagUsability, _mu.MagVerdict]:
+    """estimators.mag_usability.mag_usability_step with the state held in the core (a
+    MagUsabilityState is taken in on the first call); the same results."""
+    m = np.asarray(mag_body_gauss, float)
+    if m.shape != (3,) or not np.all(np.isfinite(m)) or not math.isfinite(time_s):
+        raise ValueError(f"mag_body_gauss must be 3 finite values and time_s finite, got {mag_body_gauss!r}, {time_s!r}")
+    if not isinstance(state, HeldMagUsability):
+        state = HeldMagUsability(state)
+    mx, my, mz = m.tolist()
+    tilt = roll_rad is not None and pitch_rad is not None and math.isfinite(roll_rad) and math.isfinite(pitch_rad)
+    known, ok, wx, wy, wz = _gyro3(gyro_body_rad_s)
+    has_hi = hard_iron_gauss is not None
+    hx, hy, hz = np.asarray(hard_iron_gauss, float).tolist() if has_hi else (_NAN, _NAN, _NAN)
+    v = state._c.step(state._p(params), float(time_s), mx, my, mz, tilt, roll_rad if tilt else _NAN,
+                      pitch_rad if tilt else _NAN, known, ok, wx, wy, wz, has_hi, hx, hy, hz)
+    return state, _mag_verdict(v)
+
+
+def mag_usability_stale(state: _mu.MagUsabilityState | HeldMagUsability, time_s: float,
+                        params: _mu.MagUsabilityParams, gyro_body_rad_s=None
+                        ) -> tuple[HeldMagUsability, _mu.MagVerdict | None]:
+    """estimators.mag_usability.mag_usability_stale with the state held in the core."""
+    if not isinstance(state, HeldMagUsability):
+        state = HeldMagUsability(state)
+    known, ok, wx, wy, wz = _gyro3(gyro_body_rad_s)
+    v = state._c.stale(state._p(params), float(time_s), known, ok, wx, wy, wz)
+    return state, None if v is None else _mag_verdict(v)
+
+
+# --- method A's per-sample propagation (estimators/azimuth.py azimuth_propagate) -----------------
+
+AZIMUTH_AVAILABLE = AVAILABLE and hasattr(_core, "azimuth_propagate")
+
+
+def azimuth_propagate(strapdown: StrapdownState, G_gyro: np.ndarray, C_isf_sf: np.ndarray,
+                      gyro_corrected_rad_s: np.ndarray, time_s: float, params: StrapdownParams
+                      ) -> tuple[StrapdownState, np.ndarray, np.ndarray]:
+    """estimators.azimuth.azimuth_propagate in the core (core/azimuth_propagation.hpp): the same
+    arguments and results (the strapdown, then G and C_ISF<-SF, in one C++ call)."""
+    w = np.asarray(gyro_corrected_rad_s, dtype=float)
+    if w.shape != (3,):
+        return strapdown, C_isf_sf, G_gyro
+    wx, wy, wz = w.tolist()
+    has, t_prev, g_prev = _prev(strapdown)
+    code, _dt, q, G, C = _core.azimuth_propagate(strapdown.q_ref_from_sensor, has, t_prev, g_prev, G_gyro, C_isf_sf,
+                                                 wx, wy, wz, float(time_s), params.max_dt_s)
+    if code == INTEGRATED:
+        return StrapdownState(q, time_s, w), C, G
+    if code in (FIRST_SAMPLE, GAP):
+        return StrapdownState(strapdown.q_ref_from_sensor, time_s, w), C_isf_sf, G_gyro
+    return strapdown, C_isf_sf, G_gyro

@@ -14,8 +14,11 @@ from dataclasses import dataclass
 from typing import Callable
 
 from estimators import core
+from estimators import azimuth as _a_reference
+from estimators import mag_usability as _mu_reference
 from estimators import synthetic_ahrs as _b_reference
 from estimators.strapdown import strapdown_step as _strapdown_step_reference
+from service.input_checks import CoreImuInputChecks, ImuInputChecks
 
 log = logging.getLogger("azimuthd.core")
 
@@ -36,6 +39,14 @@ class Backend:
     """Method B's step (estimators.synthetic_ahrs.synthetic_ahrs_step's signature)."""
     synthetic_ahrs_unseen: Callable = _b_reference.synthetic_ahrs_unseen
     """Method B after an FC clock restart (estimators.synthetic_ahrs.synthetic_ahrs_unseen's signature)."""
+    input_checks: Callable = ImuInputChecks
+    """The IMU input checks' class (service/input_checks.py: ``cls(InputCheckParams)``)."""
+    mag_usability_step: Callable = _mu_reference.mag_usability_step
+    """The magnetometer usability (estimators.mag_usability.mag_usability_step's signature)."""
+    mag_usability_stale: Callable = _mu_reference.mag_usability_stale
+    """... when no magnetometer sample came (estimators.mag_usability.mag_usability_stale's signature)."""
+    azimuth_propagate: Callable = _a_reference.azimuth_propagate
+    """Method A's per-sample propagation (estimators.azimuth.azimuth_propagate's signature)."""
 
 
 def _say(level: int, text: str) -> None:
@@ -62,5 +73,17 @@ def select(environ=os.environ) -> Backend:
     if not core.B_AVAILABLE:  # an extension built before method B was ported: B runs the reference
         _say(logging.WARNING, "compiled core without method B (an older build): B runs the Python reference")
         return Backend("core", "compiled core (estimators._core), method B in Python", core.strapdown_step_held)
+    if not (core.CHECKS_AVAILABLE and core.MAG_USABILITY_AVAILABLE):  # built before the checks were ported
+        _say(logging.WARNING, "compiled core without the input checks and the magnetometer usability (an older "
+                              "build): they run the Python reference")
+        return Backend("core", "compiled core (estimators._core), the checks in Python", core.strapdown_step_held,
+                       core.synthetic_ahrs_step, core.synthetic_ahrs_unseen)
+    if not core.AZIMUTH_AVAILABLE:  # built before method A's propagation was ported
+        _say(logging.WARNING, "compiled core without method A's propagation (an older build): it runs the Python "
+                              "reference")
+        return Backend("core", "compiled core (estimators._core), method A's propagation in Python",
+                       core.strapdown_step_held, core.synthetic_ahrs_step, core.synthetic_ahrs_unseen, CoreImuInputChecks,
+                       core.mag_usability_step, core.mag_usability_stale)
     return Backend("core", "compiled core (estimators._core)", core.strapdown_step_held, core.synthetic_ahrs_step,
-                   core.synthetic_ahrs_unseen)
+                   core.synthetic_ahrs_unseen, CoreImuInputChecks, core.mag_usability_step, core.mag_usability_stale,
+                   core.azimuth_propagate)

@@ -232,3 +232,81 @@ class ImuInputChecks:
         n = self._unreported.pop(kind, 0)
         self._reported_s[kind] = now
         events.append(("imu_input", f"{kind}: {detail}" + (f" ({n} more since the last report)" if n else "")))
+
+
+class CoreImuInputChecks:
+    """``ImuInputChecks`` with the per-sample decisions in the compiled core (core/input_checks.hpp,
+    estimators._core.InputChecks): the same ``check(sample) -> Verdict``, ``params`` and ``counts``
+    (tests/test_core_input_checks.py proves them equal). What a bad sample says (the event text,
+    the counts, the report rate limit) is the reference's code, run only on a bad sample."""
+
+    def __init__(self, params: InputCheckParams = InputCheckParams()):
+        from estimators import core
+        p = params
+        self.params = p
+        self.counts = {k: 0 for k in KINDS}
+        self._c = core.input_checks_core(
+            p.gyro_max_rad_s, p.accel_max_m_s2, p.clip_gyro_rad_s, p.clip_accel_m_s2,
+            RAW_GYRO_LIMIT_RAD_S - 1e-9, RAW_ACCEL_LIMIT_M_S2 - 1e-6, p.frozen_s, p.gap_s, p.reset_jump_s,
+            p.frozen_live_fraction, LIVE_ALPHA, p.clip_repeats, p.frozen_min_samples, p.reset_after_samples)
+        # the reference's reporting (rate limit per kind) on a reference object that never checks
+        self._say = ImuInputChecks(p)
+        self._say.counts = self.counts
+
+    def check(self, s: ImuSample) -> Verdict:
+        (gx, gy, gz), (ax, ay, az) = s.gyro_rad_s.tolist(), s.accel_m_s2.tolist()
+        r = self._c.step(gx, gy, gz, ax, ay, az, s.time_fc_s, s.source in _INT16_SOURCES)
+        return _OK if r == 0 else self._words(r, s)
+
+    def _words(self, r: int, s: ImuSample) -> Verdict:
+        """The reference's verdict and events for a step that was not plainly OK (same order)."""
+        from estimators import _core as c
+        last_t, max_g, max_a, at16, clip_n, behind_n, same_n, same_s, end_n = self._c.detail()
+        code, t, say, events = r & 0xF, s.time_fc_s, self._say, []
+        if code == 1:
+            return say._bad("non_finite", "non-finite IMU sample", "NaN or inf in gyro, accel or time", s, events)
+        if code == 2:
+            if r & c.IC_FLAG_TIME_RESET:
+                self.counts["time_reset"] += 1
+                say._report("time_reset", f"FC clock restarted without a reboot event ({last_t:.3f} s -> "
+                                          f"{t:.3f} s for {behind_n} samples): its samples are rejected "
+                                          "until their time passes the last used one", s, events)
+            return say._bad("time_backwards", "IMU time not increasing",
+                            f"FC time {t:.6f} s not after the last sample's {last_t:.6f} s", s, events)
+        if r & c.IC_FLAG_RESET_END:
+            events.append(("imu_input", "time_reset_end: samples used again; integration restarts (not "
+                                        "integrated across the unseen interval)"))
+        if r & c.IC_FLAG_GAP:
+            self.counts["gap"] += 1
+            say._report("gap", f"IMU gap of {t - last_t:.3f} s (> {self.params.gap_s:g} s): not integrated across",
+                        s, events)
+        v = _OK
+        if code == 3:
+            v = say._bad("out_of_range", "IMU value out of range",
+                         f"|gyro| {max_g:.2f} rad/s, |accel| {max_a:.1f} m/s^2 beyond any IMU's range", s, events)
+        elif code == 4:
+            why = "at the int16 limit of " + s.source if at16 else \
+                f"an axis above the clip threshold repeated {clip_n} times"
+            v = say._bad("saturated", "IMU saturated", f"IMU saturated: {why}", s, events)
+        else:
+            if r & c.IC_FLAG_FROZEN_END:
+                events.append(("imu_input", f"frozen_end: IMU values changing again after {end_n} "
+                                            "identical samples"))
+            if code == 5:
+                v = say._bad("frozen", "IMU frozen", f"IMU frozen: {same_n} identical samples over {same_s:.2f} s",
+                             s, events)
+            elif events:
+                v = Verdict(events=tuple(events))
+        return Verdict(v.reject, v.events, reset=True) if r & c.IC_FLAG_RESET_END else v
+
+    def __reduce__(self):  # copy.deepcopy / pickle: the core's state as a tuple
+        return _restore_core_checks, (self.params, dict(self.counts), self._c.get_state(),
+                                      dict(self._say._reported_s), dict(self._say._unreported))
+
+
+def _restore_core_checks(params, counts, core_state, reported_s, unreported) -> CoreImuInputChecks:
+    c = CoreImuInputChecks(params)
+    c.counts.update(counts)
+    c._c.set_state(core_state)
+    c._say._reported_s, c._say._unreported = reported_s, unreported
+    return c

@@ -42,8 +42,7 @@ from estimators.mag_deviation import (DeviationParams, DeviationState, corrected
 from estimators.mag_error_kf import Kf1State
 from estimators.mag_disturbance import (MagDisturbanceState, mag_disturbance_params_for_field,
                                         mag_disturbance_step)
-from estimators.mag_usability import (MagUsabilityState, mag_usability_params_for_field, mag_usability_stale,
-                                      mag_usability_step)
+from estimators.mag_usability import MagUsabilityState, mag_usability_params_for_field
 from estimators.polar_attitude import (PolarAttitudeParams, polar_attitude_estimate,
                                        polar_attitude_init, polar_attitude_init_at, polar_attitude_step,
                                        polar_attitude_unseen)
@@ -61,7 +60,7 @@ from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent,
                                        synthetic_ahrs_output, synthetic_ahrs_step, synthetic_ahrs_unseen)
 from mavlink_io.samples import FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, ImuSample, PressureSample
 from service.core_backend import select as select_core
-from service.input_checks import ImuInputChecks, InputCheckParams
+from service.input_checks import InputCheckParams
 from service.heading_arbitration import (ArbitrationParams, ArbitrationState, SourceReading,
                                          arbitrate)
 from service.heading_sources import (SyntheticAhrsHealth, azimuth_source, deviation_record, fc_source,
@@ -279,7 +278,7 @@ class Pipeline:
         self.strapdown: StrapdownState | None = None
         self.gyro_bias_rad_s = np.zeros(3)
         self.counters = PipelineCounters()
-        self.input_checks = ImuInputChecks(InputCheckParams(gap_s=cfg["mavlink"]["imu_gap_s"]))
+        self.input_checks = self.core.input_checks(InputCheckParams(gap_s=cfg["mavlink"]["imu_gap_s"]))
         self.events: list[tuple[str, str]] = []
         self.last_time_fc_s: float | None = None
         self.fc_attitude: FcAttitude | None = None
@@ -660,7 +659,7 @@ class Pipeline:
             if why:
                 self._event("azimuth", why)
         elif self.azimuth.phase != "prelaunch":
-            self.azimuth, out = azimuth_step(self.azimuth, gyro_s, accel_s, mag_s, t)
+            self.azimuth, out = azimuth_step(self.azimuth, gyro_s, accel_s, mag_s, t, self.core.azimuth_propagate)
             result = self.solver.poll()
             if result is not None:
                 self.azimuth = azimuth_apply_solve(self.azimuth, result)
@@ -793,9 +792,9 @@ class Pipeline:
         raw body-axes field levelled with C's roll/pitch); one 'magnetometer' event per change."""
         p = self.mag_usability_params
         if mag_body_gauss is None:
-            self.mag_usability, v = mag_usability_stale(self.mag_usability, t, p, gyro_body_rad_s)
+            self.mag_usability, v = self.core.mag_usability_stale(self.mag_usability, t, p, gyro_body_rad_s)
         else:
-            self.mag_usability, v = mag_usability_step(
+            self.mag_usability, v = self.core.mag_usability_step(
                 self.mag_usability, t, mag_body_gauss, tilt[0] if tilt is not None else None,
                 tilt[1] if tilt is not None else None, p, gyro_body_rad_s,
                 # a NEW hard iron learnt (a magnet attached) is removed before the model tests; the

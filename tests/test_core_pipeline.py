@@ -21,9 +21,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 from sitl import feed_pipeline, pipeline_inputs, scenario_site  # noqa: E402
 
-from estimators.core import HeldStrapdown  # noqa: E402
+from estimators.core import HeldMagUsability, HeldStrapdown  # noqa: E402
 from test_core_ahrs import _differs  # noqa: E402
 from service.config import validate  # noqa: E402
+from service.input_checks import CoreImuInputChecks  # noqa: E402
 from service.pipeline import Pipeline  # noqa: E402
 from sim.offline import simulate  # noqa: E402
 
@@ -66,8 +67,15 @@ def test_pipeline_core_equals_python_reference(monkeypatch, flight):
     pc, sols_c, ev_c = _run(monkeypatch, "core", items, cfg)
     pp, sols_p, ev_p = _run(monkeypatch, "python", items, cfg)
     assert pc.core.name == "core" and pp.core.name == "python"
-    # the propagation ran in flight in both, held in the core in one
+    # the propagation ran in flight in both, held in the core in one; so did the ported checks
     assert isinstance(pc.strapdown, HeldStrapdown) and not isinstance(pp.strapdown, HeldStrapdown)
+    assert isinstance(pc.input_checks, CoreImuInputChecks) and isinstance(pc.mag_usability, HeldMagUsability)
+    assert pc.input_checks.counts == pp.input_checks.counts
+    assert (pc.mag_usability.usable, pc.mag_usability.reason) == (pp.mag_usability.usable, pp.mag_usability.reason)
+    # method A's propagation (in the core in one): its attitude and sensitivity at the end
+    for f in ("C_isf_sf", "G_gyro"):
+        a, b = getattr(pc.azimuth, f), getattr(pp.azimuth, f)
+        assert np.max(np.abs(a - b)) <= 1e-9 * np.max(np.abs(b)), f
     assert pc.phase.launch_time_s is not None and pc.counters.imu_samples == pp.counters.imu_samples
     qc, qp = pc.strapdown.q_ref_from_sensor, pp.strapdown.q_ref_from_sensor
     assert np.all(np.abs(qc - qp) <= 1e-9 * np.maximum(np.abs(qc), np.abs(qp))), (qc, qp)
