@@ -2,7 +2,10 @@
 
 :class:`FrameParser` parses what one read returned, with the datagram rules of a UDP link (a
 datagram that starts with a magic byte resets a half frame left by the previous one; a sender that
-splits frames across datagrams is detected and then parsed as a byte stream). :class:`SeqTracker`
+splits frames across datagrams is detected and then parsed as a byte stream). With ``split_imu``
+on, CRC-checked unsigned RAW_IMU frames come back as :class:`~mavlink_io.frame_scan.RawImuFrame`
+(the batch path, :mod:`mavlink_io.frame_scan`), everything else as pymavlink messages, in order; a
+sender that splits frames keeps the pymavlink-only path. :class:`SeqTracker`
 counts sequence gaps as lost packets. Neither ever raises on bad bytes: errors are counted in the
 link's :class:`~mavlink_io.stats.LinkStats`.
 """
@@ -16,6 +19,8 @@ from typing import Callable
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
+from mavlink_io.frame_scan import AVAILABLE as SPLIT_AVAILABLE
+from mavlink_io.frame_scan import RawImuFrame, split_raw_imu
 from mavlink_io.stats import LinkStats
 
 MAGIC_BYTES = (0xFD, 0xFE)
@@ -40,6 +45,8 @@ class FrameParser:
         self.udp_split_sender = False
         """A datagram transport whose sender splits frames across datagrams: no per-datagram reset."""
         self._split_seen = False
+        self.split_imu = False
+        """Hand unsigned RAW_IMU frames back as RawImuFrame (the link's batch path); needs fastcrc."""
 
     def reset(self) -> None:
         """A new byte stream: drop any half frame of the old one (pymavlink has no reset method)."""
@@ -65,15 +72,31 @@ class FrameParser:
         the transport is reopened."""
         held = self._rx_mav.buf_len()
         if not datagram or held == 0:
-            return self._parse(data)
+            return self._parse_split(data) if self.split_imu and SPLIT_AVAILABLE else self._parse(data)
         if not self.udp_split_sender and data[:1] and data[0] in MAGIC_BYTES:
             self.reset()
             self.stats.datagram_resets += 1
-            return self._parse(data)
+            return self._parse_split(data) if self.split_imu and SPLIT_AVAILABLE else self._parse(data)
         out = self._parse(data, held=held)
         if self._split_seen and not self.udp_split_sender:
             self.udp_split_sender = True
             self._on_split_sender(rx_s, items)
+        return out
+
+    def _parse_split(self, data: bytes) -> list:
+        """``_parse`` with the RAW_IMU frames set apart. A frame the parser holds from the previous
+        read (a byte stream) is taken back and scanned with this read: pymavlink holds nothing but
+        those bytes (always a frame's start: it never holds a bad prefix), so this is the same."""
+        rx = self._rx_mav
+        if rx.buf_len():
+            data = bytes(rx.buf[rx.buf_index:]) + data
+            self.reset()
+        out = []
+        for part in split_raw_imu(data):
+            if type(part) is RawImuFrame:
+                out.append(part)
+            else:
+                out.extend(self._parse(part))
         return out
 
     def _parse(self, data: bytes, held: int = 0) -> list:

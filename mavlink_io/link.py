@@ -5,8 +5,8 @@ Usage::
     link = MavlinkLink(LinkConfig(url="udpin:0.0.0.0:14550"))
     while running:
         for item in link.poll(timeout_s=0.1):  # returns on input or at the link's next timer
-            ...  # ImuSample | PressureSample | FcAttitude | FcHeartbeat | FcEkfStatus |
-                 # FcSysStatus | CommandAck | IncomingCommand | LinkEvent
+            ...  # ImuSample (ImuBatch with LinkConfig.imu_batch) | PressureSample | FcAttitude |
+                 # FcHeartbeat | FcEkfStatus | FcSysStatus | CommandAck | IncomingCommand | LinkEvent
     link.send(link.mav.attitude_encode(...))  # outputs, from our identity; never raises
     link.close()
 
@@ -15,7 +15,10 @@ this class only wires them):
 1. (re)open the transport if it is down and its backoff has expired (:mod:`mavlink_io.session`);
 2. wait up to ``timeout_s`` for bytes (less if a timer is due), read everything available;
 3. parse with pymavlink (MAVLink 2 out, 1 or 2 in, ardupilotmega dialect; :mod:`mavlink_io.framing`);
-   bad CRC / framing / unknown ids are counted in :class:`~mavlink_io.stats.LinkStats`;
+   bad CRC / framing / unknown ids are counted in :class:`~mavlink_io.stats.LinkStats`; with
+   ``imu_batch``, CRC-checked unsigned RAW_IMU frames are set apart first and decoded together
+   (:mod:`mavlink_io.imu_batch`: the same checks, counters and events per frame, one ImuBatch per
+   run of consecutive samples);
 4. signing policy and commands to us (:mod:`mavlink_io.security`): a signed frame that fails
    verification is dropped, unsigned frames by ``require_signed``; COMMAND_LONG/INT addressed
    exactly to our component become IncomingCommand; then keep only the autopilot's messages (its
@@ -49,7 +52,9 @@ from typing import Callable
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from mavlink_io import decode as dec
+from mavlink_io.frame_scan import RawImuFrame
 from mavlink_io.framing import FrameParser, SeqTracker
+from mavlink_io.imu_batch import BatchBuilder, ImuBatch
 from mavlink_io.link_config import (DEFAULT_STREAM_RATES_HZ, IMU_SOURCES, LINK_EVENT_KINDS,  # noqa: F401 - re-exported
                                     REQUIRE_SIGNED, FcPeer, LinkConfig, LinkEvent, message_id)
 from mavlink_io.params import ParamReader
@@ -71,7 +76,7 @@ _PLACEHOLDER_SYSID = 1
 _NOT_VEHICLE_TYPES = {mavlink2.MAV_TYPE_GCS, mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_TYPE_GIMBAL,
                       mavlink2.MAV_TYPE_ADSB, mavlink2.MAV_TYPE_CAMERA}
 
-Item = (ImuSample | PressureSample | FcAttitude | FcHeartbeat | FcEkfStatus | FcSysStatus | CommandAck
+Item = (ImuSample | ImuBatch | PressureSample | FcAttitude | FcHeartbeat | FcEkfStatus | FcSysStatus | CommandAck
         | IncomingCommand | LinkEvent | dec.FcStatusText | dec.FcParam)
 
 
@@ -110,10 +115,12 @@ class MavlinkLink:
         self._fc = FcPeer(cfg.system_id, cfg.autopilot_component_id)
         self._source_seen_s: dict[str, float] = {}
         self._pending: list[Item] = []
-        self._subscribers: list[Callable] = []
+        self._subscribers: list[tuple[Callable, frozenset | None]] = []
         self._closed = False
         self._security = LinkSecurity(cfg, self.mav, self.stats, wall_clock, self._event)
         self._parser = FrameParser(self.stats, self._split_sender_found, self._set_error)
+        self._parser.split_imu = cfg.imu_batch and self._security.verifier is None
+        self._batch = BatchBuilder()
         self._seq = SeqTracker(self.stats)
         self._rates = StreamRates(cfg, self.stats, self._fc, self._source_seen_s, self.mav, self.send, self._event)
         self._decoder = SampleDecoder(cfg, self.stats, self._fc, self._source_seen_s, self._event,
@@ -222,10 +229,14 @@ class MavlinkLink:
         window), ``result`` (accepted, denied, data_stream, no_ack...)."""
         return self._rates.report()
 
-    def subscribe(self, callback: Callable) -> None:
-        """Call ``callback(msg)`` with every accepted raw pymavlink message from the autopilot
-        (for the command protocol and tools that need messages the link does not decode)."""
-        self._subscribers.append(callback)
+    def subscribe(self, callback: Callable, types: tuple[str, ...] | None = None) -> None:
+        """Call ``callback(msg)`` with every accepted raw pymavlink message from the autopilot, or
+        only those of ``types`` (for the command protocol and tools that need messages the link
+        does not decode). A subscriber to every message turns the IMU batch path off: a RAW_IMU
+        taken by it has no pymavlink message."""
+        self._subscribers.append((callback, None if types is None else frozenset(types)))
+        if types is None or "RAW_IMU" in types:
+            self._parser.split_imu = False
 
     def heartbeat_message(self):
         """Our HEARTBEAT (onboard controller, no autopilot, active): for this link and for any other
@@ -263,7 +274,11 @@ class MavlinkLink:
         if datagram is None:
             datagram = bool(getattr(self._session.transport, "datagram", False))
         for msg in self._parser.parse_chunk(data, datagram, rx, items):
-            self._handle(msg, peer, rx, items)
+            if type(msg) is RawImuFrame:
+                self._handle_imu_frame(msg, peer, rx, items)
+            else:
+                self._handle(msg, peer, rx, items)
+        self._batch.finish(items, rx)
         items.extend(self._pending)
         self._pending = []
         return items
@@ -298,7 +313,11 @@ class MavlinkLink:
                 for data, peer in chunks:
                     self.stats.bytes_received += len(data)
                     for msg in self._parser.parse_chunk(data, datagram, rx_s, items):
-                        self._handle(msg, peer, rx_s, items)
+                        if type(msg) is RawImuFrame:
+                            self._handle_imu_frame(msg, peer, rx_s, items)
+                        else:
+                            self._handle(msg, peer, rx_s, items)
+                self._batch.finish(items, rx_s)
             session.track_peer()
         else:
             session.sleep_closed(timeout_s, now)
@@ -435,12 +454,39 @@ class MavlinkLink:
             # a field of the wrong type from a buggy sender: count, never raise
             self.stats.count_non_finite(mtype)
             self.last_error = f"decode {mtype}: {exc}"
-        for cb in self._subscribers:
+        for cb, types in self._subscribers:
+            if types is not None and mtype not in types:
+                continue
             try:
                 cb(msg)
             except Exception as exc:  # noqa: BLE001 - a subscriber's bug must not stop the link
                 self.stats.subscriber_errors += 1
                 self.last_error = f"subscriber {getattr(cb, '__qualname__', cb)!s} on {mtype}: {exc!r}"
+
+    def _handle_imu_frame(self, f: RawImuFrame, peer, rx_s: float, items: list) -> None:
+        """``_handle`` for a RAW_IMU frame of the batch path: the same counters, checks and events
+        in the same order (without a key, security passes every frame as unsigned; RAW_IMU is no
+        command and no HEARTBEAT); a stamped sample joins the read's batch."""
+        self.stats.messages_received += 1
+        src = (f.src_system, f.src_component)
+        if src == (self.mav.srcSystem, self.mav.srcComponent):
+            self.stats.own_echoes += 1
+            return
+        fc = self._fc
+        if not fc.known or src != (fc.system, fc.component):
+            self.stats.foreign_messages += 1
+            return
+        self._seq.track(src, f.seq)
+        self._session.transport.set_peer(peer)
+        if self._session.mark_alive(rx_s, items):
+            self._rates.request(rx_s, "link restored", items)
+        p = f.payload
+        time_usec = int.from_bytes(p[:8], "little")  # a cut payload: its missing bytes are zeros
+        self.stats.count_message("RAW_IMU", rx_s, time_usec * 1e-6 if time_usec > 0 else None)
+        self._source_seen_s["RAW_IMU"] = rx_s
+        t = self._decoder.stamp_raw_imu(time_usec, p[26] if len(p) > 26 else 0, rx_s, items)
+        if t is not None:
+            self._batch.add(p, t, items)
 
     def _act_on(self, mtype: str, out, rx_s: float, items: list) -> None:
         """What the link itself does with a STATUSTEXT, a PARAM_VALUE or a COMMAND_ACK, before

@@ -92,6 +92,12 @@ class LinkConfig:
     2015-01-01 UTC (persist ``link.signing_timestamp`` and pass it back here after a restart)."""
     udp_rcvbuf_bytes: int = UDP_RCVBUF_BYTES_DEFAULT
     """UDP receive buffer asked for (SO_RCVBUF; the kernel caps it at net.core.rmem_max)."""
+    imu_batch: bool = False
+    """The batch path (mavlink_io.imu_batch): the RAW_IMU samples of a read come out of poll() as
+    one ImuBatch per run of consecutive samples instead of one ImuSample each (the daemon's
+    choice; replay and tools keep ImuSample). Used only without a signing key (signed and unsigned
+    frames then need pymavlink and the security checks) and while no subscriber asked for every
+    message."""
 
     def __post_init__(self) -> None:
         _check_int("udp_rcvbuf_bytes", self.udp_rcvbuf_bytes, 4096, 2**31 - 1)
@@ -123,6 +129,8 @@ class LinkConfig:
                              f"got {self.imu_source!r}")
         if self.signing_key is not None:
             check_key(self.signing_key, "LinkConfig.signing_key")
+        if not isinstance(self.imu_batch, bool):
+            raise ValueError(f"LinkConfig.imu_batch must be true or false, got {self.imu_batch!r}")
         if not isinstance(self.sign_outgoing, bool):
             raise ValueError(f"LinkConfig.sign_outgoing must be true or false, got {self.sign_outgoing!r}")
         if self.require_signed not in REQUIRE_SIGNED:

@@ -119,10 +119,22 @@ class SampleDecoder:
             return dec.decode_command_ack(msg, rx_s)
         return None
 
+    def stamp_raw_imu(self, time_usec: int, imu_id: int, rx_s: float, items: list) -> float | None:
+        """The batch path (mavlink_io.imu_batch): one RAW_IMU row's FC time, or None when the row
+        is not used (another IMU instance, a preferred IMU stream present, a stale time). The same
+        rules, counters and events, in the same order, as ``decode`` of that RAW_IMU message."""
+        if not self._imu_wanted("RAW_IMU", imu_id, rx_s):
+            return None
+        return self._stamp("IMU", time_usec, "us", rx_s, items, self.cfg.imu_gap_s)
+
     def _fc_time(self, stream: str, mtype: str, msg, rx_s: float, items: list,
                  gap_s: float | None = None) -> float | None:
         fname, unit = dec.TIME_FIELD[mtype]
-        t, events = self.timebase.feed(stream, int(getattr(msg, fname)), unit, rx_s, gap_s)
+        return self._stamp(stream, int(getattr(msg, fname)), unit, rx_s, items, gap_s)
+
+    def _stamp(self, stream: str, raw: int, unit: str, rx_s: float, items: list,
+               gap_s: float | None) -> float | None:
+        t, events = self.timebase.feed(stream, raw, unit, rx_s, gap_s)
         for ev in events:
             self._event(ev.kind, ev.detail, rx_s, items)
             if ev.kind == "fc_reboot":

@@ -25,6 +25,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from mavlink_io.commands import CommandProtocol, CommandProtocolParams, statustext_message
 from mavlink_io.decode import FcParam, FcStatusText
+from mavlink_io.imu_batch import ImuBatch
 from mavlink_io.link import LinkConfig, LinkEvent, MavlinkLink
 from mavlink_io.outputs import OutputScheduler, _time_boot_ms, odometry_profile_for_autopilot
 from mavlink_io.outputs import encode_attitude, encode_attitude_quaternion
@@ -154,7 +155,8 @@ class Daemon:
                                    stream_rates_hz=rates,
                                    signing_key=self.signing_key.secret if self.signing_key else None,
                                    sign_outgoing=m["sign_outgoing"], require_signed=m["require_signed"],
-                                   signing_timestamp_floor=floor, udp_rcvbuf_bytes=m["udp_rcvbuf_bytes"])
+                                   signing_timestamp_floor=floor, udp_rcvbuf_bytes=m["udp_rcvbuf_bytes"],
+                                   imu_batch=True)  # a read's RAW_IMU samples as one ImuBatch
         self.calibration = CalibrationKeeper(state_dir(cfg), clock=time.time)
         kf1_learn, kf1_applied = self.calibration.start()
         self.kf1_loaded = kf1_applied is not None
@@ -266,7 +268,7 @@ class Daemon:
             self.commands = CommandProtocol(
                 self.link.send, lambda: (self.link.target_system, self.link.target_component),
                 CommandProtocolParams(ack_timeout_s=gf.command_timeout_s, max_tries=gf.command_tries))
-            self.link.subscribe(self._on_raw)
+            self.link.subscribe(self._on_raw, types=("GLOBAL_POSITION_INT",))
         self._open_zenoh()
         self._log_security()
         log.info("started", extra={"fields": {"mavlink": self.link_cfg.url, "extra_outputs": len(self.extra_ports),
@@ -502,7 +504,9 @@ class Daemon:
             self._publish_air_data(now)
 
     def dispatch(self, item) -> None:
-        if isinstance(item, ImuSample):
+        if isinstance(item, ImuBatch):
+            self._on_imu_batch(item)
+        elif isinstance(item, ImuSample):
             self._last_imu_rx_s = item.time_rx_s
             self.fc_lag.on_sample(item.time_fc_s, item.time_rx_s)
             sol = self.pipeline.on_imu(item)
@@ -523,10 +527,7 @@ class Daemon:
                     self.last_solution = prop
                     self._last_solution_s = self.clock()
                     self._publish_due(self._last_solution_s)
-            for kind, detail in self.pipeline.drain_events():
-                self._event(kind, detail)
-                if kind in _CALIBRATION_EVENTS:
-                    self._calibration_event(kind, detail)
+            self._pipeline_events()
         elif isinstance(item, PressureSample):
             self.pipeline.on_pressure(item)
         elif isinstance(item, FcAttitude):
@@ -575,6 +576,36 @@ class Daemon:
                 now = self.clock()
                 for o in self.commands.on_command_ack(item, now):
                     self._command_outcome(o, now)
+
+    def _on_imu_batch(self, batch: ImuBatch) -> None:
+        """The RAW_IMU samples of one read (LinkConfig.imu_batch): the Pipeline's solutions are
+        published and its events reported as for single samples (events after the batch's
+        solutions); the MAVLink outputs are then due once, with the attitude at the batch's newest
+        sample (a sample at a time, a burst sent the attitude of its first sample)."""
+        times_fc, times_rx = batch.records["time_fc_s"].tolist(), batch.records["time_rx_s"].tolist()
+        for t_fc, t_rx in zip(times_fc, times_rx):
+            self.fc_lag.on_sample(t_fc, t_rx)
+        self._last_imu_rx_s = times_rx[-1]
+        sols = self.pipeline.on_imu_batch(batch)
+        for sol in sols:
+            self.last_solution = sol
+            self._last_solution_s = self.clock()
+            self.publish(sol)
+            if self.geofence is not None:
+                self._geofence_step(sol)
+        prop = self.pipeline.propagated_solution()
+        if prop is not None:
+            self.last_solution = prop
+            self._last_solution_s = self.clock()
+        if sols or prop is not None:
+            self._publish_due(self._last_solution_s)
+        self._pipeline_events()
+
+    def _pipeline_events(self) -> None:
+        for kind, detail in self.pipeline.drain_events():
+            self._event(kind, detail)
+            if kind in _CALIBRATION_EVENTS:
+                self._calibration_event(kind, detail)
 
     # --- commands to our component (service/command_server.py) ---------------------------------
 

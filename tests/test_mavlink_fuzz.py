@@ -4,14 +4,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
+from mavlink_io.imu_batch import ImuBatch
 from mavlink_io.link import LinkConfig, MavlinkLink
 from mavlink_io.samples import ImuSample
 from mavlink_io.transport import NullTransport
 
 
-def _link():
+def _link(imu_batch: bool = False):
     t = [0.0]
-    return MavlinkLink(LinkConfig(url="udpin:127.0.0.1:0"), clock=lambda: t[0], transport=NullTransport(None))
+    return MavlinkLink(LinkConfig(url="udpin:127.0.0.1:0", imu_batch=imu_batch), clock=lambda: t[0],
+                       transport=NullTransport(None))
 
 
 def _frames():
@@ -59,6 +61,46 @@ def test_mutated_frames_never_raise_and_are_counted(flips, chunk):
             assert np.all(np.isfinite(it.gyro_rad_s)) and np.all(np.isfinite(it.accel_m_s2))
     if bytes(data) != FRAMES:  # every byte is a frame's magic, or CRC-protected, or its msgid
         assert s.crc_errors + s.framing_errors + s.unknown_ids >= 1  # (unknown id: no CRC extra)
+
+
+def _same(a, b) -> bool:
+    """Two link items field by field (numpy arrays by value)."""
+    if type(a) is not type(b):
+        return False
+    for name in getattr(a, "__dataclass_fields__", ()):
+        x, y = getattr(a, name), getattr(b, name)
+        if isinstance(x, np.ndarray) or isinstance(y, np.ndarray):
+            if x is None or y is None or not np.array_equal(x, y, equal_nan=True):
+                return False
+        elif x != y and not (x != x and y != y):  # NaN == NaN here
+            return False
+    return True
+
+
+@settings(max_examples=200, deadline=None, derandomize=True)
+@given(st.lists(st.tuples(st.integers(0, len(FRAMES) - 1), st.integers(0, 255)), min_size=0, max_size=20),
+       st.integers(1, 400), st.booleans())
+def test_the_batch_path_reads_every_mutated_stream_as_the_message_path(flips, chunk, datagram):
+    # GIVEN the frames with some bytes changed, cut into reads of any size, as a stream or datagrams
+    data = bytearray(FRAMES)
+    for pos, val in flips:
+        data[pos] = val
+    out = {}
+    for batch in (False, True):
+        # WHEN a link with and one without the IMU batch path read them
+        link = _link(imu_batch=batch)
+        items, rows = [], 0
+        for i in range(0, len(data), chunk):
+            for it in link.feed(bytes(data[i:i + chunk]), 0.001 * i, datagram=datagram):
+                rows += len(it) if isinstance(it, ImuBatch) else 0
+                items += it.samples() if isinstance(it, ImuBatch) else [it]
+        out[batch] = items, link.stats.as_dict()
+    if not flips and not datagram:  # a clean byte stream: every RAW_IMU took the batch path
+        assert rows == 5
+    # THEN the same items (the batches' samples in their places) and the same counters
+    (items0, stats0), (items1, stats1) = out[False], out[True]
+    assert len(items1) == len(items0) and all(_same(a, b) for a, b in zip(items1, items0))
+    assert stats1 == stats0
 
 
 def test_sequence_counter_restart_resyncs():

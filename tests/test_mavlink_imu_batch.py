@@ -32,9 +32,14 @@ def test_batch_rows_equal_the_per_message_decode_bit_for_bit():
     payloads = [f[10:10 + f[1]] for f in frames]
     assert min(len(p) for p in payloads) < 29  # MAVLink 2 truncation is exercised
     assert mav.MAVLINK_MSG_ID_RAW_IMU == RAW_IMU_ID and mav.MAVLink_raw_imu_message.crc_extra == RAW_IMU_CRC_EXTRA
-    # WHEN decoded both ways
+    # WHEN decoded both ways (the batch decode at once, and in small batches: its Python path)
     rec, usec = raw_imu_records(payloads, time_rx_s=12.5)
+    cuts = np.cumsum([0] + [1, 2, 3, 4, 5, 6, 7, 8] * 14)[:-1]   # 504 > 500: every payload covered
+    small = [raw_imu_records(payloads[a:b], 12.5) for a, b in zip(cuts, list(cuts[1:]) + [500])]
     ref = [decode_raw_imu(m, float("nan"), 12.5) for m in msgs]
+    small_rec, small_usec = np.concatenate([r for r, _ in small]), np.concatenate([u for _, u in small])
+    assert small_usec.tolist() == usec.tolist()
+    assert all(np.array_equal(small_rec[f], rec[f], equal_nan=True) for f in rec.dtype.names)
     # THEN every value is the same float, the stamps are the messages' own
     assert usec.tolist() == [m.time_usec for m in msgs]
     assert np.array_equal(rec["gyro_rad_s"], np.array([s.gyro_rad_s for s in ref]))
