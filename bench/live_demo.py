@@ -27,7 +27,7 @@ for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from sitl import Sitl, angle_diff_rad  # noqa: E402
+from sitl import Sitl, angle_diff_rad, unit_nice  # noqa: E402
 
 README_DEMO_FIGURE = "README, Measured: 300 s at 2x, roll / pitch / heading RMS 0.49 / 0.27 / 0.93 deg"
 VERDICT = {
@@ -214,8 +214,15 @@ def main(argv: list[str] | None = None) -> int:
           f"(~{wall:.0f} s; stopped after {limit_s:.0f} s if the machine cannot keep up); simulator and daemon "
           "run as two processes on loopback UDP.", flush=True)
     # Zenoh on, so `azimuthd watch` in another terminal shows the flight live
+    # the daemon as the systemd unit runs it: a session (CPU group) of its own at the unit's Nice=
+    # (its CPUWeight's stand-in; a negative nice needs root, otherwise the group keeps nice 0)
+    group_nice = unit_nice() if os.geteuid() == 0 else None
+    print(f"  the daemon runs in its own CPU group at nice {group_nice if group_nice is not None else 0}"
+          + (" (the unit's Nice=)" if group_nice is not None else " (not root: the unit's Nice= is not applied)"),
+          flush=True)
     sitl = Sitl(scenario=args.scenario, speed=args.speed, seed=args.seed, status_interval_s=1.0,
-                sim_args=["--duration", str(duration)], config_overrides={"zenoh": {"enabled": True}})
+                sim_args=["--duration", str(duration)], config_overrides={"zenoh": {"enabled": True}},
+                daemon_own_session=True, daemon_group_nice=group_nice)
     with sitl:
         print(f"  daemon: {' '.join(sitl.daemon_cmd[2:])}\n  sim:    {' '.join(sitl.sim_cmd[2:])}\n", flush=True)
         shown = 0
@@ -241,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     imu_sent = sum(sim.get("sent", {}).get(k, 0) for k in ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU")) or None
     imu_got = health.get("imu_messages")
     summary = {"scenario": args.scenario, "simulated_requested_s": duration, "simulated_flown_s": flown,
-               "simulator_finished": finished, "speed_requested_x": args.speed,
+               "simulator_finished": finished, "speed_requested_x": args.speed, "daemon_group_nice": group_nice,
                "speed_achieved_x": flown / sim_wall if sim_wall > 0 else 0.0, "wall_s": wall_s,
                **compare_with_truth(sitl.listener.attitude, truth, launch),
                "attitude_configured_hz": configured_attitude_hz(sitl.config_path),
