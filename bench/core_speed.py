@@ -110,7 +110,8 @@ def instrument(pipeline, timers: Timers) -> None:
     c = pipeline.core  # the parts the Pipeline calls through its backend (service/core_backend.py)
     for attr, name in (("strapdown_step", "Pipeline strapdown (core.strapdown_step)"),
                        ("mag_usability_step", "mag_usability_step"), ("mag_usability_stale", "mag_usability_step"),
-                       ("azimuth_propagate", "A: azimuth_propagate (in azimuth_step)")):
+                       ("azimuth_propagate", "A: azimuth_propagate (in azimuth_step)"),
+                       ("mag_disturbance_step", "mag_disturbance_step")):
         if hasattr(c, attr):
             object.__setattr__(c, attr, timers.wrap(name, getattr(c, attr)))
     pipeline.solver.submit = timers.wrap("A: solve (H8's solver, inline)", pipeline.solver.submit)

@@ -2,11 +2,15 @@
 // - estimators._core.InputChecks: the IMU input checks (core/input_checks.hpp); the Python face is
 //   service/input_checks.py CoreImuInputChecks (the reference's check(sample) -> Verdict, counts);
 // - estimators._core.MagUsability: the magnetometer usability (core/mag_usability.hpp); the Python
-//   face is estimators/core.py mag_usability_step / mag_usability_stale (the reference's signatures).
+//   face is estimators/core.py mag_usability_step / mag_usability_stale (the reference's signatures);
+// - estimators._core.MagDisturbance: magnetic disturbances in motion (core/mag_disturbance.hpp); the
+//   Python face is estimators/core.py mag_disturbance_step.
+#include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
 #include "input_checks.hpp"
+#include "mag_disturbance.hpp"
 #include "mag_usability.hpp"
 
 namespace py = pybind11;
@@ -144,6 +148,110 @@ MagUsability mag_from(const py::handle& st) {
     return s;
 }
 
+MagDisturbanceParams dist_params(const py::handle& o) {
+    MagDisturbanceParams p;
+    p.model_norm_gauss = num(o, "model_norm_gauss");
+    p.model_dip_rad = num(o, "model_dip_rad");
+    p.model_norm_tolerance = num(o, "model_norm_tolerance");
+    p.model_dip_tolerance_rad = num(o, "model_dip_tolerance_rad");
+    p.mag_noise_gauss = num(o, "mag_noise_gauss");
+    p.hard_iron_prior_sigma_gauss = num(o, "hard_iron_prior_sigma_gauss");
+    p.hard_iron_walk_gauss_rt_s = num(o, "hard_iron_walk_gauss_rt_s");
+    p.soft_iron_fraction = num(o, "soft_iron_fraction");
+    p.turn_error_fraction = num(o, "turn_error_fraction");
+    p.pair_min_angle_rad = num(o, "pair_min_angle_rad");
+    p.pair_max_interval_s = num(o, "pair_max_interval_s");
+    p.pair_gate_chi2 = num(o, "pair_gate_chi2");
+    p.relearn_after_pairs = o.attr("relearn_after_pairs").cast<int>();
+    p.relearn_sigma_gauss = num(o, "relearn_sigma_gauss");
+    p.learnt_sigma_gauss = num(o, "learnt_sigma_gauss");
+    p.current_tau_s = num(o, "current_tau_s");
+    p.reference_tau_s = num(o, "reference_tau_s");
+    p.norm_tolerance = num(o, "norm_tolerance");
+    p.dip_tolerance_rad = num(o, "dip_tolerance_rad");
+    p.min_undisturbed_s = num(o, "min_undisturbed_s");
+    p.new_field_after_s = num(o, "new_field_after_s");
+    p.new_field_min_rate_rad_s = num(o, "new_field_min_rate_rad_s");
+    return p;
+}
+
+template <size_t N>
+std::array<double, N> fixed(const py::handle& o, const char* name) {
+    auto v = o.cast<std::vector<double>>();
+    if (v.size() != N) throw std::invalid_argument(std::string(name) + ": wrong size");
+    std::array<double, N> a{};
+    for (size_t i = 0; i < N; ++i) a[i] = v[i];
+    return a;
+}
+
+MagDisturbance dist_from(const py::handle& st) {
+    MagDisturbance s;
+    s.hard_iron_gauss = fixed<3>(py::module_::import("numpy").attr("ravel")(st.attr("hard_iron_gauss")), "hard_iron_gauss");
+    py::object P = st.attr("P_hard_iron");
+    s.has_P = !P.is_none();
+    if (s.has_P) s.P = fixed<9>(py::module_::import("numpy").attr("ravel")(P), "P_hard_iron");
+    s.has_time = get_opt(st.attr("time_s"), s.time_s);
+    py::object a = st.attr("anchor");
+    s.has_anchor = !a.is_none();
+    if (s.has_anchor) {
+        py::tuple t = a.cast<py::tuple>();
+        s.anchor_t = t[0].cast<double>();
+        s.anchor_m = fixed<3>(py::module_::import("numpy").attr("ravel")(t[1]), "anchor m");
+        s.anchor_q = fixed<4>(py::module_::import("numpy").attr("ravel")(t[2]), "anchor q");
+    }
+    s.bad_pairs = st.attr("bad_pairs").cast<int>();
+    s.relearning = st.attr("relearning").cast<bool>();
+    s.last_pair_ok = st.attr("last_pair_ok").cast<bool>();
+    s.n_pairs = st.attr("n_pairs").cast<int>();
+    s.n_relearns = st.attr("n_relearns").cast<int>();
+    s.has_norm_lp = get_opt(st.attr("norm_lp"), s.norm_lp);
+    s.has_dip_lp = get_opt(st.attr("dip_lp"), s.dip_lp);
+    s.has_norm_ref = get_opt(st.attr("norm_ref"), s.norm_ref);
+    s.has_dip_ref = get_opt(st.attr("dip_ref"), s.dip_ref);
+    s.undisturbed_s = st.attr("undisturbed_s").cast<double>();
+    s.disturbed = st.attr("disturbed").cast<bool>();
+    py::object c = st.attr("candidate");
+    s.has_candidate = !c.is_none();
+    if (s.has_candidate) {
+        auto v = fixed<3>(c, "candidate");
+        for (int i = 0; i < 3; ++i) s.cand[i] = v[i];
+    }
+    s.reason = st.attr("reason").cast<std::string>();
+    return s;
+}
+
+py::array_t<double> arr_out(const double* x, py::ssize_t n) {
+    py::array_t<double> a(n);
+    for (py::ssize_t i = 0; i < n; ++i) a.mutable_data()[i] = x[i];
+    return a;
+}
+
+// MagDisturbanceState's fields (estimators/mag_disturbance.py) as a dict of the reference's types
+py::dict dist_state(const MagDisturbance& s) {
+    py::dict d;
+    d["hard_iron_gauss"] = arr_out(s.hard_iron_gauss.data(), 3);
+    d["P_hard_iron"] = s.has_P ? py::object(arr_out(s.P.data(), 9).attr("reshape")(3, 3)) : py::object(py::none());
+    d["time_s"] = opt(s.has_time, s.time_s);
+    d["anchor"] = s.has_anchor ? py::object(py::make_tuple(s.anchor_t, arr_out(s.anchor_m.data(), 3),
+                                                           arr_out(s.anchor_q.data(), 4)))
+                               : py::object(py::none());
+    d["bad_pairs"] = s.bad_pairs;
+    d["relearning"] = s.relearning;
+    d["last_pair_ok"] = s.last_pair_ok;
+    d["n_pairs"] = s.n_pairs;
+    d["n_relearns"] = s.n_relearns;
+    d["norm_lp"] = opt(s.has_norm_lp, s.norm_lp);
+    d["dip_lp"] = opt(s.has_dip_lp, s.dip_lp);
+    d["norm_ref"] = opt(s.has_norm_ref, s.norm_ref);
+    d["dip_ref"] = opt(s.has_dip_ref, s.dip_ref);
+    d["undisturbed_s"] = s.undisturbed_s;
+    d["disturbed"] = s.disturbed;
+    d["candidate"] = s.has_candidate ? py::object(py::make_tuple(s.cand[0], s.cand[1], s.cand[2]))
+                                     : py::object(py::none());
+    d["reason"] = s.reason;
+    return d;
+}
+
 py::tuple verdict(const MagVerdictOut& v) {
     return py::make_tuple(v.usable, v.reason, v.new_sample, v.changed, v.norm_ratio, v.dip_rad, v.rate_hz);
 }
@@ -215,4 +323,30 @@ void bind_checks(py::module_& m) {
         })
         .def_readonly("reason", &MagUsability::reason)
         .def("get_state", &mag_state, "MagUsabilityState's fields as a dict.");
+
+    py::class_<MagDisturbanceParams>(m, "MagDisturbanceParams")
+        .def(py::init([](const py::object& p) { return dist_params(p); }), py::arg("params"),
+             "From estimators.mag_disturbance.MagDisturbanceParams.");
+    py::class_<MagDisturbance>(m, "MagDisturbance")
+        .def(py::init([](const py::object& st) { return dist_from(st); }), py::arg("state"),
+             "From estimators.mag_disturbance.MagDisturbanceState.")
+        .def("step",
+             [](MagDisturbance& s, const MagDisturbanceParams& p, double t, double mx, double my, double mz, double qw,
+                double qx, double qy, double qz) {
+                 const MagDisturbanceOut o = s.step(t, {mx, my, mz}, {qw, qx, qy, qz}, p);
+                 return py::make_tuple(o.usable, o.reason, o.changed,
+                                       o.usable ? py::object(arr_out(o.mag_corrected_gauss.data(), 3))
+                                                : py::object(py::none()),
+                                       arr_out(o.hard_iron_gauss.data(), 3), o.hard_iron_sigma_gauss, o.norm_ratio,
+                                       o.dip_diff_rad, o.relearned);
+             },
+             "mag_disturbance_step: MagDisturbanceVerdict's fields as a tuple.")
+        .def_property_readonly("hard_iron_gauss", [](const MagDisturbance& s) { return arr_out(s.hard_iron_gauss.data(), 3); })
+        .def_property_readonly("P_hard_iron", [](const MagDisturbance& s) -> py::object {
+            return s.has_P ? py::object(arr_out(s.P.data(), 9).attr("reshape")(3, 3)) : py::object(py::none());
+        })
+        .def_readonly("n_relearns", &MagDisturbance::n_relearns)
+        .def_readonly("relearning", &MagDisturbance::relearning)
+        .def_readonly("reason", &MagDisturbance::reason)
+        .def("get_state", &dist_state, "MagDisturbanceState's fields as a dict.");
 }

@@ -25,6 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from estimators import levelling as _lev
+from estimators import mag_disturbance as _md
 from estimators import mag_usability as _mu
 from estimators import strapdown as _sd
 from estimators import synthetic_ahrs as _sa
@@ -506,3 +507,65 @@ def azimuth_propagate(strapdown: StrapdownState, G_gyro: np.ndarray, C_isf_sf: n
     if code in (FIRST_SAMPLE, GAP):
         return StrapdownState(strapdown.q_ref_from_sensor, time_s, w), C_isf_sf, G_gyro
     return strapdown, C_isf_sf, G_gyro
+
+
+# --- magnetic disturbances in motion (estimators/mag_disturbance.py) ----------------------------
+# The state is held in the core between filter steps (HeldMagDisturbance); the reference's
+# MagDisturbanceState is built only when asked (to_state: a copy, a test).
+
+MAG_DISTURBANCE_AVAILABLE = AVAILABLE and hasattr(_core, "MagDisturbance")
+
+
+class HeldMagDisturbance:
+    """A MagDisturbanceState held in the core, stepped in place by ``mag_disturbance_step``; it
+    reads like the reference's state where the service reads it (``hard_iron_gauss``,
+    ``P_hard_iron``, ``n_relearns``, ``relearning``, ``reason``) and ``to_state()`` gives the
+    reference's record. Not a pure value: the owner replaces it, never shares it."""
+
+    __slots__ = ("_c", "_params", "_cp", "_t")
+
+    def __init__(self, state: _md.MagDisturbanceState):
+        self._c = _core.MagDisturbance(state)
+        self._params = self._cp = None
+        self._t = state.time_s  # the last sample's time (the reference refuses an earlier one)
+
+    def _p(self, params: _md.MagDisturbanceParams):
+        if params is not self._params:
+            self._params, self._cp = params, _core.MagDisturbanceParams(params)
+        return self._cp
+
+    hard_iron_gauss = property(lambda self: self._c.hard_iron_gauss)
+    P_hard_iron = property(lambda self: self._c.P_hard_iron)
+    n_relearns = property(lambda self: self._c.n_relearns)
+    relearning = property(lambda self: self._c.relearning)
+    reason = property(lambda self: self._c.reason)
+
+    def to_state(self) -> _md.MagDisturbanceState:
+        return _md.MagDisturbanceState(**self._c.get_state())
+
+    def __reduce__(self):  # copy.deepcopy / pickle: through the reference's record (exact)
+        return HeldMagDisturbance, (self.to_state(),)
+
+
+def mag_disturbance_step(state: _md.MagDisturbanceState | HeldMagDisturbance, time_s: float, mag_body_gauss,
+                         q_P_from_body, params: _md.MagDisturbanceParams
+                         ) -> tuple[HeldMagDisturbance, _md.MagDisturbanceVerdict]:
+    """estimators.mag_disturbance.mag_disturbance_step with the state held in the core (a
+    MagDisturbanceState is taken in on the first call); the same results. A refused sample
+    (ValueError, the reference's message) leaves the state as it was."""
+    m = np.asarray(mag_body_gauss, float)
+    q = np.asarray(q_P_from_body, float)
+    if m.shape != (3,) or q.shape != (4,) or not (np.all(np.isfinite(m)) and np.all(np.isfinite(q))
+                                                  and math.isfinite(time_s)):
+        raise ValueError(f"mag_body_gauss (3), q_P_from_body (4) and time_s must be finite, got "
+                         f"{mag_body_gauss!r}, {q_P_from_body!r}, {time_s!r}")
+    if not isinstance(state, HeldMagDisturbance):
+        state = HeldMagDisturbance(state)
+    t = float(time_s)
+    if state._t is not None and t - state._t < 0.0:
+        raise ValueError(f"time_s must not decrease ({state._t} -> {t})")
+    mx, my, mz = m.tolist()
+    qw, qx, qy, qz = q.tolist()
+    v = state._c.step(state._p(params), t, mx, my, mz, qw, qx, qy, qz)
+    state._t = t
+    return state, _md.MagDisturbanceVerdict(*v)

@@ -15,6 +15,7 @@ from typing import Callable
 
 from estimators import core
 from estimators import azimuth as _a_reference
+from estimators import mag_disturbance as _md_reference
 from estimators import mag_usability as _mu_reference
 from estimators import synthetic_ahrs as _b_reference
 from estimators.strapdown import strapdown_step as _strapdown_step_reference
@@ -47,6 +48,8 @@ class Backend:
     """... when no magnetometer sample came (estimators.mag_usability.mag_usability_stale's signature)."""
     azimuth_propagate: Callable = _a_reference.azimuth_propagate
     """Method A's per-sample propagation (estimators.azimuth.azimuth_propagate's signature)."""
+    mag_disturbance_step: Callable = _md_reference.mag_disturbance_step
+    """Magnetic disturbances in motion (estimators.mag_disturbance.mag_disturbance_step's signature)."""
 
 
 def _say(level: int, text: str) -> None:
@@ -84,6 +87,12 @@ def select(environ=os.environ) -> Backend:
         return Backend("core", "compiled core (estimators._core), method A's propagation in Python",
                        core.strapdown_step_held, core.synthetic_ahrs_step, core.synthetic_ahrs_unseen, CoreImuInputChecks,
                        core.mag_usability_step, core.mag_usability_stale)
+    if not core.MAG_DISTURBANCE_AVAILABLE:  # built before mag_disturbance was ported
+        _say(logging.WARNING, "compiled core without the magnetic-disturbance check (an older build): it runs the "
+                              "Python reference")
+        return Backend("core", "compiled core (estimators._core), mag_disturbance in Python", core.strapdown_step_held,
+                       core.synthetic_ahrs_step, core.synthetic_ahrs_unseen, CoreImuInputChecks,
+                       core.mag_usability_step, core.mag_usability_stale, core.azimuth_propagate)
     return Backend("core", "compiled core (estimators._core)", core.strapdown_step_held, core.synthetic_ahrs_step,
                    core.synthetic_ahrs_unseen, CoreImuInputChecks, core.mag_usability_step, core.mag_usability_stale,
-                   core.azimuth_propagate)
+                   core.azimuth_propagate, core.mag_disturbance_step)

@@ -40,8 +40,7 @@ from estimators.levelling import LevellingParams, LevellingState
 from estimators.mag_deviation import (DeviationParams, DeviationState, corrected_mag, deviation_coverage,
                                       deviation_init, deviation_step, residual_sigma_gauss)
 from estimators.mag_error_kf import Kf1State
-from estimators.mag_disturbance import (MagDisturbanceState, mag_disturbance_params_for_field,
-                                        mag_disturbance_step)
+from estimators.mag_disturbance import MagDisturbanceState, mag_disturbance_params_for_field
 from estimators.mag_usability import MagUsabilityState, mag_usability_params_for_field
 from estimators.polar_attitude import (PolarAttitudeParams, polar_attitude_estimate,
                                        polar_attitude_init, polar_attitude_init_at, polar_attitude_step,
@@ -763,8 +762,8 @@ class Pipeline:
         magnet nearby) or the hard iron is being re-learnt; one 'magnetometer' event per change."""
         if mag_body_gauss is None or att is None:
             return mag_body_gauss if att is None else None
-        self.mag_dist, v = mag_disturbance_step(self.mag_dist, t, mag_body_gauss, att.q_P_from_body,
-                                                self.mag_dist_params)
+        self.mag_dist, v = self.core.mag_disturbance_step(self.mag_dist, t, mag_body_gauss, att.q_P_from_body,
+                                                          self.mag_dist_params)
         if v.relearned:
             self._event("magnetic_disturbance", f"hard iron changed (a magnet attached?): re-learning it, "
                         f"the heading coasts on the gyros meanwhile")

@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 from sitl import feed_pipeline, pipeline_inputs, scenario_site  # noqa: E402
 
-from estimators.core import HeldMagUsability, HeldStrapdown  # noqa: E402
+from estimators.core import HeldMagDisturbance, HeldMagUsability, HeldStrapdown  # noqa: E402
 from test_core_ahrs import _differs  # noqa: E402
 from service.config import validate  # noqa: E402
 from service.input_checks import CoreImuInputChecks  # noqa: E402
@@ -70,6 +70,7 @@ def test_pipeline_core_equals_python_reference(monkeypatch, flight):
     # the propagation ran in flight in both, held in the core in one; so did the ported checks
     assert isinstance(pc.strapdown, HeldStrapdown) and not isinstance(pp.strapdown, HeldStrapdown)
     assert isinstance(pc.input_checks, CoreImuInputChecks) and isinstance(pc.mag_usability, HeldMagUsability)
+    assert isinstance(pc.mag_dist, HeldMagDisturbance) and pc.mag_dist.reason == pp.mag_dist.reason
     assert pc.input_checks.counts == pp.input_checks.counts
     assert (pc.mag_usability.usable, pc.mag_usability.reason) == (pp.mag_usability.usable, pp.mag_usability.reason)
     # method A's propagation (in the core in one): its attitude and sensitivity at the end
