@@ -18,18 +18,26 @@ so no Euler angle and no small-angle step anywhere: any attitude, rates up to th
     C_PB' = C_PB [w_hat x] - [W_hat x] C_PB,   w_hat = w_meas - b_g_hat,
     W_hat = w_ie_P_hat + w_eP_P_hat            (Earth rate + transport rate, both in P)
 
-Error states (19, METHODS.md C order), true = estimate + error, except the attitude error
-eps (body frame):  C_PB_true = C_PB_hat (I + [eps x]).
+Error states (22: METHODS.md C's 19 and, beyond the seed, the gyro scale factors), true =
+estimate + error, except the attitude error eps (body frame):  C_PB_true = C_PB_hat (I + [eps x]).
 
-    x = [eps(3), db_g(3), da_v(3), dw_ie_P(3), dw_eP_P(3), db_a(3), dg(1)]
+    x = [eps(3), db_g(3), da_v(3), dw_ie_P(3), dw_eP_P(3), db_a(3), dg(1), ds_g(3)]
 
-    eps'     = -[w_hat x] eps - db_g - C_BP_hat (dw_ie_P + dw_eP_P) - n_g
+    eps'     = -[w_hat x] eps - db_g - diag(w_hat) ds_g - C_BP_hat (dw_ie_P + dw_eP_P) - n_g
     db_g'    = -db_g / tau_bg + w          (first-order Gauss-Markov, GM)
     da_v'    = -da_v / tau_av + w          (vehicle acceleration, body frame, GM)
     dw_ie_P' = -dw_ie_P / tau_ie + w       (Earth rate in P, GM: P drifts w.r.t. N)
     dw_eP_P' = -dw_eP_P / tau_eP + w       (transport rate in P, GM)
     db_a'    = -db_a / tau_ba + w          (accelerometer bias, body, GM)
     dg'      = -dg / tau_g + w             (equator-to-pole gravity variation, GM)
+    ds_g'    = -ds_g / tau_s + w           (gyro scale-factor errors, per axis, GM)
+
+Gyro scale factors (beyond the seed): the gyro reads w_meas = (I + diag(s_g)) w + b_g, so the rate
+is w_hat = (w_meas - b_g) / (1 + s_g) ~ (w_meas - b_g)(1 - s_g) per axis, and a scale error ds_g
+turns the attitude by diag(w) ds_g dt: over one 360 deg loop a consumer gyro's 0.3 % is 1.1 deg
+of tilt the bias states cannot hold (they learn a rate, not a fraction of the rotation). Without
+these states that tilt went into the accelerometer bias, with a tilt sigma 4x below the error,
+once the zero-rate updates (estimators/zero_rate) pinned the gyro bias.
 
 Derivation of eps': with C = C_hat (I + E), E = [eps x], C' = C[w x] - [W x]C and the nominal
 C_hat' = C_hat[w_hat x] - [W_hat x]C_hat, keeping first-order terms,
@@ -100,11 +108,13 @@ from estimators.rotations import (dcm_from_quat, euler_from_dcm, quat_from_euler
 
 EARTH_RATE_RAD_S = 7.292115e-5
 STANDARD_GRAVITY_M_S2 = 9.80665
-N_STATES = 19
+N_STATES = 22
 # slices of the error-state vector
-I_ATT, I_BG, I_AV, I_WIE, I_WEP, I_BA, I_DG = (slice(0, 3), slice(3, 6), slice(6, 9),
-                                               slice(9, 12), slice(12, 15), slice(15, 18),
-                                               slice(18, 19))
+N_NOMINAL = N_STATES - 3
+"""Length of x_hat (every state but the attitude error)."""
+I_ATT, I_BG, I_AV, I_WIE, I_WEP, I_BA, I_DG, I_SG = (slice(0, 3), slice(3, 6), slice(6, 9),
+                                                     slice(9, 12), slice(12, 15), slice(15, 18),
+                                                     slice(18, 19), slice(19, 22))
 
 
 @dataclass(frozen=True)
@@ -141,6 +151,10 @@ class PolarAttitudeParams:
     transport_rate_tau_s: float = 600.0
     accel_bias_sigma_m_s2: float = 0.05
     accel_bias_tau_s: float = 3600.0
+    gyro_scale_sigma: float = 0.0033
+    """Sigma of each gyro axis's scale-factor error (dimensionless): ICM-20602's initial sensitivity
+    tolerance +-1 % (its datasheet; ICM-42688-P +-0.5 %) taken as 3 sigma; no FC calibrates it."""
+    gyro_scale_tau_s: float = 3600.0
     gravity_variation_sigma_m_s2: float = 0.03
     """Sigma of g - g0 (equator to pole: 9.780 -> 9.832 m/s^2)."""
     gravity_variation_tau_s: float = 3600.0
@@ -218,9 +232,10 @@ class PolarAttitudeParams:
     def __post_init__(self) -> None:
         for name in ("update_period_s", "init_period_s", "gyro_noise_rad_s_rt_hz",
                      "gyro_bias_init_sigma_rad_s", "gyro_bias_sigma_rad_s", "gyro_bias_tau_s", "accel_noise_m_s2",
-                     "accel_meas_floor_m_s2", "vehicle_accel_sigma_m_s2", "vehicle_accel_tau_s", "manoeuvre_speed_m_s",
+                     "accel_meas_floor_m_s2", "vehicle_accel_sigma_m_s2", "vehicle_accel_tau_s",
                      "earth_rate_sigma_rad_s", "earth_rate_tau_s", "transport_rate_sigma_rad_s",
                      "transport_rate_tau_s", "accel_bias_sigma_m_s2", "accel_bias_tau_s",
+                     "gyro_scale_sigma", "gyro_scale_tau_s",
                      "gravity_variation_sigma_m_s2", "gravity_variation_tau_s", "gravity_m_s2",
                      "init_tilt_sigma_rad", "init_yaw_sigma_rad", "max_platform_yaw_sigma_rad",
                      "gate_chi2", "reentry_settle_chi2", "max_dt_s", "unseen_rate_sigma_rad_s", "unseen_max_sigma_rad",
@@ -229,6 +244,8 @@ class PolarAttitudeParams:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+        if not (math.isfinite(self.manoeuvre_speed_m_s) and self.manoeuvre_speed_m_s >= 0.0):
+            raise ValueError(f"manoeuvre_speed_m_s must be finite and >= 0, got {self.manoeuvre_speed_m_s!r}")
         g = self.reentry_match_gain
         if not (isinstance(g, (int, float)) and math.isfinite(g) and g >= 0.0):
             raise ValueError(f"reentry_match_gain must be finite and >= 0, got {g!r}")
@@ -244,9 +261,9 @@ class PolarAttitudeState:
     initialised: bool = False
     time_s: float | None = None
     q_P_from_body: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
-    x_hat: np.ndarray = field(default_factory=lambda: np.zeros(16))
+    x_hat: np.ndarray = field(default_factory=lambda: np.zeros(N_NOMINAL))
     """Nominal non-attitude states [b_g(3) rad/s, a_v(3) m/s^2, w_ie_P(3), w_eP_P(3) rad/s,
-    b_a(3) m/s^2, dg(1) m/s^2]."""
+    b_a(3) m/s^2, dg(1) m/s^2, s_g(3)]."""
     P: np.ndarray = field(default_factory=lambda: np.zeros((N_STATES, N_STATES)))
     gyro_prev_rad_s: np.ndarray | None = None
     # accumulators of the current update interval
@@ -345,6 +362,7 @@ def _initial_covariance(C_BP: np.ndarray, p: PolarAttitudeParams,
     P[I_WEP, I_WEP] = np.eye(3) * p.transport_rate_sigma_rad_s ** 2
     P[I_BA, I_BA] = np.eye(3) * p.accel_bias_sigma_m_s2 ** 2
     P[I_DG, I_DG] = p.gravity_variation_sigma_m_s2 ** 2
+    P[I_SG, I_SG] = np.eye(3) * p.gyro_scale_sigma ** 2
     return P
 
 
@@ -357,7 +375,7 @@ def polar_attitude_init(params: PolarAttitudeParams = PolarAttitudeParams(),
     e.g. the pre-launch mean rate at rest (estimators/levelling.py) and its uncertainty. The
     vertical-axis bias is otherwise only observed through tilt while the vehicle is banked.
     """
-    x = np.zeros(16)
+    x = np.zeros(N_NOMINAL)
     if gyro_bias_rad_s is not None:
         b = np.asarray(gyro_bias_rad_s, float)
         if b.shape != (3,) or not np.all(np.isfinite(b)):
@@ -467,14 +485,15 @@ def polar_attitude_step(state: PolarAttitudeState, time_s: float, gyro_body_rad_
 
     xh = state.x_hat
     b_g = xh[0:3]
+    k_g = 1.0 - xh[16:19]                       # 1 / (1 + s_g) to first order
     W_hat = xh[6:9] + xh[9:12]
     # body increment: the sample is the mean rate over its interval (the daemon's filter-rate
     # mean of the IMU samples), so the increment is (w - b_g) dt, plus the two-interval coning
     # term (1/12) a_prev x a: a rotation whose axis turns within the interval (a tumble) is not
     # the rotation about the mean rate; at 500 deg/s with a wobbling axis and 50 Hz samples the
     # trapezoid of the mean rates lagged half a sample and drifted 4 deg in 3 s
-    a_prev = (state.gyro_prev_rad_s - b_g) * dt
-    a_now = (w - b_g) * dt
+    a_prev = (state.gyro_prev_rad_s - b_g) * k_g * dt
+    a_now = (w - b_g) * k_g * dt
     if hole:
         # samples lost inside the interval (or never sent: a slow stream): this sample's mean rate
         # covers only its own last span_s; over the hole before it, h = dt - span_s, the rate is taken
@@ -482,7 +501,7 @@ def polar_attitude_step(state: PolarAttitudeState, time_s: float, gyro_body_rad_
         # of that line over the hole is (w_prev + w) / 2: exact for a rate ramp), and the
         # covariance says what that line may miss (``_bridge_variance_rad2``)
         h_s = dt - span_s
-        dtheta = (0.5 * ((state.gyro_prev_rad_s - b_g) + (w - b_g)) * h_s + (w - b_g) * span_s
+        dtheta = (0.5 * ((state.gyro_prev_rad_s - b_g) + (w - b_g)) * k_g * h_s + (w - b_g) * k_g * span_s
                   + np.cross(a_prev, a_now) / 12.0)
     else:
         dtheta = a_now + np.cross(a_prev, a_now) / 12.0
@@ -501,7 +520,7 @@ def polar_attitude_step(state: PolarAttitudeState, time_s: float, gyro_body_rad_
         # the sample's specific force, like its rate, is the mean over its last span_s only: gravity
         # is predicted over that span (at 50 deg/s the body turns 18 deg in a 0.37 s interval: the
         # mean over the whole interval put ~9 deg of it into the residual)
-        dth_span = (w - b_g) * span_s
+        dth_span = (w - b_g) * k_g * span_s
         q_s = quat_mul(quat_from_rotvec(W_hat * span_s), quat_mul(q, quat_from_rotvec(-dth_span)))
         down_mean = _down_mean_over_sample(q_s, q, W_hat, span_s, dth_span)
     else:
@@ -574,7 +593,8 @@ def _gm_diagonals(dt: float, p: PolarAttitudeParams) -> tuple[np.ndarray, np.nda
                          (I_WIE, p.earth_rate_tau_s, p.earth_rate_sigma_rad_s),
                          (I_WEP, p.transport_rate_tau_s, p.transport_rate_sigma_rad_s),
                          (I_BA, p.accel_bias_tau_s, p.accel_bias_sigma_m_s2),
-                         (I_DG, p.gravity_variation_tau_s, p.gravity_variation_sigma_m_s2)):
+                         (I_DG, p.gravity_variation_tau_s, p.gravity_variation_sigma_m_s2),
+                         (I_SG, p.gyro_scale_tau_s, p.gyro_scale_sigma)):
         F[sl], Q[sl] = _gm(dt, tau, sig)
     return F, Q
 
@@ -590,6 +610,9 @@ def _update(st: PolarAttitudeState, p: PolarAttitudeParams):
     Rt = R_b0_b.T
     F[I_ATT, I_ATT] = Rt
     F[I_ATT, I_BG] = -0.5 * T * (np.eye(3) + Rt)
+    # scale factors: the increment's error is diag(theta) ds_g, theta the body rotation over T
+    # (trapezoid as for the bias: -0.5 (I + Rt) diag(w_mean) T)
+    F[I_ATT, I_SG] = -0.5 * (np.eye(3) + Rt) * rotvec_from_quat(st.acc_q_b0_from_b)[None, :]
     coupling = -0.5 * T * (C_BP_end + Rt @ C_BP_0)
     F[I_ATT, I_WIE] = coupling
     F[I_ATT, I_WEP] = coupling

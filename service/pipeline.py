@@ -85,6 +85,11 @@ FC_TILT_MAX_AGE_S = 0.2
 
 AIR_EVIDENCE_MAX_AGE_S = 1.0
 """Air data older than this (FC time, s) is no evidence for the started-in-flight rule."""
+MULTICOPTER_MANOEUVRE_SPEED_M_S = 10.0
+"""A multicopter's speed along its nose in a turn when no airspeed is measured (m/s): ArduCopter's
+default waypoint speed (WPNAV_SPEED 1000 cm/s; PX4's MPC_XY_CRUISE is 5 m/s)."""
+MANOEUVRE_SPEED_STEP_M_S = 1.0
+"""C's attitude filter takes a new manoeuvre speed when it moved by this much (m/s)."""
 FIXED_WING = 1
 """MAV_TYPE_FIXED_WING."""
 MAV_STATE_STANDBY, MAV_STATE_ACTIVE = 3, 4
@@ -217,9 +222,14 @@ class Pipeline:
         # holes up to imu_gap_s are bridged on the rates around them (as the strapdown does); a
         # longer gap is an interval not seen (the link reports it as a time_gap); a filter-rate
         # sample is the mean over its filter period, a longer interval (a slow IMU stream) is bridged
+        # the accelerometer bias prior is the configured one; the speed that bounds the centripetal
+        # acceleration in turns is the measured airspeed, else the vehicle's (``_manoeuvre_speed_m_s``)
+        self.manoeuvre_speed_cfg_m_s = heading["manoeuvre_speed_m_s"]
+        self.cruise_speed_m_s = heading["cruise_speed_m_s"]
         self.polar_att_params = PolarAttitudeParams(
             max_dt_s=cfg["mavlink"]["imu_gap_s"],
-            sample_span_max_s=max(PolarAttitudeParams.sample_span_max_s, 1.0 / cfg["heading"]["filter_rate_hz"]))
+            sample_span_max_s=max(PolarAttitudeParams.sample_span_max_s, 1.0 / cfg["heading"]["filter_rate_hz"]),
+            accel_bias_sigma_m_s2=imu["accel_bias_sigma_m_s2"], manoeuvre_speed_m_s=self._manoeuvre_speed_m_s(None))
         self.polar_att = polar_attitude_init(self.polar_att_params)
         lat = cfg["site"]["lat_deg"]
         vr_sigma = (vertical_rate_sigma_for_site(math.radians(lat), heading["cruise_speed_m_s"])
@@ -374,6 +384,9 @@ class Pipeline:
         C = self.C_body_from_sensor
         gyro_b, accel_b = C @ gyro_s, C @ accel_s
         mag_b = C @ mag_s if mag_s is not None else None
+        speed = self._manoeuvre_speed_m_s(t)
+        if abs(speed - self.polar_att_params.manoeuvre_speed_m_s) >= MANOEUVRE_SPEED_STEP_M_S:
+            self.polar_att_params = dc_replace(self.polar_att_params, manoeuvre_speed_m_s=speed)
         self.polar_att, adiag = polar_attitude_step(self.polar_att, t, gyro_b, accel_b, self.polar_att_params)
         if adiag.relevelled:
             self._event("attitude", adiag.reason)
@@ -566,6 +579,26 @@ class Pipeline:
                 self._ahrs_trusted = out.reference_trusted
                 self._event("reference", ("FC attitude trusted: " if out.reference_trusted
                                           else "FC attitude NOT trusted: ") + out.reference_reason)
+
+    def _manoeuvre_speed_m_s(self, t: float | None) -> float:
+        """The speed V along the body x axis with which C's attitude filter bounds the centripetal
+        acceleration w x [V, 0, 0] of a turn (estimators/polar_attitude ``manoeuvre_speed_m_s``):
+        the measured true airspeed while the air data is fresh and its pitot sound (a steady wind
+        moves the vehicle but does not turn it: the air-relative velocity is what a turn rotates);
+        else ``[heading] manoeuvre_speed_m_s`` when set, else the vehicle's: a multicopter
+        ``MULTICOPTER_MANOEUVRE_SPEED_M_S``, a fixed wing (or a vehicle not known yet) the
+        configured cruise speed."""
+        air = self.ahrs.air_last
+        if (t is not None and air is not None and self.pressure is not None and self.pressure.press_diff_pa is not None
+                and abs(t - air.time_s) <= AIR_EVIDENCE_MAX_AGE_S and not (air.pitot_blocked or air.pitot_noisy)
+                and math.isfinite(air.tas_m_s)):
+            return float(air.tas_m_s)
+        if self.manoeuvre_speed_cfg_m_s > 0.0:
+            return self.manoeuvre_speed_cfg_m_s
+        choice = self.vehicle.choice
+        if choice is not None and choice.vehicle == "multicopter":
+            return MULTICOPTER_MANOEUVRE_SPEED_M_S
+        return self.cruise_speed_m_s
 
     def _flight_evidence(self, t: float) -> FlightEvidence:
         """What the started-in-flight rule weighs besides the IMU (service/phases.py)."""
