@@ -137,6 +137,15 @@ class PolarHeadingParams:
     mag_error_tau_s: float = 30.0
     """Correlation time of the non-white heading-measurement errors (tilt error, declination,
     residual deviation) (s); their variance is inflated by tau / mag_update_period_s."""
+    mag_error_turn_rad: float = 1.0
+    """Body rotation over which the body-fixed part of those errors decorrelates (rad; platform
+    formulation). The tilt error (an accelerometer bias, fixed in the body) and the residual
+    deviation reach the heading through the body's attitude: G . t with t the tilt error in the
+    level frame, a one-cycle deviation b cos(psi + c). Once the body has turned by ~1 rad their
+    heading error is another draw (cos(1 rad) = 0.54 correlation left; 0 after a quarter turn), so
+    while the body turns at |w| they count once per min(mag_error_tau_s, this / |w|); the
+    declination error, fixed in the navigation frame, stays counted once per mag_error_tau_s.
+    0 = off (all once per mag_error_tau_s)."""
     consider_floor_fraction: float = 0.0
     """Fraction of the correlated measurement variance (running mean) below which the reported
     heading variance never goes (1 = the full consider bound, very conservative when the vehicle
@@ -181,7 +190,7 @@ class PolarHeadingParams:
             if name == "consider_floor_fraction":
                 if not 0.0 <= v <= 1.0:
                     raise ValueError(f"consider_floor_fraction must be in [0, 1], got {v!r}")
-            elif name in ("uncalibrated_hard_iron_gauss", "uncalibrated_soft_iron"):
+            elif name in ("uncalibrated_hard_iron_gauss", "uncalibrated_soft_iron", "mag_error_turn_rad"):
                 if not (math.isfinite(v) and v >= 0.0):
                     raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
             elif not (math.isfinite(v) and v > 0.0):
@@ -635,8 +644,16 @@ def _measure_platform(st, u, q, p):
                                reason=f"horizontal field {H:.4f} G < {p.min_horizontal_field_gauss} G")
     G = -mp[2] / (H * H) * mp[:2]       # d psi_m / d(tilt in P), module docstring
     r_white = (p.mag_noise_gauss / H) ** 2
-    r_corr = u.declination_sigma_rad ** 2 + float(G @ P_tilt @ G) + p.mag_heading_floor_rad ** 2
-    R = r_white + r_corr * max(1.0, p.mag_error_tau_s / p.mag_update_period_s)
+    r_nav = u.declination_sigma_rad ** 2                                 # fixed in N
+    r_body = float(G @ P_tilt @ G) + p.mag_heading_floor_rad ** 2       # fixed in the body
+    r_corr = r_nav + r_body
+    # one independent sample per correlation time: tau for r_nav, min(tau, turn / |w|) for r_body
+    rate = float(np.linalg.norm(np.asarray(u.gyro_body_rad_s, float) - st.x[2:5]))
+    tau_body = p.mag_error_tau_s
+    if p.mag_error_turn_rad > 0.0 and rate * tau_body > p.mag_error_turn_rad:
+        tau_body = p.mag_error_turn_rad / rate
+    R = (r_white + r_nav * max(1.0, p.mag_error_tau_s / p.mag_update_period_s)
+         + r_body * max(1.0, tau_body / p.mag_update_period_s))
     R_single = r_white + r_corr
     z = wrap_2pi(-math.atan2(mp[1], mp[0]) + u.declination_rad)    # azimuth of P's x axis
     st = replace(st, r_uncal_rad2=uncalibrated_heading_var(m, H, u.mag_residual_sigma_gauss, p))
