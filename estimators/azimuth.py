@@ -55,6 +55,7 @@ from estimators import azimuth_fit as af
 from estimators.launch_direction import (LAUNCH_CASES, BoostParams, BoostState, boost_direction, boost_init, boost_step, elevation_rad,
                                          u_aligned, u_vertical)
 from estimators.azimuth_fit import angle_between
+from estimators.records import fast_replace
 from estimators.levelling import (LevellingParams, LevellingResult,
                                   LevellingState, levelling_result, levelling_step)
 from estimators.rotations import dcm_from_quat, euler_from_dcm, quat_from_dcm, skew
@@ -263,7 +264,7 @@ def azimuth_prelaunch_step(state: AzimuthState, gyro_rad_s: np.ndarray, accel_m_
     while k < len(pending) and pending[k][0] < cut:
         lev = levelling_step(lev, pending[k][1], pending[k][2])
         k += 1
-    return replace(state, levelling=lev, pending=pending[k:])
+    return fast_replace(state, levelling=lev, pending=pending[k:])  # per sample: no __post_init__ to re-run
 
 
 def azimuth_levelling(state: AzimuthState) -> LevellingResult:
@@ -423,7 +424,7 @@ def azimuth_step(state: AzimuthState, gyro_rad_s: np.ndarray, accel_m_s2: np.nda
                 and len(state.samples) < p.max_fit_samples and np.all(np.isfinite(h))):
             upd["samples"] = state.samples + (MagRecord(float(time_s), h.copy(), C_isf_sf.T.copy(), G.copy()),)
             upd["last_mag_s"] = float(time_s)
-    st = replace(state, **upd)
+    st = fast_replace(state, **upd)  # per sample: AzimuthState has no __post_init__ (records.fast_replace)
     if u_new is not None:
         st = _with_checks(st, u_new)
     period = p.resolve_period_s if st.solution is not None else p.resolve_period_unsolved_s
