@@ -128,6 +128,10 @@ class FlightEvidence:
     False in the air; None where the FC does not say (mavlink_io.samples.FcFlightState)."""
 
 
+_NO_EVIDENCE = FlightEvidence()
+"""Nothing known besides the IMU (a frozen record, shared: not built again per sample)."""
+
+
 @dataclass(frozen=True)
 class PhaseParams:
     still_seconds: float = 2.0
@@ -399,7 +403,7 @@ def phase_step(state: PhaseState, gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray
     ax, ay, az = accel_m_s2.tolist()
     excess = abs(math.sqrt(ax * ax + ay * ay + az * az) - STANDARD_GRAVITY_M_S2)
     above = excess > params.detect_accel_m_s2
-    ev = evidence if evidence is not None else FlightEvidence()
+    ev = evidence if evidence is not None else _NO_EVIDENCE
     impulse = params.vehicle in IMPULSE_VEHICLES
 
     if state.phase == BOOT:
