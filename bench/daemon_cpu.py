@@ -1,7 +1,7 @@
 """The daemon's CPU per second of flight, and how often its loop wakes, against the bundled simulator.
 
     python bench/daemon_cpu.py [--imu-hz 50] [--window-s 40] [--port 47100] [--json PATH] [--quick]
-                               [--fixed-wait-s 0.005] [--idle]
+                               [--fixed-wait-s 0.005] [--idle] [--no-imu-batch] [--sched unit|inherit]
 
 ``azimuthd sim`` (inclined_rail with its rest shortened to 6 s, real time) and ``azimuthd run`` (the
 example config with the scenario's site, zenoh off, no extra outputs) as two processes over loopback
@@ -29,7 +29,14 @@ What the daemon lost is reported beside it (its ``stopped`` log record: IMU mess
 processed, kernel drops, sequence gaps), so a lower CPU that came from dropping input shows. ``--fixed-wait-s 0.005`` runs the daemon with the loop it had before
 it blocked until input or a timer (``Daemon.loop_wait_s`` replaced by that constant wait): a
 before/after in one tree. One run per call: the machine is shared; run it before and after a
-change in the same conditions and compare.
+change in the same conditions and compare. ``--no-imu-batch``: the daemon with the link's message
+path (one ImuSample per RAW_IMU, LinkConfig.imu_batch off) instead of the batch path, likewise.
+
+Scheduling (``--sched unit``, the default): the daemon starts in a session of its own whose CPU
+group (kernel autogroup) gets the systemd unit's ``Nice=`` (bench/sitl.py ``unit_nice``: the stand-in
+for the unit's cgroup CPUWeight), the simulator (the FC) one of its own at nice -15, as
+bench/geofence.py runs them (needs root; ``--sched inherit``: both inherit this process's). The
+1-min load is printed beside every figure.
 """
 from __future__ import annotations
 
@@ -73,11 +80,15 @@ def _stopped_fields(log_path: Path) -> dict:
     return fields
 
 
+FC_GROUP_NICE = -15
+"""The simulator's CPU group nice with --sched unit (bench/geofence.py's FC and wire)."""
+
+
 def measure(imu_hz: float, window_s: float, warmup_s: float, port: int, fixed_wait_s: float | None = None,
-            idle: bool = False) -> dict:
+            idle: bool = False, imu_batch: bool = True, sched: str = "unit") -> dict:
     import psutil
 
-    from bench.sitl import scenario_site, write_config
+    from bench.sitl import _set_nice, scenario_site, unit_nice, write_config
 
     workdir = Path(tempfile.mkdtemp(prefix="azimuthd-cpu-"))
     scen = workdir / "inclined_rail_short_rest.toml"
@@ -92,11 +103,19 @@ def measure(imu_hz: float, window_s: float, warmup_s: float, port: int, fixed_wa
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     dlog, slog = open(workdir / "daemon.log", "w"), open(workdir / "sim.log", "w")
     run = ["-m", "service.cli"]
+    patches = []
     if fixed_wait_s is not None:  # the old loop: step(constant) whatever the timers say
-        run = ["-c", "import sys; from service.daemon import Daemon; from service.cli import main; "
-                     f"Daemon.loop_wait_s = lambda self: {float(fixed_wait_s)!r}; sys.exit(main(sys.argv[1:]))"]
+        patches.append(f"Daemon.loop_wait_s = lambda self: {float(fixed_wait_s)!r}")
+    if not imu_batch:  # the link's message path: one ImuSample per RAW_IMU
+        patches.append("_init = Daemon.__init__; Daemon.__init__ = lambda self, *a, **k: (_init(self, *a, **k), "
+                       "setattr(self, 'link_cfg', dataclasses.replace(self.link_cfg, imu_batch=False)))[0]")
+    if patches:
+        run = ["-c", "import dataclasses, sys; from service.daemon import Daemon; from service.cli import main; "
+                     + "; ".join(patches) + "; sys.exit(main(sys.argv[1:]))"]
+    own = sched == "unit"
     daemon = subprocess.Popen([sys.executable, *run, "run", "--config", str(cfg)], cwd=ROOT,
-                              env=env, stdout=dlog, stderr=subprocess.STDOUT)
+                              env=env, stdout=dlog, stderr=subprocess.STDOUT, start_new_session=own,
+                              preexec_fn=_set_nice(None, unit_nice()) if own else None)
     t_wait = time.monotonic() + 180.0  # the daemon listens before the simulator pushes (imports take
     while "msg=started " not in (workdir / "daemon.log").read_text(errors="replace"):  # long when busy)
         if daemon.poll() is not None or time.monotonic() > t_wait:
@@ -109,9 +128,13 @@ def measure(imu_hz: float, window_s: float, warmup_s: float, port: int, fixed_wa
                f"udpout:127.0.0.1:{port}", "--speed", "1", "--seed", "1"]
     if idle:  # no FC: a process that only sleeps stands in for the simulator's slot
         sim_cmd = [sys.executable, "-c", "import time; time.sleep(3600)"]
-    sim = subprocess.Popen(sim_cmd, cwd=ROOT, env=env, stdout=slog, stderr=subprocess.STDOUT)
+    sim = subprocess.Popen(sim_cmd, cwd=ROOT, env=env, stdout=slog, stderr=subprocess.STDOUT, start_new_session=own,
+                           preexec_fn=_set_nice(None, FC_GROUP_NICE) if own else None)
     out = {"imu_hz": imu_hz, "window_s": window_s, "warmup_s": warmup_s, "workdir": str(workdir),
            "loop": "blocking (Daemon.loop_wait_s)" if fixed_wait_s is None else f"fixed wait {fixed_wait_s:g} s",
+           "imu_path": "batch (ImuBatch)" if imu_batch else "message (ImuSample)",
+           "sched": (f"daemon CPU group nice {unit_nice()} (the unit's Nice=), simulator group nice {FC_GROUP_NICE}"
+                     if own else "inherited"),
            "azimuthd_core": os.environ.get("AZIMUTHD_CORE", "core"), "idle_no_fc": idle}
     try:
         time.sleep(warmup_s)
@@ -157,11 +180,15 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="a 20 s window")
     ap.add_argument("--fixed-wait-s", type=float, default=None, help="the old loop: step(this) every time")
     ap.add_argument("--idle", action="store_true", help="no simulator: the loop's own cost")
+    ap.add_argument("--no-imu-batch", action="store_true", help="the link's message path (one ImuSample per RAW_IMU)")
+    ap.add_argument("--sched", choices=("unit", "inherit"), default="unit",
+                    help="unit: the daemon's CPU group at the unit's Nice=, the simulator's at -15 (root)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     window = 20.0 if a.quick else a.window_s
-    r = measure(a.imu_hz, window, a.warmup_s, a.port, a.fixed_wait_s, a.idle)
+    r = measure(a.imu_hz, window, a.warmup_s, a.port, a.fixed_wait_s, a.idle, not a.no_imu_batch, a.sched)
     what = "idle, no FC" if r["idle_no_fc"] else f"RAW_IMU {r['imu_hz']:g} Hz"
+    print(f"scheduling: {r['sched']}; IMU path: {r['imu_path']}")
     print(f"daemon ({r['loop']}) {what}, over {r['window_s']:.0f} s (load {r['load_avg_1min']:.1f}): "
           f"{r['daemon_cpu_pct']:.1f} % of a core ({r['daemon_cpu_ms_per_s']:.0f} ms CPU per s, "
           f"{r['daemon_cpu_ms_per_imu_nominal']:.2f} ms per nominal IMU sample), loop wakeups "

@@ -2,7 +2,8 @@
 end-to-end latency RAW_IMU -> ATTITUDE and the daemon's CPU, with the simulator and the daemon as
 separate processes at 400 Hz.
 
-    python bench/speed.py [--quick] [--json PATH] [--no-install] [--no-sitl]
+    python bench/speed.py [--quick] [--json PATH] [--no-install] [--no-sitl] [--sitl-only] [--no-imu-batch]
+                          [--no-replay]
 
 1. Compute cost. One synthetic 400 Hz stream (sim.offline, ``inclined_rail`` with a shortened rest
    so that pre-launch and flight are both in it): IMU + SCALED_PRESSURE + the FC's ATTITUDE, in
@@ -31,7 +32,11 @@ separate processes at 400 Hz.
    measured after the SITL on the same machine: what the SITL figure has above it is the daemon.
 3. CPU. ``psutil`` cpu_times of the daemon process over a window (30 s; 12 s with --quick) in
    flight at 400 Hz: (user + system) / wall, in percent of one core. The simulator's share is
-   reported apart.
+   reported apart. The daemon runs as the systemd unit schedules it: a session of its own whose CPU
+   group (kernel autogroup) has the unit's ``Nice=`` (bench/sitl.py ``unit_nice``; needs root), the
+   1-min load beside the figures; ``--no-imu-batch`` runs its link's message path (one ImuSample
+   per RAW_IMU) instead of the batch path, for a before/after in one tree. ``--sitl-only`` skips
+   part 1.
 
 Targets (issue 9): whole stack <= 8 us per IMU sample, latency p99 <= 1 ms, CPU <= 5 % of a core.
 """
@@ -421,12 +426,12 @@ def time_case(factory, run, items, n_imu: int, budget_s: float) -> dict:
 # --- latency and CPU through two processes -------------------------------------------------------
 
 def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | None = None,
-                     rt_priority: int = 0) -> dict:
+                     rt_priority: int = 0, imu_batch: bool = True) -> dict:
     import tempfile
 
     import psutil
 
-    from bench.sitl import Sitl
+    from bench.sitl import Sitl, unit_nice
 
     window_s = 12.0 if quick else 30.0
     rest_s = 6.0
@@ -439,7 +444,15 @@ def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | No
     # back, on one monotonic clock in one thread
     sitl = Sitl(scenario=str(scenario), speed=1.0, workdir=workdir,
                 config_overrides={"mavlink": {"imu_rate_hz": RATE_HZ}}, tap=True,
-                tap_record_to_daemon=("RAW_IMU",))
+                tap_record_to_daemon=("RAW_IMU",), daemon_own_session=True,
+                daemon_group_nice=unit_nice() if os.geteuid() == 0 else None)
+    if not imu_batch:  # the link's message path, for a before/after
+        i = sitl.daemon_cmd.index("-m")
+        sitl.daemon_cmd[i:i + 2] = ["-c", "import dataclasses, sys; from service.daemon import Daemon; "
+                                          "from service.cli import main; _init = Daemon.__init__; "
+                                          "Daemon.__init__ = lambda self, *a, **k: (_init(self, *a, **k), setattr("
+                                          "self, 'link_cfg', dataclasses.replace(self.link_cfg, imu_batch=False)))[0]; "
+                                          "sys.exit(main(sys.argv[1:]))"]
     if profile_out:
         # the daemon under cProfile with a CPU-time clock (waiting in select and being preempted by
         # other processes on this shared machine do not count)
@@ -449,7 +462,9 @@ def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | No
                 f"p.disable(); p.dump_stats({str(profile_out)!r}); sys.exit(rc)")
         sitl.daemon_cmd[i:i + 2] = ["-c", code]
     tap = sitl.tap
-    out: dict = {"window_s": window_s, "rate_hz": RATE_HZ, "attitude_out_hz": 50.0}
+    out: dict = {"window_s": window_s, "rate_hz": RATE_HZ, "attitude_out_hz": 50.0,
+                 "imu_path": "batch (ImuBatch)" if imu_batch else "message (ImuSample)",
+                 "daemon_group_nice": sitl.daemon_group_nice}
     with sitl:
         if rt_priority > 0:
             # what a unit file can grant the daemon (CPUSchedulingPolicy=fifo): not preempted by
@@ -469,6 +484,7 @@ def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | No
         time.sleep(window_s)
         d1, s1, w1 = dproc.cpu_times(), sproc.cpu_times(), time.monotonic()
         n_imu1 = len(tap.to_daemon)
+        out["load_avg_1min"] = os.getloadavg()[0]
         wall = w1 - w0
         out["daemon_cpu_pct"] = 100.0 * ((d1.user - d0.user) + (d1.system - d0.system)) / wall
         out["sim_cpu_pct"] = 100.0 * ((s1.user - s0.user) + (s1.system - s0.system)) / wall
@@ -587,12 +603,67 @@ def ported_figures(rows: list[dict]) -> dict:
 
 # --- main -------------------------------------------------------------------------------------
 
+def replay_part(quick: bool) -> dict:
+    """``azimuthd replay`` of a simulated 400 Hz .tlog as its own process (bench/replay_speed.py; the
+    real logs: run that bench): ``replay_x_realtime`` = log duration / wall time, and per CPU second."""
+    import tempfile
+
+    from bench.replay_speed import make_tlog_400hz, replay_one
+    workdir = Path(tempfile.mkdtemp(prefix="azimuthd-speed-replay-"))
+    tlog = workdir / "sim-400hz.tlog"
+    r = replay_one(tlog, workdir, make_tlog_400hz(tlog, 10.0 if quick else 30.0))
+    if "error" in r:
+        print(f"\nreplay of a 400 Hz log failed: {r['error']}")
+        return {"replay": r}
+    print(f"\nazimuthd replay, simulated 400 Hz .tlog ({r['log_s']:.0f} s): {r['replay_x_realtime']:.1f}x real time "
+          f"(wall), {r['replay_x_realtime_cpu']:.1f}x per CPU second; Pipeline {r['pipeline_us_per_imu_sample']:.0f} us "
+          f"per IMU sample (load {r['load_avg_1min']:.1f})")
+    return {"replay_x_realtime": r["replay_x_realtime"], "replay_x_realtime_cpu": r["replay_x_realtime_cpu"],
+            "replay": r}
+
+
+def sitl_part(args) -> dict:
+    """Part 2 and 3 (latency, daemon CPU) and the harness floor, printed; the JSON ``sitl`` dict."""
+    print("\nSITL: simulator + daemon as processes at 400 Hz (loopback UDP) ...", flush=True)
+    try:
+        s = sitl_latency_cpu(args.quick, args.profile_daemon, rt_priority=args.rt,
+                             imu_batch=not args.no_imu_batch)
+    except Exception as exc:  # noqa: BLE001 - report, keep the compute figures
+        s = {"error": f"{type(exc).__name__}: {exc}"}
+    try:
+        s.update(harness_floor(4.0 if args.quick else 10.0, args.rt))
+    except Exception as exc:  # noqa: BLE001
+        s["floor_error"] = f"{type(exc).__name__}: {exc}"
+    if "error" in s:
+        print(f"  SITL failed: {s['error']}")
+    else:
+        print(f"  scheduling: {s['sched']}")
+        print(f"  RAW_IMU received by the daemon: {s['imu_rate_received_hz']:.0f} Hz; ATTITUDE matched "
+              f"{s['attitude_matched']} (unmatched {s['attitude_unmatched']})")
+        if "latency_p50_ms" in s:
+            print(f"  latency RAW_IMU in -> ATTITUDE out: p50 {s['latency_p50_ms']:.3f} ms, p99 "
+                  f"{s['latency_p99_ms']:.3f} ms, max {s['latency_max_ms']:.3f} ms")
+        if "floor_p99_ms" in s:
+            print(f"  harness floor (UDP echo through a trivial Python process, same machine): "
+                  f"p50 {s['floor_p50_ms']:.3f} ms, p99 {s['floor_p99_ms']:.3f} ms")
+        print(f"  CPU over {s['window_s']:.0f} s: daemon {s['daemon_cpu_pct']:.1f} % of a core, "
+              f"simulator {s['sim_cpu_pct']:.1f} %")
+    if "load_avg_1min" in s:
+        print(f"  (1-min load {s['load_avg_1min']:.1f}; daemon: {s['imu_path']}, its CPU group nice "
+              f"{s['daemon_group_nice']})")
+    return s
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="shorter stream and SITL window (< 2 min)")
     ap.add_argument("--json", default=str(ROOT / "bench" / "results" / "speed.json"))
     ap.add_argument("--no-install", action="store_true", help="do not pip-install missing reference filters")
     ap.add_argument("--no-sitl", action="store_true", help="skip the two-process latency/CPU part")
+    ap.add_argument("--sitl-only", action="store_true", help="only the two-process latency/CPU part")
+    ap.add_argument("--no-replay", action="store_true", help="skip azimuthd replay of a 400 Hz log (replay_x_realtime)")
+    ap.add_argument("--no-imu-batch", action="store_true",
+                    help="the SITL daemon with its link's message path (one ImuSample per RAW_IMU)")
     ap.add_argument("--rt", type=int, metavar="PRIO", default=0,
                     help="run the SITL daemon (and the tap) SCHED_FIFO at this priority (needs root): "
                          "latency without preemption by other processes")
@@ -600,6 +671,13 @@ def main(argv=None) -> int:
                     help="run the SITL daemon under cProfile, stats to PATH (figures then include its overhead)")
     args = ap.parse_args(argv)
     t_all = time.monotonic()
+    if args.sitl_only:
+        result = {"rate_hz": RATE_HZ, "cpu_count": os.cpu_count(), "sitl": sitl_part(args),
+                  "load_avg_1min": os.getloadavg()[0]}
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(json_safe(result), indent=2) + "\n")
+        print(f"json: {args.json}")
+        return 0
     versions = ensure_references(not args.no_install)
     print("reference filters (benchmark only): " +
           ", ".join(f"{k} {v or 'NOT AVAILABLE'}" for k, v in versions.items()))
@@ -646,30 +724,9 @@ def main(argv=None) -> int:
     for k, v in result["ported"].items():
         print(f"  {k}: {v:.3f}")
     if not args.no_sitl:
-        print("\nSITL: simulator + daemon as processes at 400 Hz (loopback UDP) ...", flush=True)
-        try:
-            s = sitl_latency_cpu(args.quick, args.profile_daemon, rt_priority=args.rt)
-        except Exception as exc:  # noqa: BLE001 - report, keep the compute figures
-            s = {"error": f"{type(exc).__name__}: {exc}"}
-        try:
-            s.update(harness_floor(4.0 if args.quick else 10.0, args.rt))
-        except Exception as exc:  # noqa: BLE001
-            s["floor_error"] = f"{type(exc).__name__}: {exc}"
-        result["sitl"] = s
-        if "error" in s:
-            print(f"  SITL failed: {s['error']}")
-        else:
-            print(f"  scheduling: {s['sched']}")
-            print(f"  RAW_IMU received by the daemon: {s['imu_rate_received_hz']:.0f} Hz; ATTITUDE matched "
-                  f"{s['attitude_matched']} (unmatched {s['attitude_unmatched']})")
-            if "latency_p50_ms" in s:
-                print(f"  latency RAW_IMU in -> ATTITUDE out: p50 {s['latency_p50_ms']:.3f} ms, p99 "
-                      f"{s['latency_p99_ms']:.3f} ms, max {s['latency_max_ms']:.3f} ms")
-            if "floor_p99_ms" in s:
-                print(f"  harness floor (UDP echo through a trivial Python process, same machine): "
-                      f"p50 {s['floor_p50_ms']:.3f} ms, p99 {s['floor_p99_ms']:.3f} ms")
-            print(f"  CPU over {s['window_s']:.0f} s: daemon {s['daemon_cpu_pct']:.1f} % of a core, "
-                  f"simulator {s['sim_cpu_pct']:.1f} %")
+        result["sitl"] = sitl_part(args)
+    if not args.no_replay:
+        result.update(replay_part(args.quick))
     print("\ntargets:")
     st = result["stack_us_per_imu_sample"]
     print(f"  whole stack <= {TARGET_STACK_US} us/sample: {st:.2f} us -> {'PASS' if st <= TARGET_STACK_US else 'FAIL'}")

@@ -98,6 +98,7 @@ class TlogLogReader:
         return min(1.0, self._consumed / self._size) if self._size else 1.0
 
     def items(self) -> Iterator:
+        from mavlink_io.imu_batch import ImuBatch
         from mavlink_io.link import LinkConfig, MavlinkLink
         from mavlink_io.samples import FcFlightState, FcHeartbeat, ImuSample
         from mavlink_io.tlog import TlogReader
@@ -106,7 +107,9 @@ class TlogLogReader:
         self._vehicle_type = None
 
         clock_s = [0.0]
-        cfg = LinkConfig(url="udpin:127.0.0.1:0", imu_gap_s=self.imu_gap_s)  # never opened
+        # never opened; RAW_IMU through the batch path as the daemon reads it (the same samples,
+        # tests/test_mavlink_imu_batch_daemon.py), without pymavlink's message objects
+        cfg = LinkConfig(url="udpin:127.0.0.1:0", imu_gap_s=self.imu_gap_s, imu_batch=True)
         self.link = link = MavlinkLink(cfg, clock=lambda: clock_s[0], transport=NullTransport(None))
         os.environ.setdefault("MAVLINK20", "1")
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -124,6 +127,10 @@ class TlogLogReader:
             self._consumed = record_bytes + reader.skipped_bytes
             for item in link.feed(frame, t_s):
                 cls = type(item)
+                if cls is ImuBatch:
+                    for last_imu in item.samples():
+                        yield last_imu
+                    continue
                 if cls is FcHeartbeat:
                     self._vehicle_type = item.vehicle_type
                     if (item.system_id, item.component_id) == (link.target_system, link.target_component):
