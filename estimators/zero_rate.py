@@ -24,7 +24,8 @@ Updates (one measurement z = the chunk's mean body rate, R = its variance, gated
 on 3 dof, Joseph form):
 - attitude filter (estimators/polar_attitude: b_g and the Earth and transport rates in P are its
   states): z = b_g + C_BP (w_ie_P + w_eP_P), so with C_BP_true = (I - [eps x]) C_BP_hat and
-  v = C_BP_hat W_hat, C_BP_true W = v + [v x] eps: H = [ [v x], I, 0, C_BP, C_BP, 0, 0 ];
+  v = C_BP_hat W_hat, C_BP_true W = v + [v x] eps: H = [ [v x], I, 0, C_BP, C_BP, 0, 0, 0 ] (the
+  last block: the gyro scale factors, which a rest does not see);
 - heading filter, platform formulation (estimators/polar_heading: x = [psi_H, w_v, b(3)], its own
   body attitude C_HB in the level frame H): z = b + C_BH e_z w_v + the horizontal Earth rate, which
   is not a state there; it lies in H's level plane, so it never reaches the heading (the heading
