@@ -18,8 +18,10 @@ from __future__ import annotations
 import logging
 import math
 import os
+import pathlib
 import signal
 import time
+import traceback
 
 from pymavlink.dialects.v20 import common as mavlink2
 
@@ -68,13 +70,15 @@ SD_STATUS_PERIOD_S = 5.0
 WAITING_LOG_S = 10.0
 """Period of the "waiting for heartbeat" message until the FC's first HEARTBEAT."""
 IMU_SILENCE_SHOWN_S = 1.0
+FAULTS_BEFORE_REBUILD = 20
+"""Consecutive inputs whose handling raised before the Pipeline is built afresh (``Daemon.dispatch``)."""
 LOOP_MAX_WAIT_S = 0.1
 """The loop blocks on the FC link until input arrives or a timer is due (the link's own: heartbeat,
 link timeout, rate and parameter retries; the next MAVLink output; the command protocol's next try),
 and at most this long: the periodic work (watchdog, status, health, saves: periods >= 0.5 s) and a
 stop or reload signal wait at most this when no input comes. It used to wake every 5 ms."""
 _SHOWN_RATES = ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU", "SCALED_PRESSURE", "ATTITUDE")
-_EVENT_SEVERITY = {"rates_limited": "warning", "link_lost": "warning", "fc_reboot": "warning", "time_gap": "warning",
+_EVENT_SEVERITY = {"internal_fault": "error", "pipeline_rebuilt": "warning", "rates_limited": "warning", "link_lost": "warning", "fc_reboot": "warning", "time_gap": "warning",
                    "transport_error": "error", "not_still": "info", "strapdown": "warning",
                    "imu_input": "warning", "signature_rejected": "warning",
                    "unsigned_command_rejected": "warning", "input_overflow": "warning", "input_loss": "warning",
@@ -165,6 +169,12 @@ class Daemon:
         self.deviation_path = state_dir(cfg) / DEVIATION_FILE
         self.pipeline = Pipeline(cfg, kf1_learn=kf1_learn, kf1_applied=kf1_applied, solver=solver,
                                  deviation=self._load_deviation())
+        self._kf1_applied_at_start = kf1_applied
+        self.internal_faults = 0
+        """Inputs whose handling raised (a defect of ours, contained: see ``dispatch``)."""
+        self.faults_in_row: dict[str, int] = {}
+        """Per input type (ImuSample, PressureSample...): its inputs that failed since its last success."""
+        self.pipeline_rebuilds = 0
         out = cfg["outputs"]
         self.scheduler = OutputScheduler({"ATTITUDE": out["attitude_hz"], "ATTITUDE_QUATERNION": out["attitude_hz"],
                                           "ODOMETRY": out["odometry_hz"],
@@ -386,7 +396,8 @@ class Daemon:
             except OSError:
                 pass
         c = self.pipeline.counters
-        fields = {"imu_samples": c.imu_samples, "imu_rejected": c.imu_rejected, "sent": self.sent}
+        fields = {"imu_samples": c.imu_samples, "imu_rejected": c.imu_rejected, "sent": self.sent,
+                  "internal_faults": self.internal_faults, "pipeline_rebuilds": self.pipeline_rebuilds}
         if self.link is not None:  # what the link saw, for the count in vs processed (RELIABILITY.md)
             ls = self.link.stats
             imu = sum(ls.messages_by_type.get(k, 0) for k in ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU"))
@@ -504,6 +515,48 @@ class Daemon:
             self._publish_air_data(now)
 
     def dispatch(self, item) -> None:
+        """One input through its handler. An exception there is a defect of ours, not the input's
+        (a bad input gets its own error where it is decoded and checked): it is logged as
+        ``internal_fault`` with where it was raised, counted, and that input dropped; the daemon
+        keeps running and its outputs age out through the output gate. FAULTS_BEFORE_REBUILD
+        faults in a row on one kind of input mean the estimators' state is broken: the Pipeline is
+        built afresh (it finds itself in flight from its inputs, as after a restart in flight)."""
+        try:
+            self._dispatch(item)
+        except Exception as exc:  # noqa: BLE001  (contained: logged, counted, recovered from)
+            self._internal_fault(item, exc)
+        else:
+            self.faults_in_row.pop(type(item).__name__, None)
+
+    def _internal_fault(self, item, exc: Exception) -> None:
+        self.internal_faults += 1
+        kind = type(item).__name__
+        self.faults_in_row[kind] = self.faults_in_row.get(kind, 0) + 1
+        frames = traceback.extract_tb(exc.__traceback__)
+        where = f"{pathlib.Path(frames[-1].filename).name}:{frames[-1].lineno}" if frames else "?"
+        self._event("internal_fault", f"{type(exc).__name__}: {exc} (at {where}, handling {type(item).__name__}): "
+                    f"input dropped, the daemon continues ({self.internal_faults} so far)")
+        if self.faults_in_row[kind] >= FAULTS_BEFORE_REBUILD:
+            self.faults_in_row.clear()
+            self._rebuild_pipeline(f"{FAULTS_BEFORE_REBUILD} inputs in a row failed, the last with "
+                                   f"{type(exc).__name__} at {where}")
+
+    def _rebuild_pipeline(self, why: str) -> None:
+        """A fresh Pipeline from the same config, the same solver and the saved calibrations; the
+        FC facts the daemon already knows (its parameters, a yaw excluded as ours) applied again."""
+        old = self.pipeline
+        # the calibration applied at start stays; this flight's KF1 learning starts over
+        self.pipeline = Pipeline(self.cfg, kf1_learn=None, kf1_applied=self._kf1_applied_at_start,
+                                 solver=old.solver, deviation=self._load_deviation())
+        self.pipeline_rebuilds += 1
+        if self.link is not None and self.link.fc_params:
+            self.pipeline.on_fc_params(self.link.fc_params, True, self.clock())
+        if not self.cfg["heading"].get("use_fc_yaw", True) or self.fc_yaw_guard.exclude_reason is not None:
+            self.pipeline.exclude_fc_yaw(self.fc_yaw_guard.exclude_reason or "[heading] use_fc_yaw = false")
+        self.last_solution = None
+        self._event("pipeline_rebuilt", f"estimators started afresh: {why}")
+
+    def _dispatch(self, item) -> None:
         if isinstance(item, ImuBatch):
             self._on_imu_batch(item)
         elif isinstance(item, ImuSample):
