@@ -26,6 +26,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
+sys.path.insert(0, str(ROOT / "tests"))
 
 from estimators import core  # noqa: E402
 from estimators import mag_disturbance as ref  # noqa: E402
@@ -139,17 +140,10 @@ def test_core_equals_reference_with_a_magnet_nearby(monkeypatch):
 
 @pytest.mark.skipif(not (DATA / "arducopter-rtl-midflight.bin").is_file(), reason="real logs not present")
 def test_core_equals_reference_on_a_real_log(monkeypatch):
-    from types import SimpleNamespace
-
-    from service.logreaders import open_log
-    from service.replay import build_config, run_replay
-    log = open_log(DATA / "arducopter-rtl-midflight.bin")
-    cfg, _notes = build_config(SimpleNamespace(config=None, site=None, exclude_fc_yaw=False), log)
-    calls, params = [], []
-    monkeypatch.setattr("service.pipeline.select_core", lambda: _recording(calls, params))
-    run_replay(log, cfg, None)
+    from test_core_mag_usability import rtl_replay_calls  # one replay records both modules' calls
+    calls, params = rtl_replay_calls(monkeypatch)["disturbance"]
     assert len(calls) > 1000
-    _replay(calls, params[0])
+    _replay(calls, params)
 
 
 def test_a_deep_copy_goes_on_and_a_refused_sample_changes_nothing(monkeypatch):

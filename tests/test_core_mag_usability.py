@@ -17,6 +17,7 @@ sums to 1e-9 relative). A deep copy of a held state goes on as the unbroken run.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import sys
 from pathlib import Path
@@ -150,20 +151,22 @@ def test_core_full_scale_equals_reference():
     _replay(calls, p)
 
 
-def _recording(calls: list):
-    """A backend whose mag_usability calls run the reference and are recorded, in order."""
-    import dataclasses
-
+def _recording(calls: list, params_seen: dict | None = None):
+    """A backend whose mag_usability calls run the reference and are recorded, in order (their
+    params in ``params_seen["usability"]``)."""
     from service import core_backend
+    params_seen = {} if params_seen is None else params_seen
     step, stale = ref.mag_usability_step, ref.mag_usability_stale
 
     def rec_step(state, t, m, roll, pitch, params, gyro=None, hi=None):
         calls.append(("step", (t, np.array(m), roll, pitch, None if gyro is None else np.array(gyro),
                                None if hi is None else np.array(hi))))
+        params_seen["usability"] = params
         return step(state, t, m, roll, pitch, params, gyro, hi)
 
     def rec_stale(state, t, params, gyro=None):
         calls.append(("stale", (t, None if gyro is None else np.array(gyro))))
+        params_seen["usability"] = params
         return stale(state, t, params, gyro)
 
     return dataclasses.replace(core_backend.select(), mag_usability_step=rec_step, mag_usability_stale=rec_stale)
@@ -198,21 +201,40 @@ def test_core_equals_reference_on_a_simulated_flight(monkeypatch):
     assert "" in reasons and n_changed >= 1
 
 
+_RTL: dict = {}
+
+
+def rtl_replay_calls(monkeypatch) -> dict:
+    """The replay of arducopter-rtl-midflight.bin (service/replay.py, as ``azimuthd replay`` runs it),
+    run once per session, recording the Pipeline's calls: "usability" -> (mag_usability calls, their
+    params), "disturbance" -> (mag_disturbance_step calls (t, m, q), their params; for
+    tests/test_core_mag_disturbance.py)."""
+    if not _RTL:
+        from types import SimpleNamespace
+
+        from estimators import mag_disturbance as md
+        from service.logreaders import open_log
+        from service.replay import build_config, run_replay
+        log = open_log(DATA / "arducopter-rtl-midflight.bin")
+        cfg, _notes = build_config(SimpleNamespace(config=None, site=None, exclude_fc_yaw=False), log)
+        usab, dist, params = [], [], {}
+        step_d = md.mag_disturbance_step
+
+        def rec_d(state, t, m, q, p):
+            dist.append((t, np.array(m), np.array(q)))
+            params["disturbance"] = p
+            return step_d(state, t, m, q, p)
+
+        monkeypatch.setattr("service.pipeline.select_core", lambda: dataclasses.replace(
+            _recording(usab, params), mag_disturbance_step=rec_d))
+        run_replay(log, cfg, None)
+        _RTL.update(usability=(usab, params["usability"]), disturbance=(dist, params["disturbance"]))
+    return _RTL
+
+
 @pytest.mark.skipif(not (DATA / "arducopter-rtl-midflight.bin").is_file(), reason="real logs not present")
 def test_core_equals_reference_on_a_real_log(monkeypatch):
-    """The replay of the log (service/replay.py, as ``azimuthd replay`` runs it)."""
-    from types import SimpleNamespace
-
-    from service.logreaders import open_log
-    from service.replay import build_config, run_replay
-    from estimators.mag_usability import mag_usability_params_for_field
-    from service.pipeline import site_field
-    log = open_log(DATA / "arducopter-rtl-midflight.bin")
-    cfg, _notes = build_config(SimpleNamespace(config=None, site=None, exclude_fc_yaw=False), log)
-    calls: list = []
-    monkeypatch.setattr("service.pipeline.select_core", lambda: _recording(calls))
-    run_replay(log, cfg, None)
-    params = mag_usability_params_for_field(site_field(cfg).e_ned_gauss)
+    calls, params = rtl_replay_calls(monkeypatch)["usability"]
     assert len(calls) > 1000
     _replay(calls, params)
 
