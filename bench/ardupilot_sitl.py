@@ -877,17 +877,25 @@ def score(est: dict, truth: dict, t0: float, t1: float) -> dict:
 
     def rms(e):
         return round(float(np.degrees(np.sqrt(np.mean(np.square(e))))), 3) if e.size else None
-    return {"samples": int(ok.sum()), "heading_coverage": round(float(hy.sum() / max(ok.sum(), 1)), 3),
-            "roll_rms_deg": rms(e_roll), "pitch_rms_deg": rms(e_pitch), "heading_rms_deg": rms(e_yaw),
-            "heading_mean_deg": round(float(np.degrees(np.mean(e_yaw))), 3) if e_yaw.size else None,
-            "roll_max_deg": round(float(np.degrees(np.max(np.abs(e_roll)))), 3) if e_roll.size else None,
-            "pitch_max_deg": round(float(np.degrees(np.max(np.abs(e_pitch)))), 3) if e_pitch.size else None}
+    out = {"samples": int(ok.sum()), "heading_coverage": round(float(hy.sum() / max(ok.sum(), 1)), 3),
+           "roll_rms_deg": rms(e_roll), "pitch_rms_deg": rms(e_pitch), "heading_rms_deg": rms(e_yaw),
+           "heading_mean_deg": round(float(np.degrees(np.mean(e_yaw))), 3) if e_yaw.size else None,
+           "roll_max_deg": round(float(np.degrees(np.max(np.abs(e_roll)))), 3) if e_roll.size else None,
+           "pitch_max_deg": round(float(np.degrees(np.max(np.abs(e_pitch)))), 3) if e_pitch.size else None}
+    if "sigma" in est and e_yaw.size:   # a published heading sigma (ODOMETRY): is the error within it?
+        r = np.abs(e_yaw) / np.asarray(est["sigma"], float)[sel][hy]
+        out.update(heading_within_2sigma=round(float(np.mean(r <= 2.0)), 3),
+                   heading_within_3sigma=round(float(np.mean(r <= 3.0)), 3),
+                   heading_max_error_over_sigma=round(float(np.max(r)), 2))
+    return out
 
 
 def windows(rec: FlightRecord, before_s: float = BEFORE_CUT_S, after_s: float = AFTER_CUT_S) -> dict:
-    """GNSS on: ``before_s`` before the cut, not before arming; GNSS off: ``after_s`` from the cut."""
+    """GNSS on: ``before_s`` before the cut, not before arming; GNSS off: ``after_s`` from the cut;
+    take-off: ``before_s`` from arming (the roll and climb-out), not after the cut."""
     return {"before_cut": (max(rec.cut_fc_s - before_s, rec.arm_fc_s), rec.cut_fc_s),
-            "after_cut": (rec.cut_fc_s, min(rec.cut_fc_s + after_s, rec.end_fc_s))}
+            "after_cut": (rec.cut_fc_s, min(rec.cut_fc_s + after_s, rec.end_fc_s)),
+            "takeoff": (rec.arm_fc_s, min(rec.arm_fc_s + before_s, rec.cut_fc_s))}
 
 
 def score_windows(est: dict, rec: FlightRecord) -> dict:
@@ -1112,6 +1120,12 @@ def print_table(res: dict) -> None:
         cells = [" / ".join(_fmt(w[k].get(f)) for f in ("roll_rms_deg", "pitch_rms_deg", "heading_rms_deg"))
                  for k in ("before_cut", "after_cut")]
         print(f"  {key:<26} {cells[0]:>22} {cells[1]:>22}  {w['after_cut'].get('heading_coverage')}")
+    w = res.get("daemon_odometry_yaw")
+    if isinstance(w, dict) and "after_cut" in w:
+        print("  ODOMETRY yaw vs its sigma, take-off / GNSS on / off: RMS deg, within 3 sigma, max error/sigma: " +
+              " | ".join(f"{_fmt(w[k].get('heading_rms_deg'))}, {_fmt(w[k].get('heading_within_3sigma'))}, "
+                         f"{_fmt(w[k].get('heading_max_error_over_sigma'))}"
+                         for k in ("takeoff", "before_cut", "after_cut") if k in w))
     for key in ("odometry_fused", "ekf2_fused_placeholder"):
         if key in res:
             print(f"  {key}: {res[key]}")

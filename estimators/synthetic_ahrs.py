@@ -556,6 +556,41 @@ def _reacquire_heading(state: SyntheticAhrsState, mag_body_gauss: np.ndarray, t:
                 reacquire_heading=False, ref_heading_sens=0.0, last_mag_update_s=t)
 
 
+def synthetic_ahrs_forget_fc_yaw(state: SyntheticAhrsState, params: SyntheticAhrsParams,
+                                 kf1_learn_start: Kf1State | None = None) -> SyntheticAhrsState:
+    """The FC's yaw has just been excluded (``params.use_fc_yaw`` now False: e.g. it is our own
+    heading fed back, found once the FC's parameters are read): drop what B took from it before.
+    Excluding it only from now on is not enough: an FC seen before its GNSS fix may report a
+    magnetic heading (ArduPlane's DCM: one declination off, 12.7 deg at CMAC) that B started from
+    with the FC's 1.5 deg sigma, and at rest KF2's residual magnetometer-bias states then hold that
+    offset (a heading error and a body-fixed bias look alike until the vehicle turns), so B
+    published it for a minute with a ~1 deg sigma. Dropped, when B's heading carries any of the
+    FC's yaw (consider sensitivity a > 0, module docstring):
+    - the heading: sigma ``init_sigma_heading_rad`` at once (its cross-covariances zeroed), the
+      value re-taken from the magnetometer at its next sample (``_reacquire_heading``), a = 0;
+    - the residual magnetometer biases: back to 0 with their prior (they were learnt against it);
+    - the bias snapshots (their attitude and magnetometer biases came with it).
+    Roll/pitch and the gyro biases stay (the FC's roll/pitch stay a reference). KF1's estimate
+    learnt against the FC's full attitude goes back to ``kf1_learn_start`` (where this flight's
+    learning began; None: KF1's prior). Variant b1 takes no FC yaw: only KF1 is reset."""
+    kf1 = kf1_init(params.kf1) if kf1_learn_start is None else kf1_learn_start
+    state = _upd(state, kf1_learn=kf1, kf1_learning=False)
+    kf2 = state.kf2
+    if kf2 is None or not state.ref_heading_sens > 0.0:
+        return state
+    e, cov = kf2_euler_and_cov(kf2)
+    fresh = kf2_init(kf2.q_nav_from_body, params.kf2, sigma_tilt_rad=math.sqrt(max(cov[0, 0], cov[1, 1])),
+                     sigma_heading_rad=params.init_sigma_heading_rad)
+    P = kf2.P.copy()
+    for k in (slice(0, 3), slice(6, 9)):                  # attitude and magnetometer-bias blocks anew
+        P[k, :] = 0.0
+        P[:, k] = 0.0
+    P[0:3, 0:3] = fresh.P[0:3, 0:3]
+    P[6:9, 6:9] = fresh.P[6:9, 6:9]
+    kf2 = _upd(kf2, mag_bias=np.zeros(3), P=P, n_resets=kf2.n_resets + 1)
+    return _upd(state, kf2=kf2, ref_heading_sens=0.0, reacquire_heading=True, bias_snapshots=())
+
+
 def synthetic_ahrs_unseen(state: SyntheticAhrsState, unseen_s: float,
                           params: SyntheticAhrsParams) -> SyntheticAhrsState:
     """The FC clock restarted (the caller measured ``unseen_s`` seconds not seen, on its own

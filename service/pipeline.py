@@ -55,8 +55,9 @@ from estimators.zero_rate import (ZeroRateParams, ZeroRateState, attitude_zero_r
                                   rest_step)
 from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init
 from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent, HeadingEvent, ImuEvent,
-                                       SyntheticAhrsOutput, SyntheticAhrsParams, synthetic_ahrs_init,
-                                       synthetic_ahrs_output, synthetic_ahrs_step, synthetic_ahrs_unseen)
+                                       SyntheticAhrsOutput, SyntheticAhrsParams, synthetic_ahrs_forget_fc_yaw,
+                                       synthetic_ahrs_init, synthetic_ahrs_output, synthetic_ahrs_step,
+                                       synthetic_ahrs_unseen)
 from mavlink_io.samples import FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, ImuSample, PressureSample
 from service.core_backend import select as select_core
 from service.input_checks import InputCheckParams
@@ -215,6 +216,8 @@ class Pipeline:
                                                fc_sigma_yaw_rad=math.radians(heading["fc_yaw_sigma_deg"]),
                                                use_fc_yaw=heading.get("use_fc_yaw", True))
         self.ahrs = synthetic_ahrs_init(self.ahrs_params, kf1_learn=kf1_learn, kf1_applied=kf1_applied)
+        self._kf1_learn_start = kf1_learn
+        """Where this flight's KF1 learning began: what it goes back to when the FC's yaw is excluded."""
         self.ahrs_out: SyntheticAhrsOutput | None = None
         self._ahrs_trusted: bool | None = None
 
@@ -547,6 +550,12 @@ class Pipeline:
             return
         self.use_fc_yaw = False
         self.ahrs_params = dc_replace(self.ahrs_params, use_fc_yaw=False)
+        # ... nor what B took from it before (its heading, magnetometer biases, KF1): a held core
+        # state goes through the reference's record (once per run) and is taken in again
+        st = self.ahrs.to_state() if hasattr(self.ahrs, "to_state") else self.ahrs
+        self.ahrs = synthetic_ahrs_forget_fc_yaw(st, self.ahrs_params, self._kf1_learn_start)
+        if self.ahrs_out is not None:
+            self.ahrs_out = synthetic_ahrs_output(self.ahrs, self.ahrs_params)
         self._event("fc_yaw_excluded", f"the FC's yaw is no longer used: {reason}")
 
     def air_data(self):
