@@ -13,10 +13,15 @@ the daemon's counts of lost and bad packets in its "stopped" line are not zero.
 Nothing depends on the machine's speed: "when" is the simulator's clock (the FC time its
 messages carry, which the tap records as it forwards them) and the order of messages in the
 tap's one timeline; the wall clock only detects a hang. How long recovery took in wall time is
-printed, a figure, not a pass mark.
+printed, a figure, not a pass mark. The one local-clock check, link_lost, cannot trip in a daemon
+that was more than (outage - link_timeout_s) behind its input when the outage began (it reads its
+backlog through the silence): how far behind is measured in the tap's timeline and said, and only
+then are the outage's local-clock checks skipped. After the simulator's end the daemon works off
+its queue before it is stopped.
 """
 import re
 import sys
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +29,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from sitl import Sitl, angle_diff_rad  # noqa: E402
+from conftest import udp_rx_queue_bytes, wait_progressing  # noqa: E402
 
 REST_S = 20.0
 OUTAGE = (32.0, 42.0)
@@ -42,12 +48,25 @@ def flight():
     with Sitl(scenario="inclined_rail", speed=1.0, seed=11, tap=True, sim_args=FAULTS,
               config_overrides={"launch": {}}, tap_record_to_daemon=("ATTITUDE",)) as s:
         finished = s.wait_for(lambda: s.sim.poll() is not None, HANG_S)
+        if finished:
+            # a daemon behind its input (a busy machine) works off its queue before it is stopped:
+            # done when its ATTITUDE reaches the flight's last 2 s in the FC's clock (it resumes
+            # after the reboot ~2 s short of the simulator's time: 70.2 s at the end, 2026-12-02),
+            # or when neither its FC time nor its socket's queue moved for DRAIN_QUIET_S
+            newest = lambda: s.listener.attitude[-1][0] if s.listener.attitude else None  # noqa: E731
+            wait_progressing(lambda: (newest() or 0.0) >= END_S - 2.0,
+                             lambda: (newest(), udp_rx_queue_bytes(s.fc_port)), "drain", stall_s=DRAIN_QUIET_S,
+                             hang_s=HANG_S, stall_ok=True)
+            print(f"drained: the daemon's last ATTITUDE at FC time {newest()} s")
     assert finished, f"hang: the simulator did not finish in {HANG_S:g} s; see {s.workdir}"
     return s
 
 
 HANG_S = 900.0
 """Only a hang detector: the 72 s flight takes what the machine gives it."""
+DRAIN_QUIET_S = 10.0
+"""After the simulator's end: no newer ATTITUDE and no change in its socket's queue for this long
+means the daemon has nothing left to process (a hang detector, nothing counted per wall second)."""
 pytestmark = pytest.mark.timeout(HANG_S + 300)  # the flight's own hang detector decides, not the suite's 600 s
 
 
@@ -55,6 +74,36 @@ def _tap_time_of_sim_fc(flight, pred) -> float:
     """The tap's clock when it forwarded the simulator's first ATTITUDE whose FC time (s) meets
     ``pred``: the instant the simulator had reached that FC time, in the tap's timeline."""
     return next(t for t, m in flight.tap.to_daemon if pred(m.time_boot_ms / 1000.0))
+
+
+def _outage_hidden(flight) -> tuple[bool, float]:
+    """link_lost is a local-clock timeout (link_timeout_s): a daemon more than (outage -
+    link_timeout_s) behind its input when the outage began reads its backlog through the silence
+    and cannot see it. Returns (hidden, how far behind in wall s): from the tap's forwarding the
+    simulator's first ATTITUDE 1 s before the outage to the daemon's first ATTITUDE of that FC time
+    reaching the listener (one monotonic clock, this process)."""
+    with open(flight.config_path, "rb") as f:
+        timeout_s = tomllib.load(f)["mavlink"]["link_timeout_s"]
+    t_fc = OUTAGE[0] - 1.0
+    lag_s = next(r[4] for r in flight.listener.attitude if r[0] >= t_fc) - _tap_time_of_sim_fc(flight, lambda t: t >= t_fc)
+    print(f"daemon behind its input 1 s before the outage: {lag_s:.2f} s (wall)")
+    return lag_s > OUTAGE[1] - OUTAGE[0] - timeout_s, lag_s
+
+
+GAP_LINE = re.compile(r"IMU gap of ([\d.]+) s \(> [\d.]+ s\) at FC time ([\d.]+) s")
+
+
+def _outage_events(log: str) -> str:
+    """The daemon's log from its IMU gap line for the pre-launch outage to the one for the in-flight
+    outage (both carry the FC time the data came back): a link_lost and a link_restored in it are
+    the outage's, not the other silences' (the pre-launch one, the reboot, the simulator's end)."""
+    lines = log.splitlines()
+
+    def gap_line(t_back: float) -> int | None:
+        return next((i for i, ln in enumerate(lines) if (m := GAP_LINE.search(ln))
+                     and t_back <= float(m.group(2)) < t_back + 0.5), None)
+    i0, i1 = gap_line(PRELAUNCH_OUTAGE[1]), gap_line(OUTAGE[1])
+    return "\n".join(lines[i0 + 1:i1 + 1]) if i0 is not None and i1 is not None else ""
 
 
 def _daemon_after(flight, t0: float, t1: float = float("inf"), command: int | None = None, mtype="COMMAND_LONG"):
@@ -72,17 +121,22 @@ def test_no_crash_and_faults_counted(flight):
     seq_lost, bad, stale, losses, reboots = map(int, m.groups())
     print(f"daemon link counters: seq_lost {seq_lost} bad_data {bad} stale_drops {stale} link_losses {losses} "
           f"fc_reboots {reboots}")
-    # link_lost is a local-clock timeout (link_timeout_s 2 s): the 10 s outage always trips it; the
-    # 3 s and the 2 s silences trip it only when the daemon is not behind (a backlog shortens the
-    # silence it sees), so they are checked in the FC's clock (test_prelaunch_outage_...)
-    assert seq_lost > 1000 and bad > 10 and stale > 10 and losses >= 1 and reboots == 1
+    # link_lost is a local-clock timeout (link_timeout_s 2 s): the 10 s outage trips it unless the
+    # daemon was more than 8 s behind its input when it began (_outage_hidden: measured and said);
+    # the 3 s and the 2 s silences trip it only when the daemon is not behind, so they are checked
+    # in the FC's clock (test_prelaunch_outage_...)
+    hidden, lag_s = _outage_hidden(flight)
+    assert seq_lost > 1000 and bad > 10 and stale > 10 and reboots == 1
+    assert losses >= 1
+    assert "event=link_lost" in _outage_events(log) or hidden, \
+        f"the {OUTAGE[1] - OUTAGE[0]:g} s outage not reported (daemon {lag_s:.2f} s behind)"
 
 
 def test_prelaunch_outage_levelling_still_done(flight):
     """A 3 s outage on the launcher (pre-launch): reported, and the daemon still levels and
     detects the launch."""
     log = flight.log("daemon")
-    gaps = [(float(g), float(t)) for g, t in re.findall(r"IMU gap of ([\d.]+) s \(> [\d.]+ s\) at FC time ([\d.]+) s", log)]
+    gaps = [(float(g), float(t)) for g, t in GAP_LINE.findall(log)]
     span_s = PRELAUNCH_OUTAGE[1] - PRELAUNCH_OUTAGE[0]
     assert any(span_s <= g < span_s + 0.5 and PRELAUNCH_OUTAGE[1] <= t < PRELAUNCH_OUTAGE[1] + 0.5 for g, t in gaps), gaps
     assert "event=levelled" in log and "msg=launch event=phase" in log
@@ -90,11 +144,17 @@ def test_prelaunch_outage_levelling_still_done(flight):
 
 def test_outage_reported_recovered_within_2_s_and_streams_rerequested(flight):
     log = flight.log("daemon")
-    assert "event=link_lost" in log and "event=link_restored" in log
     att = flight.listener.attitude
     back = [r for r in att if r[0] >= OUTAGE[1]]
     assert back, "no ATTITUDE after the outage"
     assert back[0][0] < OUTAGE[1] + 2.0, f"ATTITUDE resumed at FC time {back[0][0]:.2f} s (link back at {OUTAGE[1]})"
+    hidden, lag_s = _outage_hidden(flight)
+    log = _outage_events(log)
+    if hidden and "event=link_lost" not in log:
+        pytest.skip(f"the daemon was {lag_s:.1f} s behind its input when the outage began (a busy machine): "
+                    f"it read its backlog through the silence, so its local-clock link_lost and the "
+                    f"re-request on link_restored could not happen; see {flight.workdir}")
+    assert "event=link_lost" in log and "event=link_restored" in log
     t_return = _tap_time_of_sim_fc(flight, lambda t: OUTAGE[1] <= t < REBOOT_AT_S)
     t_3s_later = _tap_time_of_sim_fc(flight, lambda t: OUTAGE[1] + 3.0 <= t < REBOOT_AT_S)
     print(f"outage recovery: ATTITUDE {back[0][4] - t_return:.3f} s (wall) after the link returned")
