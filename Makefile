@@ -38,8 +38,12 @@ $(STAMP): pyproject.toml CMakeLists.txt $(wildcard core/*.cpp core/*.hpp)
 run: $(STAMP)
 	$(PY) bench/live_demo.py
 
+# two workers: the tests that run processes in real time are one unit on one worker, one after
+# another; the CPU-bound rest beside them, a module at a time (tests/conftest.py). TEST_WORKERS=0:
+# one process.
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(PY) -m pytest -q --durations=25 tests
+	$(PY) -m pytest -q $(if $(filter-out 0,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder) --durations=25 tests
 
 # a wheel of this tree, built by the service venv's pip (what install and upgrade put in it); DESTDIR
 # is kept from the build (CMake's install step into the wheel would honour it and miss the wheel)
