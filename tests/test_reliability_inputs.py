@@ -205,6 +205,13 @@ def _input_events(r, kind):
     return [d for k, d in r["events"] if k == "imu_input" and d.startswith(kind + ":")]
 
 
+def without_corrupted(fault_items):
+    """The clean flight with every sample the fault replaced simply missing (the fault builders put
+    new objects in place of the samples they corrupt and insert new ones; the rest are kept)."""
+    kept = {id(it) for it in fault_items}
+    return [it for it in ITEMS if id(it) in kept]
+
+
 def test_clean_flight_has_no_input_findings(clean):
     assert all(v == 0 for v in clean["counts"].values())
     assert clean["rejected"] == 0 and clean["finite"]
@@ -225,9 +232,17 @@ def test_bad_values_detected_counted_reported_once_and_estimators_protected(clea
     assert len(_input_events(r, kind)) == 1  # once, not once per sample
     assert r["finite"]
     assert r["sol"][-1].phase == "in-flight" and r["sol"][-1].time_fc_s > DUR_S - 0.1
-    # roll/pitch during and after the fault as good as in the clean flight (within 0.3 deg)
-    assert tilt_err_deg(r, FAULT_T, FAULT_T + 10.0) < tilt_err_deg(clean, FAULT_T, FAULT_T + 10.0) + 0.3
-    assert tilt_err_deg(r, FAULT_T + 10.0, DUR_S) < tilt_err_deg(clean, FAULT_T + 10.0, DUR_S) + 0.3
+    # the bad values themselves cost nothing: roll/pitch during and after the fault as good as in the
+    # same flight with the corrupted samples simply missing (within 0.1 deg; measured nan 0.000,
+    # frozen -0.014: the frozen samples let through before the detection cost nothing either)
+    m = feed(without_corrupted(FAULTS[name](ITEMS)))
+    for t0, t1 in ((FAULT_T, FAULT_T + 10.0), (FAULT_T + 10.0, DUR_S)):
+        assert tilt_err_deg(r, t0, t1) < tilt_err_deg(m, t0, t1) + 0.1
+        # and the samples lost cost at most 0.6 deg against the clean flight: in flight, 0.5-2 s of
+        # unseen rates widen the attitude, which the specific force then re-learns without the
+        # rest-time gyro-bias alignment the clean flight still carries (zero-rate, ce873d7: clean
+        # 1.30 -> 0.95 deg, the nan case 1.29 -> 1.31, frozen 1.46 -> 1.49 deg over the 10 s)
+        assert tilt_err_deg(r, t0, t1) < tilt_err_deg(clean, t0, t1) + 0.6
     if name == "frozen":
         assert len(_input_events(r, "frozen_end")) == 1
 
@@ -247,8 +262,13 @@ def test_ten_second_gap_detected_not_integrated_and_recovers(clean):
     assert a[0, 3] > 20.0 and a[0, 4] > 20.0  # honest: the state is stale
     assert np.all(a[:, 1] < 3 * a[:, 3]) and np.all(a[:, 2] < 3 * a[:, 4])
     assert reconverged_after_s(a) < 2.0
-    assert tilt_err_deg(r, FAULT_T + 12.0, FAULT_T + 25.0) < tilt_err_deg(clean, FAULT_T + 12.0, FAULT_T + 25.0) + 0.3
-    assert tilt_err_deg(r, FAULT_T + 25.0, DUR_S) < tilt_err_deg(clean, FAULT_T + 25.0, DUR_S) + 0.3
+    # after 10 s unseen in flight the attitude is re-learnt from the specific force alone, so the
+    # recovered error is the in-flight filter's, not the clean flight's (which still carries its
+    # rest-time gyro-bias alignment, zero-rate ce873d7: clean 1.79 -> 1.19 deg over 42-55 s).
+    # Absolute bounds on the recovered error, measured 1.91 / 1.71 deg before zero-rate (d538bdf)
+    # and 1.90 / 1.73 after:
+    assert tilt_err_deg(r, FAULT_T + 12.0, FAULT_T + 25.0) < 2.2
+    assert tilt_err_deg(r, FAULT_T + 25.0, DUR_S) < 2.0
 
 
 def test_restarted_clock_rejected_then_integration_restarts():
