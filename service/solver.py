@@ -136,8 +136,14 @@ class BackgroundSolver:
                       extra={"fields": {"error": repr(exc2)}})
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
+        """Stop the worker at once (a solve in flight is not waited for) and wait for the pool's
+        own thread: shutdown(wait=False) left it running, and CPython's exit hook then wrote to the
+        pool's closed wake-up pipe (an 'OSError: Bad file descriptor' traceback at a daemon's stop)."""
+        if self._pool is None:
+            return
+        for proc in list((getattr(self._pool, "_processes", None) or {}).values()):
+            proc.terminate()
+        self._pool.shutdown(wait=True, cancel_futures=True)
 
 
 def make_solver(background: bool):
