@@ -1,7 +1,7 @@
 """The daemon's CPU per second of flight, and how often its loop wakes, against the bundled simulator.
 
     python bench/daemon_cpu.py [--imu-hz 50] [--window-s 40] [--port 47100] [--json PATH] [--quick]
-                               [--fixed-wait-s 0.005] [--idle] [--no-imu-batch] [--sched unit|inherit]
+                               [--fixed-wait-s 0.005] [--idle] [--imu-batch] [--sched unit|inherit]
 
 ``azimuthd sim`` (inclined_rail with its rest shortened to 6 s, real time) and ``azimuthd run`` (the
 example config with the scenario's site, zenoh off, no extra outputs) as two processes over loopback
@@ -29,8 +29,8 @@ What the daemon lost is reported beside it (its ``stopped`` log record: IMU mess
 processed, kernel drops, sequence gaps), so a lower CPU that came from dropping input shows. ``--fixed-wait-s 0.005`` runs the daemon with the loop it had before
 it blocked until input or a timer (``Daemon.loop_wait_s`` replaced by that constant wait): a
 before/after in one tree. One run per call: the machine is shared; run it before and after a
-change in the same conditions and compare. ``--no-imu-batch``: the daemon with the link's message
-path (one ImuSample per RAW_IMU, LinkConfig.imu_batch off) instead of the batch path, likewise.
+change in the same conditions and compare. ``--imu-batch``: the daemon with the batch path (a
+read's RAW_IMU as one ImuBatch, [mavlink] imu_batch on) instead of its default message path, likewise.
 
 Scheduling (``--sched unit``, the default): the daemon starts in a session of its own whose CPU
 group (kernel autogroup) gets the systemd unit's ``Nice=`` (bench/sitl.py ``unit_nice``: the stand-in
@@ -85,7 +85,7 @@ FC_GROUP_NICE = -15
 
 
 def measure(imu_hz: float, window_s: float, warmup_s: float, port: int, fixed_wait_s: float | None = None,
-            idle: bool = False, imu_batch: bool = True, sched: str = "unit") -> dict:
+            idle: bool = False, imu_batch: bool = False, sched: str = "unit") -> dict:
     import psutil
 
     from bench.sitl import _set_nice, scenario_site, unit_nice, write_config
@@ -106,9 +106,9 @@ def measure(imu_hz: float, window_s: float, warmup_s: float, port: int, fixed_wa
     patches = []
     if fixed_wait_s is not None:  # the old loop: step(constant) whatever the timers say
         patches.append(f"Daemon.loop_wait_s = lambda self: {float(fixed_wait_s)!r}")
-    if not imu_batch:  # the link's message path: one ImuSample per RAW_IMU
-        patches.append("_init = Daemon.__init__; Daemon.__init__ = lambda self, *a, **k: (_init(self, *a, **k), "
-                       "setattr(self, 'link_cfg', dataclasses.replace(self.link_cfg, imu_batch=False)))[0]")
+    # the batch path or the link's message path (one ImuSample per RAW_IMU), whatever [mavlink] imu_batch says
+    patches.append("_init = Daemon.__init__; Daemon.__init__ = lambda self, *a, **k: (_init(self, *a, **k), "
+                   f"setattr(self, 'link_cfg', dataclasses.replace(self.link_cfg, imu_batch={bool(imu_batch)!r})))[0]")
     if patches:
         run = ["-c", "import dataclasses, sys; from service.daemon import Daemon; from service.cli import main; "
                      + "; ".join(patches) + "; sys.exit(main(sys.argv[1:]))"]
@@ -180,13 +180,15 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="a 20 s window")
     ap.add_argument("--fixed-wait-s", type=float, default=None, help="the old loop: step(this) every time")
     ap.add_argument("--idle", action="store_true", help="no simulator: the loop's own cost")
-    ap.add_argument("--no-imu-batch", action="store_true", help="the link's message path (one ImuSample per RAW_IMU)")
+    ap.add_argument("--imu-batch", action="store_true",
+                    help="the daemon with [mavlink] imu_batch on (a read's RAW_IMU as one batch; default off, "
+                         "as the daemon's default: one ImuSample per RAW_IMU)")
     ap.add_argument("--sched", choices=("unit", "inherit"), default="unit",
                     help="unit: the daemon's CPU group at the unit's Nice=, the simulator's at -15 (root)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     window = 20.0 if a.quick else a.window_s
-    r = measure(a.imu_hz, window, a.warmup_s, a.port, a.fixed_wait_s, a.idle, not a.no_imu_batch, a.sched)
+    r = measure(a.imu_hz, window, a.warmup_s, a.port, a.fixed_wait_s, a.idle, a.imu_batch, a.sched)
     what = "idle, no FC" if r["idle_no_fc"] else f"RAW_IMU {r['imu_hz']:g} Hz"
     print(f"scheduling: {r['sched']}; IMU path: {r['imu_path']}")
     print(f"daemon ({r['loop']}) {what}, over {r['window_s']:.0f} s (load {r['load_avg_1min']:.1f}): "

@@ -2,7 +2,7 @@
 end-to-end latency RAW_IMU -> ATTITUDE and the daemon's CPU, with the simulator and the daemon as
 separate processes at 400 Hz.
 
-    python bench/speed.py [--quick] [--json PATH] [--no-install] [--no-sitl] [--sitl-only] [--no-imu-batch]
+    python bench/speed.py [--quick] [--json PATH] [--no-install] [--no-sitl] [--sitl-only] [--imu-batch]
                           [--no-replay]
 
 1. Compute cost. One synthetic 400 Hz stream (sim.offline, ``inclined_rail`` with a shortened rest
@@ -34,8 +34,8 @@ separate processes at 400 Hz.
    flight at 400 Hz: (user + system) / wall, in percent of one core. The simulator's share is
    reported apart. The daemon runs as the systemd unit schedules it: a session of its own whose CPU
    group (kernel autogroup) has the unit's ``Nice=`` (bench/sitl.py ``unit_nice``; needs root), the
-   1-min load beside the figures; ``--no-imu-batch`` runs its link's message path (one ImuSample
-   per RAW_IMU) instead of the batch path, for a before/after in one tree. ``--sitl-only`` skips
+   1-min load beside the figures; ``--imu-batch`` runs the batch path ([mavlink] imu_batch on: a
+   read's RAW_IMU as one ImuBatch) instead of the daemon's default message path, for a before/after. ``--sitl-only`` skips
    part 1.
 
 Targets (issue 9): whole stack <= 8 us per IMU sample, latency p99 <= 1 ms, CPU <= 5 % of a core.
@@ -426,7 +426,7 @@ def time_case(factory, run, items, n_imu: int, budget_s: float) -> dict:
 # --- latency and CPU through two processes -------------------------------------------------------
 
 def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | None = None,
-                     rt_priority: int = 0, imu_batch: bool = True) -> dict:
+                     rt_priority: int = 0, imu_batch: bool = False) -> dict:
     import tempfile
 
     import psutil
@@ -443,16 +443,9 @@ def sitl_latency_cpu(quick: bool, profile_out: str | None = None, raw: dict | No
     # the tap timestamps every RAW_IMU it forwards to the daemon and every message the daemon sends
     # back, on one monotonic clock in one thread
     sitl = Sitl(scenario=str(scenario), speed=1.0, workdir=workdir,
-                config_overrides={"mavlink": {"imu_rate_hz": RATE_HZ}}, tap=True,
+                config_overrides={"mavlink": {"imu_rate_hz": RATE_HZ, "imu_batch": bool(imu_batch)}}, tap=True,
                 tap_record_to_daemon=("RAW_IMU",), daemon_own_session=True,
                 daemon_group_nice=unit_nice() if os.geteuid() == 0 else None)
-    if not imu_batch:  # the link's message path, for a before/after
-        i = sitl.daemon_cmd.index("-m")
-        sitl.daemon_cmd[i:i + 2] = ["-c", "import dataclasses, sys; from service.daemon import Daemon; "
-                                          "from service.cli import main; _init = Daemon.__init__; "
-                                          "Daemon.__init__ = lambda self, *a, **k: (_init(self, *a, **k), setattr("
-                                          "self, 'link_cfg', dataclasses.replace(self.link_cfg, imu_batch=False)))[0]; "
-                                          "sys.exit(main(sys.argv[1:]))"]
     if profile_out:
         # the daemon under cProfile with a CPU-time clock (waiting in select and being preempted by
         # other processes on this shared machine do not count)
@@ -627,7 +620,7 @@ def sitl_part(args) -> dict:
     print("\nSITL: simulator + daemon as processes at 400 Hz (loopback UDP) ...", flush=True)
     try:
         s = sitl_latency_cpu(args.quick, args.profile_daemon, rt_priority=args.rt,
-                             imu_batch=not args.no_imu_batch)
+                             imu_batch=args.imu_batch)
     except Exception as exc:  # noqa: BLE001 - report, keep the compute figures
         s = {"error": f"{type(exc).__name__}: {exc}"}
     try:
@@ -662,8 +655,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-sitl", action="store_true", help="skip the two-process latency/CPU part")
     ap.add_argument("--sitl-only", action="store_true", help="only the two-process latency/CPU part")
     ap.add_argument("--no-replay", action="store_true", help="skip azimuthd replay of a 400 Hz log (replay_x_realtime)")
-    ap.add_argument("--no-imu-batch", action="store_true",
-                    help="the SITL daemon with its link's message path (one ImuSample per RAW_IMU)")
+    ap.add_argument("--imu-batch", action="store_true",
+                    help="the daemon with [mavlink] imu_batch on (a read's RAW_IMU as one batch; default off, "
+                         "as the daemon's default: one ImuSample per RAW_IMU)")
     ap.add_argument("--rt", type=int, metavar="PRIO", default=0,
                     help="run the SITL daemon (and the tap) SCHED_FIFO at this priority (needs root): "
                          "latency without preemption by other processes")

@@ -160,7 +160,7 @@ class Daemon:
                                    signing_key=self.signing_key.secret if self.signing_key else None,
                                    sign_outgoing=m["sign_outgoing"], require_signed=m["require_signed"],
                                    signing_timestamp_floor=floor, udp_rcvbuf_bytes=m["udp_rcvbuf_bytes"],
-                                   imu_batch=True)  # a read's RAW_IMU samples as one ImuBatch
+                                   imu_batch=m["imu_batch"])  # a read's RAW_IMU samples as one ImuBatch
         self.calibration = CalibrationKeeper(state_dir(cfg), clock=time.time)
         kf1_learn, kf1_applied = self.calibration.start()
         self.kf1_loaded = kf1_applied is not None
