@@ -6,23 +6,11 @@ FAULTS_BEFORE_REBUILD faults in a row rebuild the Pipeline, and the daemon flies
 from __future__ import annotations
 
 from service.daemon import FAULTS_BEFORE_REBUILD
-from sim.autopilot import Autopilot
-from test_ardupilot_rates import SimLoop
+from test_fc_yaw_loop import daemon_on_sim
 
 
 def _daemon(tmp_path):
-    from service.config import validate
-    from service.daemon import Daemon
-    ap = Autopilot("runway_gnss_denied", "udpout:127.0.0.1:9", personality="ardupilot", seed=3)
-    cfg = validate({"site": {"lat_deg": 47.0, "lon_deg": 8.0}, "zenoh": {"enabled": False},
-                    "service": {"state_dir": str(tmp_path)}, "azimuth": {"solve_in_background": False},
-                    "mavlink": {"imu_rate_hz": 25.0, "pressure_rate_hz": 10.0, "attitude_rate_hz": 10.0}})
-    d = Daemon(cfg, clock=lambda: ap.t)
-    loop = SimLoop(ap, d.link_cfg.stream_rates_hz)
-    d.link = loop.link
-    events = []
-    d._event = lambda kind, detail: events.append((kind, detail))
-    return ap, d, loop, events
+    return daemon_on_sim(tmp_path, seed=3)
 
 
 def _fly(ap, d, loop, until_s: float) -> int:

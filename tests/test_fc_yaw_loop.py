@@ -92,11 +92,13 @@ def test_the_fc_saying_it_uses_external_nav_stops_odometry_for_good():
 
 # --- the daemon against the simulator (ardupilot personality), in memory ---------------------
 
-def _daemon_against_sim(tmp_path, params: dict, until_s: float = 3.0):
+def daemon_on_sim(tmp_path, params: dict | None = None, seed: int = 2):
+    """A Daemon (inline solver, 25 Hz IMU) wired in memory to the simulator's ArduPilot
+    personality: (autopilot, daemon, loop, events); its events are collected, not logged."""
     from service.config import validate
     from service.daemon import Daemon
-    ap = Autopilot("runway_gnss_denied", "udpout:127.0.0.1:9", personality="ardupilot", seed=2)
-    ap.params.update({k: float(v) for k, v in params.items()})
+    ap = Autopilot("runway_gnss_denied", "udpout:127.0.0.1:9", personality="ardupilot", seed=seed)
+    ap.params.update({k: float(v) for k, v in (params or {}).items()})
     cfg = validate({"site": {"lat_deg": 47.0, "lon_deg": 8.0}, "zenoh": {"enabled": False},
                     "service": {"state_dir": str(tmp_path)}, "azimuth": {"solve_in_background": False},
                     "mavlink": {"imu_rate_hz": 25.0, "pressure_rate_hz": 10.0, "attitude_rate_hz": 10.0}})
@@ -105,6 +107,11 @@ def _daemon_against_sim(tmp_path, params: dict, until_s: float = 3.0):
     d.link = loop.link
     events = []
     d._event = lambda kind, detail: events.append((kind, detail))
+    return ap, d, loop, events
+
+
+def _daemon_against_sim(tmp_path, params: dict, until_s: float = 3.0):
+    ap, d, loop, events = daemon_on_sim(tmp_path, params)
     while ap.t < until_s:
         loop.run(ap.t + 0.05)
         for it in loop.items:
