@@ -86,9 +86,11 @@ FC_TILT_MAX_AGE_S = 0.2
 
 AIR_EVIDENCE_MAX_AGE_S = 1.0
 """Air data older than this (FC time, s) is no evidence for the started-in-flight rule."""
-MULTICOPTER_MANOEUVRE_SPEED_M_S = 10.0
-"""A multicopter's speed along its nose in a turn when no airspeed is measured (m/s): ArduCopter's
-default waypoint speed (WPNAV_SPEED 1000 cm/s; PX4's MPC_XY_CRUISE is 5 m/s)."""
+MULTICOPTER_MANOEUVRE_SPEED_M_S = PolarAttitudeParams.manoeuvre_speed_m_s
+"""A multicopter's bound on its turn acceleration (m/s): C's built-in 25 m/s, not its cruise speed:
+a multicopter also accelerates sideways, which w x [V, 0, 0] does not see. Measured on
+arducopter-flight.tlog (the only real multicopter flight with the FC's attitude): 10 m/s (ArduCopter's
+WPNAV_SPEED) gave roll / pitch 36.3 / 14.2 deg RMS, 25 m/s 6.0 / 6.0."""
 MANOEUVRE_SPEED_STEP_M_S = 1.0
 """C's attitude filter takes a new manoeuvre speed when it moved by this much (m/s)."""
 FIXED_WING = 1
@@ -597,15 +599,19 @@ class Pipeline:
         else ``[heading] manoeuvre_speed_m_s`` when set, else the vehicle's: a multicopter
         ``MULTICOPTER_MANOEUVRE_SPEED_M_S``, a fixed wing (or a vehicle not known yet) the
         configured cruise speed."""
+        choice = self.vehicle.choice
+        multicopter = choice is not None and choice.vehicle == "multicopter"
         air = self.ahrs.air_last
-        if (t is not None and air is not None and self.pressure is not None and self.pressure.press_diff_pa is not None
+        # not a multicopter's: it has no pitot, and its SCALED_PRESSURE's differential pressure reads
+        # ~0 (arducopter-flight.tlog: 0 m/s on 2547 of 2857 steps, roll 6.0 -> 46.6 deg RMS with it)
+        if (not multicopter and t is not None and air is not None and self.pressure is not None
+                and self.pressure.press_diff_pa is not None
                 and abs(t - air.time_s) <= AIR_EVIDENCE_MAX_AGE_S and not (air.pitot_blocked or air.pitot_noisy)
                 and math.isfinite(air.tas_m_s)):
             return float(air.tas_m_s)
         if self.manoeuvre_speed_cfg_m_s > 0.0:
             return self.manoeuvre_speed_cfg_m_s
-        choice = self.vehicle.choice
-        if choice is not None and choice.vehicle == "multicopter":
+        if multicopter:
             return MULTICOPTER_MANOEUVRE_SPEED_M_S
         return self.cruise_speed_m_s
 

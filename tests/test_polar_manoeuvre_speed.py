@@ -47,8 +47,8 @@ def test_given_no_air_data_then_the_manoeuvre_speed_is_the_configured_or_the_veh
 
 
 def test_given_a_measured_airspeed_then_it_replaces_the_default_and_is_dropped_when_stale():
-    # GIVEN a multicopter (default 10 m/s) whose FC reports a pitot at 21 m/s
-    p = _pipeline("multicopter")
+    # GIVEN a fixed wing (default: its cruise speed, 18 m/s here) whose FC reports a pitot at 21 m/s
+    p = _pipeline("runway", cruise_speed_m_s=18.0)
     press, tas = 95000.0, 21.0
     temp_k = isa_temperature_k(pressure_altitude_m(press))       # what the air data assumes
     q_c = 0.5 * air_density_kg_m3(press, temp_k) * tas * tas
@@ -59,8 +59,19 @@ def test_given_a_measured_airspeed_then_it_replaces_the_default_and_is_dropped_w
     assert p.polar_att_params.manoeuvre_speed_m_s == pytest.approx(tas, abs=0.05)
     # ... and once the air data is older than a second, the vehicle's default again
     _rest(p, 2.0, 10)
-    assert p.polar_att_params.manoeuvre_speed_m_s == MULTICOPTER_MANOEUVRE_SPEED_M_S
+    assert p.polar_att_params.manoeuvre_speed_m_s == 18.0
     assert math.isfinite(p.polar_att_params.manoeuvre_speed_m_s)
+
+
+def test_given_a_multicopter_then_its_differential_pressure_is_no_airspeed():
+    # GIVEN a multicopter whose FC sends SCALED_PRESSURE with a differential pressure near 0 (no pitot:
+    # arducopter-flight.tlog read 0 m/s on 2547 of 2857 steps, and C took 0 m/s: roll 6.0 -> 46.6 deg RMS)
+    p = _pipeline("multicopter")
+    for k in range(5):
+        p.on_pressure(PressureSample(0.1 * k, 0.1 * k, 95000.0, 0.0, None))
+    # WHEN the filters step THEN C keeps the multicopter's bound
+    _rest(p, 0.42, 10)
+    assert p.polar_att_params.manoeuvre_speed_m_s == MULTICOPTER_MANOEUVRE_SPEED_M_S == 25.0
 
 
 def test_given_a_pitot_reading_zero_on_the_ground_then_the_speed_is_zero_and_accepted():
