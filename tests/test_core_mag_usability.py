@@ -31,10 +31,10 @@ sys.path.insert(0, str(ROOT / "bench"))
 from estimators import core  # noqa: E402
 from estimators import mag_usability as ref  # noqa: E402
 from estimators.mag_usability import MagUsabilityState, mag_usability_params_for_field  # noqa: E402
+from test_mag_usability import FIELD_NED_GAUSS, body_field  # noqa: E402  (the model field and its body-axes helper)
 
 DATA = Path("/work/shared/data")
 RTOL = 1e-9
-FIELD_NED_GAUSS = np.array([0.22, 0.01, 0.445])
 P = mag_usability_params_for_field(FIELD_NED_GAUSS)
 pytestmark = pytest.mark.skipif(not core.MAG_USABILITY_AVAILABLE,
                                 reason=f"compiled core without mag_usability: {core.IMPORT_ERROR or 'old build'}")
@@ -84,14 +84,6 @@ def _replay(calls, params=P):
     return n_changed, reasons
 
 
-def body_field(heading_rad, roll_rad=0.0, pitch_rad=0.0):
-    cy, sy = math.cos(heading_rad), math.sin(heading_rad)
-    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
-    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
-    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    return (Rz @ Ry @ Rx).T @ FIELD_NED_GAUSS
 
 
 def _synthetic_calls() -> list:
