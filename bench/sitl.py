@@ -181,12 +181,23 @@ class UdpTap:
     ``("RAW_IMU",)``) it also decodes what the simulator sends and records when it forwarded each
     message of those types to the daemon: the same monotonic clock, read in the same thread, as
     the receive times in ``from_daemon`` (bench/speed.py's latency RAW_IMU -> ATTITUDE).
+
+    Loss accounting (bench/speed.py ``--busy``): with ``record_to_daemon`` the tap also counts every
+    simulator message by type (``received_by_type``: all it read; ``forwarded_by_type``: what it
+    passed on) and keeps ``forwarded_by_type`` as it was when it forwarded the first HEARTBEAT
+    (``forwarded_before_heartbeat``: what the daemon ignores as it does not know its FC yet).
+    ``drop_to_daemon(msg_type) -> bool`` drops the datagrams it says (a loss made on purpose,
+    counted in ``dropped_on_purpose`` by type; needs ``record_to_daemon``). ``rcvbuf_bytes``: the
+    tap socket's SO_RCVBUF (None: the system default), so the harness itself does not overflow.
     """
 
-    def __init__(self, daemon_port: int, record_to_daemon: tuple[str, ...] = ()):
+    def __init__(self, daemon_port: int, record_to_daemon: tuple[str, ...] = (),
+                 drop_to_daemon=None, rcvbuf_bytes: int | None = None):
         from pymavlink.dialects.v20 import ardupilotmega
         self.daemon_addr = ("127.0.0.1", daemon_port)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        if rcvbuf_bytes is not None:
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, int(rcvbuf_bytes))
         self.sock.bind(("127.0.0.1", 0))
         self.sim_side_port = self.sock.getsockname()[1]
         self.parser = ardupilotmega.MAVLink(None)
@@ -200,7 +211,14 @@ class UdpTap:
         if self.record_to_daemon:  # decoding the 400 Hz stream costs this thread time: only on request
             self._sim_parser = ardupilotmega.MAVLink(None)
             self._sim_parser.robust_parsing = True
+        if drop_to_daemon is not None and not self.record_to_daemon:
+            raise ValueError("drop_to_daemon needs record_to_daemon (the tap decodes to know a datagram's type)")
+        self.drop_to_daemon = drop_to_daemon
         self.forwarded = {"to_daemon": 0, "to_sim": 0}
+        self.received_by_type: dict[str, int] = {}
+        self.forwarded_by_type: dict[str, int] = {}
+        self.dropped_on_purpose: dict[str, int] = {}
+        self.forwarded_before_heartbeat: dict[str, int] | None = None
         self._sim_addr = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -227,12 +245,30 @@ class UdpTap:
                     self.from_daemon.append((now, msg))
             else:
                 self._sim_addr = addr
-                self.sock.sendto(data, self.daemon_addr)
+                if self._sim_parser is None:
+                    self.sock.sendto(data, self.daemon_addr)
+                    self.forwarded["to_daemon"] += 1
+                    continue
+                sent = self.drop_to_daemon is None
+                if sent:  # forward first: the decode below does not delay the daemon's input
+                    self.sock.sendto(data, self.daemon_addr)
+                msgs = self._sim_parser.parse_buffer(data) or []
+                types = [m.get_type() for m in msgs]
+                for t in types:
+                    self.received_by_type[t] = self.received_by_type.get(t, 0) + 1
+                if not sent and any(self.drop_to_daemon(t) for t in types):
+                    for t in types:
+                        self.dropped_on_purpose[t] = self.dropped_on_purpose.get(t, 0) + 1
+                    continue
+                if not sent:
+                    self.sock.sendto(data, self.daemon_addr)
+                if self.forwarded_before_heartbeat is None and "HEARTBEAT" in types:
+                    self.forwarded_before_heartbeat = dict(self.forwarded_by_type)
                 self.forwarded["to_daemon"] += 1
-                if self._sim_parser is not None:
-                    for msg in self._sim_parser.parse_buffer(data) or []:
-                        if msg.get_type() in self.record_to_daemon:
-                            self.to_daemon.append((now, msg))
+                for msg, t in zip(msgs, types):
+                    self.forwarded_by_type[t] = self.forwarded_by_type.get(t, 0) + 1
+                    if t in self.record_to_daemon:
+                        self.to_daemon.append((now, msg))
 
     def sent_by_daemon(self, mtype: str) -> list:
         return [m for _, m in self.from_daemon if m.get_type() == mtype]
@@ -241,6 +277,25 @@ class UdpTap:
         self._stop.set()
         self._thread.join(2.0)
         self.sock.close()
+
+
+def udp_socket_state(port: int, host: str = "127.0.0.1") -> dict | None:
+    """The kernel's view of the IPv4 UDP socket bound to ``host:port`` (/proc/net/udp, this network
+    namespace): ``rx_queue_bytes`` (queued, not yet read by its owner), ``drops`` (datagrams the kernel
+    dropped because its receive buffer was full, since the socket was opened) and ``inode``. None when
+    no such socket is listed. An observer outside the socket's owner: a bench reads another process's
+    socket with it (columns: net/ipv4/udp.c udp4_format_sock)."""
+    want = "%08X:%04X" % (int.from_bytes(socket.inet_aton(host), "little"), int(port))
+    try:
+        lines = Path("/proc/net/udp").read_text().splitlines()[1:]
+    except OSError:
+        return None
+    for line in lines:
+        cols = line.split()
+        if len(cols) > 12 and cols[1] == want:
+            return {"rx_queue_bytes": int(cols[4].split(":")[1], 16), "drops": int(cols[12]),
+                    "inode": int(cols[9])}
+    return None
 
 
 def _set_nice(value: int | None, group_nice: int | None = None):
@@ -281,13 +336,16 @@ class Sitl:
                  status_interval_s: float = 0.0, capture_output: bool = True, tap: bool = False,
                  tap_record_to_daemon: tuple[str, ...] = (), sim_nice: int | None = None,
                  daemon_nice: int | None = None, daemon_own_session: bool = False,
-                 daemon_group_nice: int | None = None):
+                 daemon_group_nice: int | None = None, tap_drop_to_daemon=None,
+                 tap_rcvbuf_bytes: int | None = None):
         """``sim_nice`` / ``daemon_nice``: the absolute nice value each process starts with (None:
         inherit this process's; below 0 needs root). ``daemon_own_session``: the daemon starts in
         a session of its own, as systemd starts a service; with the kernel's autogroup scheduling
         (/proc/sys/kernel/sched_autogroup_enabled) that is its own CPU group, and a nice value
         only orders processes within one group. ``daemon_group_nice``: that group's nice (with
-        ``daemon_own_session``; as root below 0): ``unit_nice()`` runs it as the unit would."""
+        ``daemon_own_session``; as root below 0): ``unit_nice()`` runs it as the unit would.
+        ``tap_drop_to_daemon``, ``tap_rcvbuf_bytes``: the tap's ``drop_to_daemon`` and
+        ``rcvbuf_bytes`` (UdpTap)."""
         import tempfile
         self.scenario = scenario
         self.workdir = Path(workdir or tempfile.mkdtemp(prefix="azimuthd-sitl-"))
@@ -304,7 +362,8 @@ class Sitl:
         for section, keys in (config_overrides or {}).items():
             overrides.setdefault(section, {}).update(keys)
         self.config_path = write_config(self.workdir / "azimuthd.toml", overrides)
-        self.tap = UdpTap(self.fc_port, tap_record_to_daemon) if tap else None
+        self.tap = UdpTap(self.fc_port, tap_record_to_daemon, drop_to_daemon=tap_drop_to_daemon,
+                          rcvbuf_bytes=tap_rcvbuf_bytes) if tap else None
         sim_port = self.tap.sim_side_port if self.tap else self.fc_port
         self.sim_cmd = [sys.executable, "-m", "service.cli", "sim", "--scenario", scenario,
                         "--mavlink", f"udpout:127.0.0.1:{sim_port}", "--speed", str(speed),

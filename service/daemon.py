@@ -404,7 +404,11 @@ class Daemon:
             fields.update(imu_messages=imu, link_accepted=ls.accepted, link_seq_lost=ls.seq_lost,
                           link_bad_data=ls.crc_errors + ls.framing_errors, link_stale_drops=ls.stale_time_drops,
                           link_losses=ls.link_losses, fc_reboots=ls.fc_reboots,
-                          kernel_rx_drops=getattr(ls, "kernel_rx_drops", 0) or 0)
+                          kernel_rx_drops=getattr(ls, "kernel_rx_drops", 0) or 0,
+                          # every frame read, and those ignored as not from the FC (before its first
+                          # HEARTBEAT the FC is not known): bench/speed.py --busy's loss accounting
+                          link_messages_received=ls.messages_received, link_foreign=ls.foreign_messages,
+                          link_non_finite=sum(ls.non_finite_rejects.values()))
         log.info("stopped", extra={"fields": fields})
 
     def run(self, duration_s: float | None = None) -> int:

@@ -105,7 +105,8 @@ REALTIME_MODULES = frozenset({
     "test_ardupilot_sitl", "test_e2e_heading", "test_e2e_sitl", "test_first_run", "test_geofence_sitl",
     "test_mavlink_sim_faults", "test_mavproxy_e2e", "test_outputs_mavsdk", "test_reliability_link",
     "test_reliability_load", "test_reliability_overflow", "test_reliability_restart",
-    "test_reliability_restart_in_flight", "test_security_signing_e2e", "test_sim_live", "test_web_dashboard",
+    "test_reliability_restart_in_flight", "test_security_signing_e2e", "test_sim_live", "test_speed_busy",
+    "test_web_dashboard",
 })
 """Test modules whose processes (the simulator, the daemon, ArduPilot SITL, a browser) run in real
 time against the wall clock. Under xdist they are one unit of work, run one after another on one

@@ -14,7 +14,7 @@ import conftest
 
 TESTS = Path(__file__).resolve().parent
 STARTS_A_PROCESS = re.compile(r"Popen\(|\bSitl\(|\brun_load\(|\bdaemon_flights\(|\brun_daemon\(|\baps\.fly\("
-                              r"|\b_start\(|readme_commands\(")
+                              r"|\b_start\(|readme_commands\(|\bbusy_run\(")
 """How a module starts a live process: directly, or through a harness of bench/ or of another test."""
 
 LIGHT = {
