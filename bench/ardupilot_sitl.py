@@ -428,7 +428,9 @@ class TcpTap:
     receive time. Decoding happens after the flight (``decode``): parsing in the relay thread made it
     fall behind the 3x-speed stream and deliver the daemon its data in bursts.
     ``from_daemon``: every message the daemon sent; ``from_fc``: ArduPilot's messages of the types
-    in ``keep_from_fc``. Each entry is (receive monotonic s, message)."""
+    in ``keep_from_fc``. Each entry is (receive monotonic s, message).
+    ``write_tlog(path)``: what ArduPilot sent the daemon as a .tlog (each frame stamped with the
+    tap's receive time, Unix microseconds), for ``azimuthd replay`` (--keep writes one per flight)."""
 
     def __init__(self, fc_port: int, keep_from_fc: tuple[str, ...] = ("RAW_IMU", "COMMAND_ACK", "STATUSTEXT")):
         self.fc_port = fc_port
@@ -502,6 +504,27 @@ class TcpTap:
                     self.from_daemon.append((t, msg))
                 elif msg.get_type() in self.keep_from_fc:
                     self.from_fc.append((t, msg))
+
+    def write_tlog(self, path: Path, src: str = "fc") -> int:
+        """The frames of one direction (``fc``: ArduPilot -> daemon) as a .tlog: per frame an 8-byte
+        big-endian receive time (Unix us: the tap's monotonic time moved to the wall clock once)
+        and the frame's bytes as received. Returns the number of frames written."""
+        import struct
+        from pymavlink.dialects.v20 import ardupilotmega
+        parser = ardupilotmega.MAVLink(None)
+        parser.robust_parsing = True
+        to_unix = time.time() - time.monotonic()
+        n = 0
+        with open(path, "wb") as fh:
+            for t, s, data in self.chunks:
+                if s != src:
+                    continue
+                for msg in parser.parse_buffer(data) or []:
+                    if msg.get_type() == "BAD_DATA":
+                        continue
+                    fh.write(struct.pack(">Q", int(round((t + to_unix) * 1e6))) + bytes(msg.get_msgbuf()))
+                    n += 1
+        return n
 
     def stop(self) -> None:
         self._stop.set()
@@ -741,6 +764,9 @@ def fly(spec: FlightSpec, args, rundir: Path, log=print) -> FlightRecord:
             if rx is not None:
                 rx.stop()
         ap.stop()
+        if tap is not None and getattr(args, "keep", False):
+            n = tap.write_tlog(rundir / "fc_to_daemon.tlog")
+            log(f"  [{spec.name}] {n} frames ArduPilot sent the daemon: {rundir / 'fc_to_daemon.tlog'}")
         rec.wall_s = time.monotonic() - wall0
     if rc not in (None, 0):
         rec.notes.append(f"daemon exit code {rc}")
@@ -1172,7 +1198,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--rest-s", type=float, default=10.0, help="FC seconds at rest between EKF ready and arming")
     ap.add_argument("--ready-timeout-s", type=float, default=60.0, help="wall s to wait for EKF3 'using GPS'")
     ap.add_argument("--flight-wall-limit-s", type=float, default=400.0, help="wall-clock bound of one flight")
-    ap.add_argument("--keep", action="store_true", help="keep the run directories (logs, daemon config)")
+    ap.add_argument("--keep", action="store_true", help="keep the run directories (logs, daemon config, "
+                    "fc_to_daemon.tlog: what ArduPilot sent the daemon, for azimuthd replay)")
     ap.add_argument("--fc-param", action="append", default=[], metavar="NAME=VALUE",
                     help="an extra FC parameter for every flight (repeatable), e.g. COMPASS_USE=0")
     ap.add_argument("--quick", action="store_true", help="one flight: external yaw + the divert fence")
