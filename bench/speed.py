@@ -774,9 +774,11 @@ def busy_accounting(sim_sent: dict, tap: dict, tap_socket_drops: int, daemon: di
     ``samples_lost`` is their sum (= sent - ignored before the heartbeat - processed);
     ``daemon_samples_lost`` the daemon's two. Cross-checks over all messages (one per datagram):
     simulator sent == tap read + tap socket drops; tap forwarded == daemon read + daemon socket
-    drops (fails when datagrams were left queued at the daemon's stop); the daemon's kernel counter == the bench's; the daemon's sequence gaps ==
+    drops (with datagrams left queued at the daemon's stop: forwarded > that); the daemon's kernel counter == the bench's; the daemon's sequence gaps ==
     every datagram lost after the first HEARTBEAT; the daemon's foreign count == what the tap
-    forwarded before the first HEARTBEAT."""
+    forwarded before the first HEARTBEAT. Where the daemon's sequence count is short of the datagrams
+    lost and its socket overflowed, the check passes with a note (the 8-bit sequence cannot measure
+    a run of 128 or more dropped at a full socket; the kernel counter is exact)."""
     def imu(d: dict | None) -> int:
         return sum(int((d or {}).get(k, 0)) for k in BUSY_IMU_TYPES)
 
@@ -807,7 +809,23 @@ def busy_accounting(sim_sent: dict, tap: dict, tap_socket_drops: int, daemon: di
                                                    all_on_purpose + tap_socket_drops + daemon_socket_drops),
         "daemon_foreign_vs_tap_before_heartbeat": (int(daemon.get("link_foreign", -1)), all_before_hb),
     }
-    disagree = {k: {"a": a, "b": b} for k, (a, b) in checks.items() if a != b}
+    agree = {k: a == b for k, (a, b) in checks.items()}
+    notes = {}
+    fwd = "tap_forwarded_vs_daemon_read_plus_daemon_kernel_drops"
+    if daemon_socket_left_bytes > 0:  # still queued when the daemon stopped: forwarded, neither read nor dropped
+        agree[fwd] = checks[fwd][0] > checks[fwd][1]
+        notes[fwd] = f"{daemon_socket_left_bytes} bytes still queued at the daemon's stop"
+    seq = "daemon_sequence_gaps_vs_datagrams_lost"
+    seq_a, seq_b = checks[seq]
+    if 0 <= seq_a < seq_b and daemon_socket_drops > 0 and agree["daemon_kernel_counter_vs_bench"]:
+        # a full socket drops runs of datagrams; the 8-bit MAVLink sequence cannot measure a run of
+        # 128 or more (mavlink_io.framing.SeqTracker counts it as reordered, modulo 256), so its
+        # count is a lower bound there; the kernel's counter, which both the daemon and the bench
+        # read, is the exact one
+        agree[seq] = True
+        notes[seq] = (f"lower bound: runs of >= 128 datagrams dropped at a full socket are beyond the 8-bit "
+                      f"sequence (the daemon's kernel counter, {daemon_socket_drops}, agrees with the bench's)")
+    disagree = [k for k, ok in agree.items() if not ok]
     return {"samples_sent": sent - before_hb, "samples_sent_total": sent,
             "ignored_before_fc_heartbeat": before_hb, "samples_processed": processed,
             "samples_lost": harness + in_daemon, "samples_lost_parts": parts,
@@ -815,7 +833,8 @@ def busy_accounting(sim_sent: dict, tap: dict, tap_socket_drops: int, daemon: di
             "daemon_read_not_processed_parts": {"pipeline_rejected": rejected,
                                                 "link_dropped": accepted - processed - rejected},
             "daemon_socket_left_bytes_at_stop": daemon_socket_left_bytes,
-            "checks": {k: {"a": a, "b": b, "agree": a == b} for k, (a, b) in checks.items()},
+            "checks": {k: {"a": a, "b": b, "agree": agree[k], **({"note": notes[k]} if k in notes else {})}
+                       for k, (a, b) in checks.items()},
             "observers_agree": not disagree}
 
 
@@ -829,13 +848,15 @@ def _short_rest_scenario(workdir: Path, rest_s: float = 6.0) -> Path:
 
 def busy_run(busy_s: float, competitors: int = BUSY_COMPETITORS, imu_batch: bool = False,
              daemon_group_nice: int | None = None, drop_imu_every: int = 0,
-             start_timeout_s: float = 300.0) -> dict:
+             start_timeout_s: float = 300.0, udp_rcvbuf_bytes: int | None = None) -> dict:
     """The daemon at 400 Hz (bench.sitl: simulator + tap + daemon as processes over loopback UDP, the
     daemon in a session of its own at ``daemon_group_nice``) beside ``competitors`` CPU-bound
     processes (:class:`Competitors`), started before the daemon and running until it stopped. The
     window (``busy_s``) starts once the daemon sends ATTITUDE; the loss accounting covers the whole
     run (:func:`busy_accounting`). ``drop_imu_every`` > 0: the tap drops every n-th IMU datagram on
-    purpose (tests: the accounting must name exactly those). Returns the JSON ``busy`` dict."""
+    purpose (tests: the accounting must name exactly those). ``udp_rcvbuf_bytes``: the daemon's
+    [mavlink] udp_rcvbuf_bytes (None: its default, 4 MiB; 212992 is what a machine with the kernel's
+    default net.core.rmem_max grants). Returns the JSON ``busy`` dict."""
     import signal
     import tempfile
     from array import array
@@ -853,14 +874,23 @@ def busy_run(busy_s: float, competitors: int = BUSY_COMPETITORS, imu_batch: bool
                 return False
             n_imu[0] += 1
             return n_imu[0] % drop_imu_every == 0
+    mav = {"imu_rate_hz": RATE_HZ, "imu_batch": bool(imu_batch)}
+    if udp_rcvbuf_bytes is not None:
+        mav["udp_rcvbuf_bytes"] = int(udp_rcvbuf_bytes)
     sitl = Sitl(scenario=str(_short_rest_scenario(workdir)), speed=1.0, workdir=workdir,
-                config_overrides={"mavlink": {"imu_rate_hz": RATE_HZ, "imu_batch": bool(imu_batch)}},
+                config_overrides={"mavlink": mav},
                 sim_args=["--duration", "0"], tap=True, tap_record_to_daemon=BUSY_IMU_TYPES,
                 tap_drop_to_daemon=drop, tap_rcvbuf_bytes=TAP_RCVBUF_BYTES,
                 daemon_own_session=True, daemon_group_nice=daemon_group_nice)
     import tomllib
     with open(sitl.config_path, "rb") as f:
-        att_cfg_hz = float(tomllib.load(f).get("outputs", {}).get("attitude_hz", 50.0))
+        cfg = tomllib.load(f)
+    att_cfg_hz = float(cfg.get("outputs", {}).get("attitude_hz", 50.0))
+    try:
+        rmem_max = int(Path("/proc/sys/net/core/rmem_max").read_text())
+    except (OSError, ValueError):
+        rmem_max = None
+    asked = int(cfg["mavlink"].get("udp_rcvbuf_bytes", 4 * 1024 * 1024))
     tap = sitl.tap
     imu_us, imu_t = array("q"), array("d")     # every IMU sample forwarded: time_usec, forward time
     att_ms, att_t = array("q"), array("d")     # every ATTITUDE from the daemon: time_boot_ms, receive time
@@ -879,6 +909,8 @@ def busy_run(busy_s: float, competitors: int = BUSY_COMPETITORS, imu_batch: bool
 
     out: dict = {"busy_s": busy_s, "competitors": competitors, "rate_hz": RATE_HZ,
                  "attitude_rate_configured_hz": att_cfg_hz, "workdir": str(workdir),
+                 "daemon_udp_rcvbuf_bytes_asked": asked, "net_core_rmem_max": rmem_max,
+                 "daemon_udp_rcvbuf_bytes_effective": min(asked, rmem_max) if rmem_max else None,
                  "imu_path": "batch (ImuBatch)" if imu_batch else "message (ImuSample)"}
     loads: list[float] = []
     with Competitors(competitors) as comp:
@@ -1005,6 +1037,10 @@ def busy_verdict(b: dict) -> tuple[str, bool]:
         p = b["samples_lost_parts"]
         fails.append(f"daemon lost {b['daemon_samples_lost']} samples (socket {p['daemon_socket_kernel']}, "
                      f"read but not processed {p['daemon_read_not_processed']})")
+    left = b.get("daemon_socket_left_bytes_at_stop", 0)
+    if left:
+        fails.append(f"the daemon had not read its socket {BUSY_DRAIN_S:.0f} s after the simulator stopped "
+                     f"({left} bytes left, counted as lost at its socket): it was behind")
     cfg, rate = b["attitude_rate_configured_hz"], b["attitude_rate_hz"]
     if abs(rate - cfg) > BUSY_ATTITUDE_RATE_TOLERANCE * cfg:
         fails.append(f"ATTITUDE {rate:.2f} Hz, configured {cfg:.0f} (tolerance {100 * BUSY_ATTITUDE_RATE_TOLERANCE:.0f} %)")
@@ -1047,7 +1083,7 @@ def busy_part(args) -> dict:
     opts = {"busy_s": args.busy_s, "competitors": args.busy_competitors, "imu_batch": args.imu_batch,
             "daemon_group_nice": (args.busy_daemon_group_nice if args.busy_daemon_group_nice is not None
                                   else unit_nice() if root else None),
-            "fc_group_nice": FC_GROUP_NICE if root else None}
+            "fc_group_nice": FC_GROUP_NICE if root else None, "udp_rcvbuf_bytes": args.busy_rcvbuf_bytes}
     print(f"\nbusy: the daemon at {RATE_HZ:.0f} Hz beside {args.busy_competitors} CPU-bound competitors for "
           f"{args.busy_s:.0f} s (daemon group nice {opts['daemon_group_nice']}, simulator + tap group nice "
           f"{opts['fc_group_nice']}; load now {os.getloadavg()[0]:.1f}) ...", flush=True)
@@ -1065,7 +1101,8 @@ def busy_part(args) -> dict:
           f"{p['tap_socket_kernel']}, tap on purpose {p['tap_dropped_on_purpose']}, daemon socket "
           f"{p['daemon_socket_kernel']}, daemon read but not processed {p['daemon_read_not_processed']}")
     for k, c in b["checks"].items():
-        print(f"  check {k}: {c['a']} vs {c['b']} -> {'agree' if c['agree'] else 'DISAGREE'}")
+        print(f"  check {k}: {c['a']} vs {c['b']} -> {'agree' if c['agree'] else 'DISAGREE'}"
+              + (f" ({c['note']})" if "note" in c else ""))
     print(f"  ATTITUDE {b['attitude_rate_hz']:.2f} Hz received (configured {b['attitude_rate_configured_hz']:.0f}; "
           f"FC clock {b.get('attitude_rate_fc_clock_hz', math.nan):.2f} Hz; longest interval "
           f"{b.get('attitude_interval_max_ms', math.nan):.0f} ms)")
@@ -1076,6 +1113,8 @@ def busy_part(args) -> dict:
           f"{b['daemon_children_cpu_pct']:.1f} %), simulator {b['sim_cpu_pct']:.1f} %, tap + listener "
           f"{b['harness_process_cpu_pct']:.1f} %, competitors " + " / ".join(f"{c:.0f} %" for c in b["competitor_cpu_pct"]))
     print(f"  scheduling: {b['scheduling']}")
+    print(f"  daemon's UDP receive buffer: asked {b['daemon_udp_rcvbuf_bytes_asked']} bytes, net.core.rmem_max "
+          f"{b['net_core_rmem_max']}: effective {b['daemon_udp_rcvbuf_bytes_effective']}")
     print(f"  daemon's own loss events: {b['daemon_loss_events']}; simulator {b['simulator']}")
     print(f"busy verdict: {b['verdict']}")
     return b
@@ -1158,6 +1197,9 @@ def main(argv=None) -> int:
     ap.add_argument("--busy-daemon-group-nice", type=int, default=None, metavar="N",
                     help="the daemon's CPU-group nice in the busy run (default as root: the unit's Nice=; "
                          "0: no scheduling of its own, for a before/after)")
+    ap.add_argument("--busy-rcvbuf-bytes", type=int, default=None, metavar="BYTES",
+                    help="the daemon's [mavlink] udp_rcvbuf_bytes in the busy run (default: its own, 4 MiB; "
+                         "212992: what the kernel's default net.core.rmem_max grants)")
     ap.add_argument("--profile-daemon", metavar="PATH",
                     help="run the SITL daemon under cProfile, stats to PATH (figures then include its overhead)")
     args = ap.parse_args(argv)

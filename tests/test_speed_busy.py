@@ -66,6 +66,19 @@ def test_a_clean_run_passes_and_a_daemon_loss_fails():
     assert not ok and text.startswith("FAIL") and "daemon lost 4 samples (socket 4" in text
 
 
+def test_datagrams_left_queued_at_the_daemons_stop_are_lost_at_its_socket_and_fail_the_run():
+    sim_sent, tap, tap_kernel, daemon, daemon_kernel = _observers(tap_kernel=0, on_purpose=0, daemon_kernel=0,
+                                                                  rejected=0, link_dropped=0)
+    left = 6   # IMU datagrams the daemon had not read when it was stopped (it was behind)
+    daemon = dict(daemon, imu_messages=daemon["imu_messages"] - left, imu_samples=daemon["imu_samples"] - left,
+                  link_messages_received=daemon["link_messages_received"] - left)
+    acc = busy_accounting(sim_sent, tap, tap_kernel, daemon, daemon_kernel, daemon_socket_left_bytes=6 * 60)
+    assert acc["samples_lost_parts"]["daemon_socket_kernel"] == left and acc["daemon_samples_lost"] == left
+    assert acc["observers_agree"], acc["checks"]   # forwarded > read + drops: the rest was still queued
+    text, ok = busy_verdict(_verdict_input(acc))
+    assert not ok and text.startswith("FAIL") and "it was behind" in text
+
+
 def test_observers_that_disagree_are_named():
     sim_sent, tap, tap_kernel, daemon, daemon_kernel = _observers()
     daemon = dict(daemon, kernel_rx_drops=0, link_seq_lost=daemon["link_seq_lost"] - 1)
@@ -75,6 +88,23 @@ def test_observers_that_disagree_are_named():
     assert bad == ["daemon_kernel_counter_vs_bench", "daemon_sequence_gaps_vs_datagrams_lost"]
     assert acc["checks"]["daemon_kernel_counter_vs_bench"] == {"a": 0, "b": 7, "agree": False}
     assert "observers disagree" in busy_verdict(_verdict_input(acc))[0]
+
+
+def test_the_8_bit_sequence_is_a_lower_bound_when_a_full_socket_dropped_runs():
+    # a full socket drops runs of datagrams; a run of 128 or more is beyond the 8-bit MAVLink
+    # sequence (mavlink_io.framing.SeqTracker): its count is short, the kernel's counter exact
+    sim_sent, tap, tap_kernel, daemon, daemon_kernel = _observers(tap_kernel=0, on_purpose=0, daemon_kernel=300)
+    short = busy_accounting(sim_sent, tap, tap_kernel, dict(daemon, link_seq_lost=44), daemon_kernel)
+    c = short["checks"]["daemon_sequence_gaps_vs_datagrams_lost"]
+    assert (c["a"], c["b"], c["agree"]) == (44, 300, True) and "lower bound" in c["note"]
+    assert short["observers_agree"] and short["samples_lost_parts"]["daemon_socket_kernel"] == 300
+    # more gaps than datagrams lost is no undercount: the observers disagree
+    over = busy_accounting(sim_sent, tap, tap_kernel, dict(daemon, link_seq_lost=301), daemon_kernel)
+    assert not over["observers_agree"]
+    # short, but the daemon's kernel counter does not agree with the bench's: no excuse either
+    unsure = busy_accounting(sim_sent, tap, tap_kernel, dict(daemon, link_seq_lost=44, kernel_rx_drops=0),
+                             daemon_kernel)
+    assert not unsure["checks"]["daemon_sequence_gaps_vs_datagrams_lost"]["agree"]
 
 
 def test_the_kernel_drop_observer_counts_what_a_full_socket_dropped():
