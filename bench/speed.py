@@ -770,7 +770,8 @@ def busy_accounting(sim_sent: dict, tap: dict, tap_socket_drops: int, daemon: di
                               kernel drops, or left queued at its stop)
       daemon_read_not_processed  accepted by its link, not taken by its estimators
                               (pipeline_rejected: the input checks; link_dropped: stale FC time,
-                              non-finite fields)
+                              non-finite fields, or an input the daemon dropped on an internal
+                              fault: its count over all inputs is given beside)
     ``samples_lost`` is their sum (= sent - ignored before the heartbeat - processed);
     ``daemon_samples_lost`` the daemon's two. Cross-checks over all messages (one per datagram):
     simulator sent == tap read + tap socket drops; tap forwarded == daemon read + daemon socket
@@ -831,7 +832,8 @@ def busy_accounting(sim_sent: dict, tap: dict, tap_socket_drops: int, daemon: di
             "samples_lost": harness + in_daemon, "samples_lost_parts": parts,
             "samples_lost_harness": harness, "daemon_samples_lost": in_daemon,
             "daemon_read_not_processed_parts": {"pipeline_rejected": rejected,
-                                                "link_dropped": accepted - processed - rejected},
+                                                "link_dropped": accepted - processed - rejected,
+                                                "internal_faults_any_input": int(daemon.get("internal_faults", 0))},
             "daemon_socket_left_bytes_at_stop": daemon_socket_left_bytes,
             "checks": {k: {"a": a, "b": b, "agree": agree[k], **({"note": notes[k]} if k in notes else {})}
                        for k, (a, b) in checks.items()},
@@ -936,6 +938,8 @@ def busy_run(busy_s: float, competitors: int = BUSY_COMPETITORS, imu_batch: bool
                               _own_cpu_s())
             compact()
             win_att = [k for k in range(n_att0, len(att_t)) if att_t[k] <= w1]
+            # a second observer of the rate: the ground-station port (the daemon's extra output)
+            gcs_att = sum(1 for row in list(sitl.listener.attitude) if w0 <= row[4] <= w1)
             out["scheduling"] = {"daemon_autogroup": _autogroup(sitl.daemon.pid),
                                  "simulator_and_tap_autogroup": _autogroup(sitl.sim.pid),
                                  "competitor_autogroups": [_autogroup(p.pid) for p in comp.procs],
@@ -982,6 +986,7 @@ def busy_run(busy_s: float, competitors: int = BUSY_COMPETITORS, imu_batch: bool
         "window_s": wall,
         "attitude_in_window": len(win_att),
         "attitude_rate_hz": len(win_att) / wall,
+        "attitude_rate_ground_station_hz": gcs_att / wall,
         "daemon_cpu_pct": 100.0 * (d1.get(dpid, 0.0) - d0.get(dpid, 0.0)) / wall,
         "daemon_children_cpu_pct": cpu({k: v for k, v in d0.items() if k != dpid},
                                        {k: v for k, v in d1.items() if k != dpid}),
@@ -1037,6 +1042,10 @@ def busy_verdict(b: dict) -> tuple[str, bool]:
         p = b["samples_lost_parts"]
         fails.append(f"daemon lost {b['daemon_samples_lost']} samples (socket {p['daemon_socket_kernel']}, "
                      f"read but not processed {p['daemon_read_not_processed']})")
+    events = b.get("daemon_loss_events", {})
+    if b["checks"]["daemon_kernel_counter_vs_bench"]["b"] > 0 and not events.get("input_overflow"):
+        fails.append("the kernel dropped datagrams at the daemon's socket and it logged no input_overflow "
+                     "(it must report them)")
     left = b.get("daemon_socket_left_bytes_at_stop", 0)
     if left:
         fails.append(f"the daemon had not read its socket {BUSY_DRAIN_S:.0f} s after the simulator stopped "
@@ -1103,7 +1112,8 @@ def busy_part(args) -> dict:
     for k, c in b["checks"].items():
         print(f"  check {k}: {c['a']} vs {c['b']} -> {'agree' if c['agree'] else 'DISAGREE'}"
               + (f" ({c['note']})" if "note" in c else ""))
-    print(f"  ATTITUDE {b['attitude_rate_hz']:.2f} Hz received (configured {b['attitude_rate_configured_hz']:.0f}; "
+    print(f"  ATTITUDE {b['attitude_rate_hz']:.2f} Hz received (ground-station port {b['attitude_rate_ground_station_hz']:.2f}; "
+          f"configured {b['attitude_rate_configured_hz']:.0f}; "
           f"FC clock {b.get('attitude_rate_fc_clock_hz', math.nan):.2f} Hz; longest interval "
           f"{b.get('attitude_interval_max_ms', math.nan):.0f} ms)")
     if "latency_p99_ms" in b:

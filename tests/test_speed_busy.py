@@ -44,7 +44,8 @@ def test_each_loss_is_named_where_it_happened_and_the_observers_agree():
     acc = busy_accounting(*_observers())
     assert acc["samples_lost_parts"] == {"tap_socket_kernel": 10, "tap_dropped_on_purpose": 5,
                                          "daemon_socket_kernel": 7, "daemon_read_not_processed": 5}
-    assert acc["daemon_read_not_processed_parts"] == {"pipeline_rejected": 2, "link_dropped": 3}
+    assert acc["daemon_read_not_processed_parts"] == {"pipeline_rejected": 2, "link_dropped": 3,
+                                                      "internal_faults_any_input": 0}
     assert acc["samples_lost"] == 27 and acc["samples_lost_harness"] == 15 and acc["daemon_samples_lost"] == 12
     # 1000 sent, 3 ignored before the FC's first HEARTBEAT (not lost: the FC is not known yet)
     assert acc["samples_sent"] == 997 and acc["ignored_before_fc_heartbeat"] == 3
@@ -62,8 +63,11 @@ def test_a_clean_run_passes_and_a_daemon_loss_fails():
     assert not busy_verdict(_verdict_input(clean, rate_hz=49.0))[1]        # 2 % short of the configured rate
     assert busy_verdict(_verdict_input(clean, speed=0.95))[0].startswith("INVALID")  # simulator behind
     lossy = busy_accounting(*_observers(tap_kernel=0, on_purpose=0, daemon_kernel=4, rejected=0, link_dropped=0))
-    text, ok = busy_verdict(_verdict_input(lossy))
+    text, ok = busy_verdict({**_verdict_input(lossy), "daemon_loss_events": {"input_overflow": 1}})
     assert not ok and text.startswith("FAIL") and "daemon lost 4 samples (socket 4" in text
+    assert "logged no input_overflow" not in text
+    # a loss the daemon did not report is a failure of its own
+    assert "logged no input_overflow" in busy_verdict(_verdict_input(lossy))[0]
 
 
 def test_datagrams_left_queued_at_the_daemons_stop_are_lost_at_its_socket_and_fail_the_run():
