@@ -844,12 +844,16 @@ def roll_pitch_jacobian(q_P_from_body: np.ndarray) -> np.ndarray:
     = d_hat + d_hat x eps.  roll = atan2(d_y, d_z), pitch = -asin(d_x) (d = [-sin th,
     sin ph cos th, cos ph cos th]), so with the chain rule
     d roll = (d_z dd_y - d_y dd_z) / (d_y^2 + d_z^2),  d pitch = -dd_x / sqrt(1 - d_x^2).
+    1 - d_x^2 is taken as d_y^2 + d_z^2 (d is a unit vector): near pitch +-90 deg 1 - d_x^2 cancels,
+    and rounding d_x (1e-16) alone moved the pitch variance by 1e-9 relative at 89.95 deg (the core's
+    parity test, tests/test_core_polar_attitude.py, on the any_motion handheld flight); the sum keeps
+    full precision.
     """
     d = _down_in_body(np.asarray(q_P_from_body, float))
     Dd = skew(d)                        # dd/deps: d x eps = skew(d) @ eps
     den = d[1] ** 2 + d[2] ** 2
     J_roll = (d[2] * Dd[1] - d[1] * Dd[2]) / den
-    J_pitch = -Dd[0] / math.sqrt(max(1e-12, 1.0 - d[0] ** 2))
+    J_pitch = -Dd[0] / math.sqrt(max(1e-12, den))
     return np.vstack([J_roll, J_pitch])
 
 
