@@ -110,14 +110,16 @@ def pipeline_inputs(run) -> list:
 
 def feed_pipeline(pipeline, items, events: list | None = None, timed_events: bool = False):
     """Feed ``items`` to ``pipeline`` by type, as the daemon's dispatch does: ImuSample -> ``on_imu``
-    then ``drain_events``; PressureSample, FcAttitude, FcHeartbeat, FcFlightState -> their handlers.
+    then ``drain_events``; PressureSample, FcAttitude, FcHeartbeat, FcFlightState, FcEkfStatus -> their
+    handlers.
     Yields the solutions ``on_imu`` returns (None is not yielded); the drained events are appended
     to ``events`` when given, as (kind, detail), or (IMU time s, kind, detail) with ``timed_events``.
     A generator: nothing is fed until it is iterated (code between two solutions runs between them)."""
-    from mavlink_io.samples import FcAttitude, FcFlightState, FcHeartbeat, ImuSample, PressureSample
+    from mavlink_io.samples import FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, ImuSample, PressureSample
     on_imu, drain = pipeline.on_imu, pipeline.drain_events
     others = {PressureSample: pipeline.on_pressure, FcAttitude: pipeline.on_fc_attitude,
-              FcHeartbeat: pipeline.on_fc_heartbeat, FcFlightState: pipeline.on_fc_flight_state}
+              FcHeartbeat: pipeline.on_fc_heartbeat, FcFlightState: pipeline.on_fc_flight_state,
+              FcEkfStatus: pipeline.on_fc_ekf_status}
     for it in items:
         c = type(it)
         if c is ImuSample:

@@ -93,7 +93,8 @@ AhrsParams params_from(const py::object& p) {
     const py::object h = p.attr("health");
     c.health = {h.attr("require_horiz_pos_ok").cast<bool>(), f(h, "max_attitude_age_s"), f(h, "anchor_period_s"),
                 f(h, "window_s"), f(h, "sigma_fc_tilt_rad"), f(h, "sigma_fc_yaw_rad"), f(h, "sigma_bias_rad_s"),
-                f(h, "check_period_s"), f(h, "n_sigma"), f(h, "margin_rad"), f(h, "retrust_hold_s")};
+                f(h, "check_period_s"), f(h, "n_sigma"), f(h, "margin_rad"), f(h, "retrust_hold_s"),
+                f(h, "status_wait_s")};
     return c;
 }
 
@@ -190,6 +191,7 @@ py::dict get_state(const Ahrs& s, const AhrsParams& p) {
     hd["attitude_ok"] = opt_tri(h.attitude_ok);
     hd["horiz_pos_ok"] = opt_tri(h.horiz_pos_ok);
     hd["fc_time_s"] = opt(h.has_fc_time, h.fc_time_s);
+    hd["first_attitude_s"] = opt(h.has_first_attitude, h.first_attitude_s);
     hd["attitude_interval_s"] = opt(h.has_interval, h.attitude_interval_s);
     py::list anchors;
     for (const Anchor& a : *h.anchors) anchors.append(py::make_tuple(a.t_a, np2<3>(a.C_fc), np2<3>(a.C_g), a.v_a));
@@ -250,6 +252,7 @@ Ahrs state_from(const py::dict& d) {
     h.attitude_ok = tri(hd["attitude_ok"]);
     h.horiz_pos_ok = tri(hd["horiz_pos_ok"]);
     h.has_fc_time = get_opt(hd, "fc_time_s", h.fc_time_s);
+    h.has_first_attitude = get_opt(hd, "first_attitude_s", h.first_attitude_s);
     h.has_interval = get_opt(hd, "attitude_interval_s", h.attitude_interval_s);
     auto anchors = std::make_shared<std::vector<Anchor>>();
     for (const py::handle a : py::tuple(hd["anchors"])) {

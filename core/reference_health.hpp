@@ -17,7 +17,7 @@ constexpr double INTERVAL_AVERAGING = 0.2;
 struct HealthParams {
     bool require_horiz_pos_ok;
     double max_attitude_age_s, anchor_period_s, window_s, sigma_fc_tilt_rad, sigma_fc_yaw_rad, sigma_bias_rad_s,
-        check_period_s, n_sigma, margin_rad, retrust_hold_s;
+        check_period_s, n_sigma, margin_rad, retrust_hold_s, status_wait_s;
 };
 
 struct Anchor {
@@ -28,7 +28,7 @@ struct Anchor {
 using Anchors = std::shared_ptr<const std::vector<Anchor>>;  // replaced, never edited in place
 
 // reference_health._signals_bad and the reasons built on it
-enum class Signal { none, system_status, attitude_not_ok, horiz_pos_lost };
+enum class Signal { none, system_status, no_status_yet, attitude_not_ok, horiz_pos_lost };
 
 struct Health {
     bool has_system_status = false;
@@ -37,6 +37,8 @@ struct Health {
     int horiz_pos_ok = -1;
     bool has_fc_time = false;
     double fc_time_s = 0.0;
+    bool has_first_attitude = false;
+    double first_attitude_s = 0.0;  // the first ATTITUDE checked: the status wait's start
     bool has_interval = false;
     double attitude_interval_s = 0.0;
     Anchors anchors = std::make_shared<const std::vector<Anchor>>();
@@ -50,8 +52,14 @@ struct Health {
     const char* reason = "no FC attitude yet";
 };
 
-inline Signal signals_bad(const Health& s, const HealthParams& p) {
+// reference_health.health_status_missing: no estimator status within status_wait_s of the first ATTITUDE
+inline bool status_missing(const Health& s, const HealthParams& p, double time_s) {
+    return s.attitude_ok == -1 && s.has_first_attitude && time_s - s.first_attitude_s >= p.status_wait_s;
+}
+
+inline Signal signals_bad(const Health& s, const HealthParams& p, double time_s) {
     if (s.has_system_status && s.system_status != 3 && s.system_status != 4) return Signal::system_status;
+    if (s.attitude_ok == -1 && !status_missing(s, p, time_s)) return Signal::no_status_yet;
     if (s.attitude_ok == 0) return Signal::attitude_not_ok;
     if (p.require_horiz_pos_ok && s.horiz_pos_ok == 0) return Signal::horiz_pos_lost;
     return Signal::none;
@@ -60,6 +68,7 @@ inline Signal signals_bad(const Health& s, const HealthParams& p) {
 inline const char* signal_text(Signal sig, long system_status) {
     switch (sig) {
         case Signal::system_status: return intern("FC system_status " + std::to_string(system_status));
+        case Signal::no_status_yet: return "no FC estimator status yet";
         case Signal::attitude_not_ok: return "FC EKF attitude not ok";
         case Signal::horiz_pos_lost: return "FC EKF horizontal position lost (GNSS)";
         default: return "";
@@ -80,8 +89,12 @@ inline void health_on_attitude(Health& s, const M3& C_fc, const M3& C_g, double 
         s.attitude_interval_s = !s.has_interval ? step : s.attitude_interval_s + INTERVAL_AVERAGING * (step - s.attitude_interval_s);
         s.has_interval = true;
     }
+    if (!s.has_first_attitude) {
+        s.has_first_attitude = true;
+        s.first_attitude_s = time_s;
+    }
     if (s.has_check_time && 0.0 <= time_s - s.check_time_s && time_s - s.check_time_s < p.check_period_s &&
-        signals_bad(s, p) == Signal::none) {
+        signals_bad(s, p, time_s) == Signal::none) {
         s.has_fc_time = true;
         s.fc_time_s = time_s;
         return;
@@ -102,7 +115,7 @@ inline void health_on_attitude(Health& s, const M3& C_fc, const M3& C_g, double 
         worst = m;
     }
     const bool diverged = worst > 1.0;
-    const Signal signals = signals_bad(s, p);
+    const Signal signals = signals_bad(s, p, time_s);
     const bool bad = signals != Signal::none;
     std::vector<Anchor> kept;
     kept.reserve(s.anchors->size() + 1);
@@ -123,7 +136,8 @@ inline void health_on_attitude(Health& s, const M3& C_fc, const M3& C_g, double 
     } else {
         s.has_good_since = false;
     }
-    bool latched = s.latched_out || diverged || bad || silent;
+    // waiting for the first status is no loss: trusted at once when it says good (no re-trust hold)
+    bool latched = s.latched_out || diverged || (bad && signals != Signal::no_status_yet) || silent;
     if (latched && good && time_s - s.good_since_s >= p.retrust_hold_s) latched = false;
     s.has_fc_time = true;
     s.fc_time_s = time_s;
@@ -175,7 +189,7 @@ inline Trust health_trusted(const Health& s, double time_s, const HealthParams& 
     if (s.has_interval && s.attitude_interval_s > p.max_attitude_age_s)
         return {TrustReason::too_slow, Signal::none, s.attitude_interval_s};
     if (time_s - s.fc_time_s > p.max_attitude_age_s) return {TrustReason::stale, Signal::none, time_s - s.fc_time_s};
-    const Signal sig = signals_bad(s, p);
+    const Signal sig = signals_bad(s, p, time_s);
     if (sig != Signal::none) return {TrustReason::signals, sig, static_cast<double>(s.system_status)};
     if (s.diverged) return {TrustReason::disagrees};
     if (s.latched_out) return {TrustReason::retrust_hold};

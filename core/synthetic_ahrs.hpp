@@ -398,6 +398,8 @@ inline void ahrs_unseen(Ahrs& s, double unseen_s, const AhrsParams& p) {
     clear_anchors(s.health);
     s.health.has_check_time = false;
     s.health.has_good_since = false;
+    s.health.attitude_ok = s.health.horiz_pos_ok = -1;  // the rebooted FC's estimator has not spoken yet
+    s.health.has_first_attitude = false;
     s.snaps = std::make_shared<const std::vector<Snapshot>>();
     s.reacquire_heading = kf2_heading_var(s.kf2) > std::pow(p.init_sigma_heading_rad, 2);
 }

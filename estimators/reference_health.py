@@ -7,7 +7,16 @@ the FC's attitude is trusted. Trusted means all of:
    EMERGENCY / booting), and the last estimator status says attitude_ok and, with
    ``require_horiz_pos_ok`` (default), horiz_pos_ok: losing GNSS (the simulator's "GNSS lost /
    degraded" switch) clears horiz_pos_ok in EKF_STATUS_REPORT, and the FC's attitude then
-   degrades slowly, so the loss of the position solution is the signal to stop trusting it;
+   degrades slowly, so the loss of the position solution is the signal to stop trusting it.
+   Before the FC's first estimator status its attitude is no reference: an FC publishes ATTITUDE
+   from a fallback before its EKF runs (ArduPlane SITL: DCM from boot, 13 deg of magnetic yaw off
+   and its pitch still settling; its first EKF_STATUS_REPORT, 1.1 s after the first ATTITUDE the
+   daemon saw, said EKF_UNINITIALIZED; trusted for that 1.1 s, method B took DCM's yaw and pitch
+   and learnt a -0.19 deg/s yaw gyro bias from them that made the FC's good EKF3 attitude read as
+   "disagrees with gyros" 13 s after take-off). The rule for an FC that sends no estimator status
+   at all (a log without one, an FC that does not stream it): after ``status_wait_s`` of FC time
+   from the first ATTITUDE checked with none, its attitude is judged on 2. and 3. alone (the
+   Pipeline says so in its log once);
 2. freshness: an FC ATTITUDE sample no older than ``max_attitude_age_s`` (FC time), and a stream
    that comes at least that often (the mean interval, an exponential average of the FC-time steps):
    a 1 Hz ATTITUDE (ArduPilot's stock stream rate when a faster request is refused) would otherwise
@@ -75,10 +84,14 @@ class ReferenceHealthParams:
     margin_rad: float = math.radians(0.5)
     retrust_hold_s: float = 10.0
     """Continuous good time (s) needed to trust again after a loss."""
+    status_wait_s: float = 5.0
+    """FC time (s) from the first ATTITUDE checked that an estimator status is waited for before the
+    FC is taken to send none (then trusted without one). ArduPilot streams EKF_STATUS_REPORT at the
+    2 Hz the daemon asks (1 Hz stock); PX4 ESTIMATOR_STATUS likewise: 5 s is several periods."""
 
     def __post_init__(self):
         for name in ("max_attitude_age_s", "anchor_period_s", "window_s", "sigma_fc_tilt_rad", "sigma_fc_yaw_rad", "check_period_s",
-                     "sigma_bias_rad_s", "n_sigma", "retrust_hold_s"):
+                     "sigma_bias_rad_s", "n_sigma", "retrust_hold_s", "status_wait_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
@@ -93,6 +106,8 @@ class ReferenceHealthState:
     horiz_pos_ok: bool | None = None
     fc_time_s: float | None = None
     """FC time of the last ATTITUDE sample."""
+    first_attitude_s: float | None = None
+    """FC time of the first ATTITUDE checked (``health_on_attitude``): the status wait's start."""
     attitude_interval_s: float | None = None
     """Mean interval of the FC's ATTITUDE samples (FC time, exponential average)."""
     anchors: tuple = ()
@@ -124,9 +139,23 @@ def health_on_ekf_status(state: ReferenceHealthState, attitude_ok: bool,
     return replace(state, attitude_ok=bool(attitude_ok), horiz_pos_ok=bool(horiz_pos_ok))
 
 
-def _signals_bad(state: ReferenceHealthState, params: ReferenceHealthParams) -> str:
+NO_STATUS_YET = "no FC estimator status yet"
+
+
+def health_status_missing(state: ReferenceHealthState, params: ReferenceHealthParams = ReferenceHealthParams(),
+                          time_s: float | None = None) -> bool:
+    """No estimator status came within ``status_wait_s`` of the first ATTITUDE checked (at FC time
+    ``time_s``, default the last ATTITUDE's): the FC is taken to send none."""
+    t = state.fc_time_s if time_s is None else time_s
+    return (state.attitude_ok is None and state.first_attitude_s is not None and t is not None
+            and t - state.first_attitude_s >= params.status_wait_s)
+
+
+def _signals_bad(state: ReferenceHealthState, params: ReferenceHealthParams, time_s: float) -> str:
     if state.system_status is not None and state.system_status not in HEALTHY_SYSTEM_STATUS:
         return f"FC system_status {state.system_status}"
+    if state.attitude_ok is None and not health_status_missing(state, params, time_s):
+        return NO_STATUS_YET
     if state.attitude_ok is False:
         return "FC EKF attitude not ok"
     if params.require_horiz_pos_ok and state.horiz_pos_ok is False:
@@ -153,9 +182,10 @@ def health_on_attitude(state: ReferenceHealthState, C_nav_from_body_fc: np.ndarr
     if state.fc_time_s is not None and 0.0 < time_s - state.fc_time_s < params.window_s:
         step = time_s - state.fc_time_s  # the mean interval: new = old + a (step - old)
         interval = step if interval is None else interval + INTERVAL_AVERAGING * (step - interval)
-    state = replace(state, attitude_interval_s=interval)
+    state = replace(state, attitude_interval_s=interval,
+                    first_attitude_s=time_s if state.first_attitude_s is None else state.first_attitude_s)
     if (state.check_time_s is not None and 0.0 <= time_s - state.check_time_s < params.check_period_s
-            and not _signals_bad(state, params)):
+            and not _signals_bad(state, params, time_s)):
         return replace(state, fc_time_s=time_s)
     worst = 0.0
     for t_a, C_fc_a, C_g_a, v_a in state.anchors:
@@ -168,7 +198,7 @@ def health_on_attitude(state: ReferenceHealthState, C_nav_from_body_fc: np.ndarr
         thr_yaw = params.n_sigma * math.sqrt(2.0 * params.sigma_fc_yaw_rad ** 2 + drift2) + params.margin_rad
         worst = max(worst, math.hypot(d[0], d[1]) / thr_tilt, abs(d[2]) / thr_yaw)
     diverged = worst > 1.0
-    signals = _signals_bad(state, params)
+    signals = _signals_bad(state, params, time_s)
     anchors = tuple(a for a in state.anchors if time_s - a[0] <= params.window_s)
     if diverged or signals or state.silent_divergence:
         anchors = ()                                 # re-lay after the reference recovers
@@ -177,7 +207,8 @@ def health_on_attitude(state: ReferenceHealthState, C_nav_from_body_fc: np.ndarr
     silent = (state.silent_divergence or (diverged and not signals)) and not signals
     good = not (diverged or signals or silent)
     good_since = (state.good_since_s if state.good_since_s is not None else time_s) if good else None
-    latched = state.latched_out or diverged or bool(signals) or silent
+    # waiting for the first status is no loss: trusted at once when it says good (no re-trust hold)
+    latched = state.latched_out or diverged or (bool(signals) and signals != NO_STATUS_YET) or silent
     if latched and good and time_s - good_since >= params.retrust_hold_s:
         latched = False
     reason = signals or ("FC attitude disagrees with gyros" if (diverged or silent) else "")
@@ -197,7 +228,7 @@ def health_trusted(state: ReferenceHealthState, time_s: float,
                        "too slow to be a reference")
     if time_s - state.fc_time_s > params.max_attitude_age_s:
         return False, f"FC attitude stale ({time_s - state.fc_time_s:.2f} s)"
-    signals = _signals_bad(state, params)
+    signals = _signals_bad(state, params, time_s)
     if signals:
         return False, signals
     if state.diverged:

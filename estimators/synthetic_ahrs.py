@@ -598,7 +598,9 @@ def synthetic_ahrs_unseen(state: SyntheticAhrsState, unseen_s: float,
     (``kf2_unseen``; the heading is re-taken from the magnetometer when that leaves it unknown),
     and the clocks restart at the next event: the integration, the update schedules, the FC
     attitude and its agreement anchors, the air-data filter, KF1's update schedule and the bias
-    snapshots (taken on the old clock). Variant b1 is left as it is."""
+    snapshots (taken on the old clock); the FC's estimator status is forgotten (a rebooted FC
+    publishes its fallback attitude before its EKF runs: no reference until it says so again).
+    Variant b1 is left as it is."""
     if not (math.isfinite(unseen_s) and unseen_s >= 0.0):
         raise ValueError(f"unseen_s must be finite and >= 0, got {unseen_s!r}")
     if state.kf2 is None:
@@ -610,7 +612,8 @@ def synthetic_ahrs_unseen(state: SyntheticAhrsState, unseen_s: float,
         kf1 = _upd(kf1, time_s=None)
     return _upd(state, kf2=kf2, time_s=None, fc_last=None, air=AirDataState(), air_last=None,
                 last_mag_update_s=-math.inf, last_air_update_s=-math.inf, last_ref_update_s=-math.inf,
-                health=_upd(state.health, fc_time_s=None, anchors=(), check_time_s=None, good_since_s=None),
+                health=_upd(state.health, fc_time_s=None, anchors=(), check_time_s=None, good_since_s=None,
+                            attitude_ok=None, horiz_pos_ok=None, first_attitude_s=None),
                 bias_snapshots=(), kf1_learn=kf1,
                 reacquire_heading=kf2_heading_var(kf2) > params.init_sigma_heading_rad ** 2)
 

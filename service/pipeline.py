@@ -308,6 +308,10 @@ class Pipeline:
         self._unseen_pending = False
         self._azimuth_off: str | None = None
         """Why method A is off for the rest of the flight (an interval it did not integrate)."""
+        self._fc_status_seen = False
+        """An estimator status (FcEkfStatus) reached method B since the start / the FC's reboot."""
+        self._fc_first_attitude_s: float | None = None
+        self._fc_status_missing_said = False
 
     # --- inputs -------------------------------------------------------------------------------
 
@@ -485,6 +489,17 @@ class Pipeline:
         self.fc_attitude = a
         self.counters.fc_attitude_samples += 1
         self._step_ahrs(FcAttitudeEvent(a.time_fc_s, np.array([a.roll_rad, a.pitch_rad, a.yaw_rad])))
+        if not (self._fc_status_seen or self._fc_status_missing_said):
+            if self._fc_first_attitude_s is None:
+                self._fc_first_attitude_s = a.time_fc_s
+            wait_s = self.ahrs_params.health.status_wait_s
+            if a.time_fc_s - self._fc_first_attitude_s >= wait_s:
+                # estimators/reference_health's rule for an FC that sends no estimator status
+                self._fc_status_missing_said = True
+                self._event("reference_status", f"the FC sent no estimator status (EKF_STATUS_REPORT / "
+                                                f"ESTIMATOR_STATUS) within {wait_s:g} s of its first ATTITUDE: "
+                                                "its attitude is judged on freshness and agreement with our "
+                                                "gyros alone")
 
     def on_fc_heartbeat(self, hb: FcHeartbeat) -> None:
         self.fc_armed = bool(hb.armed)
@@ -530,7 +545,10 @@ class Pipeline:
         self.fc_landed = st.landed
 
     def on_fc_ekf_status(self, st: FcEkfStatus) -> None:
+        """The FC's estimator status. Until the first one its ATTITUDE is no reference (method B's
+        reference health: an FC publishes a fallback attitude before its EKF runs)."""
         if self.last_time_fc_s is not None:
+            self._fc_status_seen = True
             self._step_ahrs(FcStatusEvent(self.last_time_fc_s, attitude_ok=st.attitude_ok,
                                           horiz_pos_ok=st.horiz_pos_ok))
 
@@ -543,6 +561,8 @@ class Pipeline:
         if self.strapdown is not None:
             self.strapdown = StrapdownState(self.strapdown.q_ref_from_sensor)
         self._unseen_pending = True
+        # method B forgets the FC's estimator status (synthetic_ahrs_unseen): wait for it again
+        self._fc_status_seen, self._fc_first_attitude_s, self._fc_status_missing_said = False, None, False
         self._event("fc_reboot", "FC time restarted; integration resumes at the next sample")
 
     def exclude_fc_yaw(self, reason: str) -> None:

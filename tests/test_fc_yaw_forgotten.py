@@ -28,10 +28,10 @@ from sitl import feed_pipeline, scenario_site  # noqa: E402
 from estimators.ahrs_kf2 import kf2_heading_var  # noqa: E402
 from estimators.mag_error_kf import kf1_init  # noqa: E402
 from estimators.rotations import dcm_from_euler  # noqa: E402
-from estimators.synthetic_ahrs import (FcAttitudeEvent, ImuEvent, SyntheticAhrsParams,  # noqa: E402
+from estimators.synthetic_ahrs import (FcAttitudeEvent, FcStatusEvent, ImuEvent, SyntheticAhrsParams,  # noqa: E402
                                        synthetic_ahrs_forget_fc_yaw, synthetic_ahrs_init, synthetic_ahrs_output,
                                        synthetic_ahrs_step)
-from mavlink_io.samples import FcAttitude, FcHeartbeat, ImuSample, PressureSample  # noqa: E402
+from mavlink_io.samples import FcAttitude, FcEkfStatus, FcHeartbeat, ImuSample, PressureSample  # noqa: E402
 from service.config import validate  # noqa: E402
 from service.pipeline import Pipeline  # noqa: E402
 from sim.offline import simulate  # noqa: E402
@@ -65,6 +65,9 @@ def fly(run, core: str, monkeypatch, exclude_at_s=EXCLUDE_AT_S):
                                 np.zeros(3))) for t, e in zip(run.fc_time_s.tolist(), run.fc_euler_rad)]
     items += [(t, -1, FcHeartbeat(t, 1, 1, "ardupilot", 1, 129, 0, 4, False))
               for t in np.arange(0.0, DURATION_S, 1.0).tolist()]
+    # the FC says its attitude is good from the first sample on (before its first estimator status
+    # the FC is no reference: tests/test_fc_status_first.py), so B starts from its magnetic yaw
+    items += [(t, 3, FcEkfStatus(t, True, True, 0, "EKF_STATUS_REPORT")) for t in np.arange(0.0, DURATION_S, 0.5).tolist()]
     items.sort(key=lambda x: (x[0], x[1]))
     cut = next(k for k, x in enumerate(items) if x[0] >= exclude_at_s)
     rows, events = [], []
@@ -107,6 +110,7 @@ def _b_at_rest(params, yaw_fc_rad, n=200):
     """B2 fed a level body at rest heading 0 (true), the field the model's, and an FC ATTITUDE
     (roll 0, pitch 0, yaw ``yaw_fc_rad``) every 0.1 s: trusted, started from the FC's yaw."""
     st = synthetic_ahrs_init(params)
+    st, _ = synthetic_ahrs_step(st, FcStatusEvent(0.0, system_status=4, attitude_ok=True, horiz_pos_ok=True), params)
     Bn = np.array(params.field_nav_gauss)
     for k in range(n):
         t = 0.02 * k

@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 from sitl import feed_pipeline, scenario_site  # noqa: E402
 
-from mavlink_io.samples import FcAttitude, FcHeartbeat, ImuSample, PressureSample  # noqa: E402
+from mavlink_io.samples import FcAttitude, FcEkfStatus, FcHeartbeat, ImuSample, PressureSample  # noqa: E402
 from service.config import validate  # noqa: E402
 from service.pipeline import Pipeline  # noqa: E402
 from sim.offline import simulate  # noqa: E402
@@ -42,6 +42,9 @@ def fly(feed_from_s, feed_s, with_fc=True, rest_s=REST_S, launch_cfg=None, syste
         for t, e in zip(run.fc_time_s.tolist(), run.fc_euler_rad):
             items.append((t, 0, FcAttitude(t, t, float(e[0]), float(e[1]),
                                            float(math.remainder(e[2], 2 * math.pi)), np.zeros(3))))
+        # its EKF's word that its attitude is good (2 Hz): without it the FC is no reference
+        items += [(t, 3, FcEkfStatus(t, True, True, 0, "EKF_STATUS_REPORT"))
+                  for t in np.arange(feed_from_s, feed_from_s + feed_s, 0.5).tolist()]
     for t in np.arange(feed_from_s, feed_from_s + feed_s, 1.0).tolist():
         items.append((t, -1, FcHeartbeat(t, 1, 1, "ardupilot", 1, 129, 0, system_status, True)))
     items = sorted((x for x in items if x[0] >= feed_from_s), key=lambda x: (x[0], x[1]))

@@ -12,8 +12,8 @@ import numpy as np
 
 from estimators.reference_health import health_on_attitude, health_trusted
 from estimators.rotations import dcm_from_quat, euler_from_quat, quat_from_rotvec, quat_mul
-from estimators.synthetic_ahrs import (FcAttitudeEvent, ImuEvent, SyntheticAhrsParams, synthetic_ahrs_init,
-                                       synthetic_ahrs_step)
+from estimators.synthetic_ahrs import (FcAttitudeEvent, FcStatusEvent, ImuEvent, SyntheticAhrsParams,
+                                       synthetic_ahrs_init, synthetic_ahrs_step)
 
 TRUTH_HZ = 400
 FIELD_NED_GAUSS = (0.19, 0.0, 0.45)
@@ -27,6 +27,9 @@ def _flight(imu_hz: float, vib_deg_s: float, drift_deg_s: float, duration_s: flo
     rng = np.random.default_rng(seed)
     params = SyntheticAhrsParams(field_nav_gauss=FIELD_NED_GAUSS)
     st = synthetic_ahrs_init(params)
+    # the FC says its estimator is healthy (before its first estimator status it is no reference)
+    st, _ = synthetic_ahrs_step(st, FcStatusEvent(0.0, system_status=4, attitude_ok=True, horiz_pos_ok=True), params,
+                                output=False)
     q = np.array([1.0, 0.0, 0.0, 0.0])
     imu_every, fc_every = round(TRUTH_HZ / imu_hz), TRUTH_HZ // 10
     lost = None
@@ -62,8 +65,8 @@ def test_without_the_integration_term_the_same_stream_reads_as_divergence():
     attitude, tested without the accumulated variance, is a silent divergence."""
     rng = np.random.default_rng(0)
     q_true, q_gyro = np.array([1.0, 0.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0, 0.0])
-    from estimators.reference_health import health_init
-    h = health_init()
+    from estimators.reference_health import health_init, health_on_ekf_status
+    h = health_on_ekf_status(health_init(), attitude_ok=True, horiz_pos_ok=True)   # a healthy FC's word
     snap = np.zeros(3)
     lost = None
     for k in range(int(40.0 * TRUTH_HZ)):

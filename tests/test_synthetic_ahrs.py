@@ -86,7 +86,7 @@ def _health_run(drift_deg_s, n_s=120.0, noise_deg=0.3, seed=0):
     """FC attitude = truth (+ yaw drift after 20 s) + noise; our gyro attitude = truth."""
     params = ReferenceHealthParams()
     rng = np.random.default_rng(seed)
-    h = health_init()
+    h = health_on_ekf_status(health_init(), attitude_ok=True, horiz_pos_ok=True)   # a healthy FC's word
     detected = None
     for k in range(int(n_s * 50)):
         t = 0.02 * k
@@ -109,7 +109,7 @@ def test_health_silent_divergence_detected_and_normal_noise_tolerated():
 
 def test_health_signalled_gnss_loss_untrusts_at_once_and_retrust_needs_hold():
     params = ReferenceHealthParams(retrust_hold_s=10.0)
-    h = health_init()
+    h = health_on_ekf_status(health_init(), attitude_ok=True, horiz_pos_ok=True)   # a healthy FC's word
     C = dcm_from_euler(0.0, 0.0, 1.0)
     for k in range(100):
         h = health_on_attitude(h, C, C, 0.02 * k, params)
