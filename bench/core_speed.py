@@ -111,7 +111,10 @@ def instrument(pipeline, timers: Timers) -> None:
     for attr, name in (("strapdown_step", "Pipeline strapdown (core.strapdown_step)"),
                        ("mag_usability_step", "mag_usability_step"), ("mag_usability_stale", "mag_usability_step"),
                        ("azimuth_propagate", "A: azimuth_propagate (in azimuth_step)"),
-                       ("mag_disturbance_step", "mag_disturbance_step")):
+                       ("mag_disturbance_step", "mag_disturbance_step"),
+                       ("polar_attitude_step", "C: polar_attitude_step"),
+                       ("polar_attitude_estimate", "C: polar_attitude_estimate"),
+                       ("attitude_zero_rate_update", "C: attitude_zero_rate_update (at rest)")):
         if hasattr(c, attr):
             object.__setattr__(c, attr, timers.wrap(name, getattr(c, attr)))
     pipeline.solver.submit = timers.wrap("A: solve (H8's solver, inline)", pipeline.solver.submit)

@@ -6,8 +6,10 @@ on the same recorded flights and require equality). Two call forms:
 
 - drop-in per-sample steps (``strapdown_step``, ``levelling_step``, method B's
   ``synthetic_ahrs_step`` / ``_output`` / ``_unseen``, the magnetometer usability's
-  ``mag_usability_step`` / ``_stale``, method A's ``azimuth_propagate``) for callers that still step
-  one sample or event at a time (the held forms keep the state in the core between calls); the
+  ``mag_usability_step`` / ``_stale``, method A's ``azimuth_propagate``, method C's attitude filter
+  ``polar_attitude_init`` / ``_init_at`` / ``_step`` / ``_estimate`` / ``_unseen`` and its zero-rate
+  update ``attitude_zero_rate_update``) for callers that still step one sample or event at a time
+  (the held forms keep the state in the core between calls); the
   IMU input checks' decisions (``input_checks_core``, whose Python face is service/input_checks.py
   CoreImuInputChecks: a service module);
 - batch calls (``strapdown_propagate``, ``levelling_accumulate``): typed N x 3 numpy arrays in,
@@ -27,8 +29,10 @@ import numpy as np
 from estimators import levelling as _lev
 from estimators import mag_disturbance as _md
 from estimators import mag_usability as _mu
+from estimators import polar_attitude as _pa
 from estimators import strapdown as _sd
 from estimators import synthetic_ahrs as _sa
+from estimators import zero_rate as _zr
 from estimators.ahrs_kf2 import Kf2State
 from estimators.air_data import AirData, AirDataState
 from estimators.levelling import LevellingState
@@ -567,5 +571,175 @@ def mag_disturbance_step(state: _md.MagDisturbanceState | HeldMagDisturbance, ti
     mx, my, mz = m.tolist()
     qw, qx, qy, qz = q.tolist()
     v = state._c.step(state._p(params), t, mx, my, mz, qw, qx, qy, qz)
-    state._t = t
+    state._t = state._c.time_s   # the last new sample's (a held repeat is dated at its first appearance)
     return state, _md.MagDisturbanceVerdict(*v)
+
+
+# --- method C's attitude filter (estimators/polar_attitude.py) ------------------------------------
+# The state is held in the core between filter steps (HeldPolarAttitude); the reference's
+# PolarAttitudeState is built only when asked (to_state: a copy, a test, the zero-rate update at
+# rest). The arguments are checked here as the reference checks them (the same messages); the core
+# gets plain floats and hands back a code, worded here as the reference words its diagnostics.
+
+POLAR_AVAILABLE = AVAILABLE and hasattr(_core, "PolarAttitude")
+
+# core/polar_attitude.hpp Code and Why
+_PA_SAMPLE, _PA_LEVELLING, _PA_LEVELLED, _PA_NON_FINITE, _PA_RESTARTED, _PA_TIME, _PA_GAP, _PA_UPDATE = range(8)
+_PA_FUSED, _PA_GATED_OUT, _PA_NOT_SETTLED, _PA_RELEVELLED = range(4)
+_PA_PLAIN = _pa.PolarAttitudeDiag()
+_PA_FIXED = {_PA_LEVELLING: _pa.PolarAttitudeDiag(reason="levelling"),
+             _PA_LEVELLED: _pa.PolarAttitudeDiag(reason="levelled"),
+             _PA_NON_FINITE: _pa.PolarAttitudeDiag(reason="non-finite sample"),
+             _PA_RESTARTED: _pa.PolarAttitudeDiag(reason="increments restarted")}
+_PA_UPDATE_WHY = {_PA_FUSED: "", _PA_GATED_OUT: "specific-force residual gated out",
+                  _PA_NOT_SETTLED: "specific-force residual not settled after a gated-out run"}
+_PA_DIAG_FIELDS = tuple(f.name for f in dataclasses.fields(_pa.PolarAttitudeDiag))
+
+
+class HeldPolarAttitude:
+    """A PolarAttitudeState held in the core, stepped in place by ``polar_attitude_step`` /
+    ``polar_attitude_unseen``; it reads like the reference's state where the service reads it
+    (``initialised``, ``time_s``, ``q_P_from_body``, ``x_hat``, ``P``, the counters) and
+    ``to_state()`` gives the reference's record. Not a pure value: the owner replaces it, never
+    shares it."""
+
+    __slots__ = ("_c", "_params", "_cp")
+
+    def __init__(self, state):
+        self._c = state if POLAR_AVAILABLE and isinstance(state, _core.PolarAttitude) else \
+            _core.PolarAttitude(_fields(state))
+        self._params = self._cp = None
+
+    def _p(self, params: _pa.PolarAttitudeParams):
+        """The converted params (converted again when the owner replaced them)."""
+        if params is not self._params:
+            self._params, self._cp = params, _core.PolarAttitudeParams(params)
+        return self._cp
+
+    initialised = property(lambda self: self._c.initialised)
+    time_s = property(lambda self: self._c.time_s)
+    q_P_from_body = property(lambda self: self._c.q_P_from_body)
+    x_hat = property(lambda self: self._c.x_hat)
+    P = property(lambda self: self._c.P)
+    n_updates = property(lambda self: self._c.n_updates)
+    n_rejected = property(lambda self: self._c.n_rejected)
+    n_relevels = property(lambda self: self._c.n_relevels)
+
+    def to_state(self) -> _pa.PolarAttitudeState:
+        return _pa.PolarAttitudeState(**self._c.get_state())
+
+    def __reduce__(self):  # copy.deepcopy / pickle: through the reference's record (exact)
+        return HeldPolarAttitude, (self.to_state(),)
+
+
+def _held_pa(state) -> HeldPolarAttitude:
+    return state if isinstance(state, HeldPolarAttitude) else HeldPolarAttitude(state)
+
+
+def _bias_args(gyro_bias_rad_s, gyro_bias_sigma_rad_s) -> tuple:
+    """polar_attitude_init's checks (the reference's messages) -> the core's bias arguments."""
+    bx = by = bz = 0.0
+    if gyro_bias_rad_s is not None:
+        b = np.asarray(gyro_bias_rad_s, float)
+        if b.shape != (3,) or not np.all(np.isfinite(b)):
+            raise ValueError(f"gyro_bias_rad_s must be 3 finite numbers, got {gyro_bias_rad_s!r}")
+        bx, by, bz = b.tolist()
+    if gyro_bias_sigma_rad_s is not None and not (math.isfinite(gyro_bias_sigma_rad_s)
+                                                  and gyro_bias_sigma_rad_s > 0.0):
+        raise ValueError(f"gyro_bias_sigma_rad_s must be finite and > 0, got {gyro_bias_sigma_rad_s!r}")
+    has_s = gyro_bias_sigma_rad_s is not None
+    return (gyro_bias_rad_s is not None, bx, by, bz, has_s, float(gyro_bias_sigma_rad_s) if has_s else 0.0)
+
+
+def polar_attitude_init(params: _pa.PolarAttitudeParams = _pa.PolarAttitudeParams(), gyro_bias_rad_s=None,
+                        gyro_bias_sigma_rad_s: float | None = None) -> HeldPolarAttitude:
+    """estimators.polar_attitude.polar_attitude_init, held in the core (same arguments and checks)."""
+    return HeldPolarAttitude(_core.PolarAttitude.init(*_bias_args(gyro_bias_rad_s, gyro_bias_sigma_rad_s)))
+
+
+def polar_attitude_init_at(time_s: float, roll_rad: float, pitch_rad: float, tilt_sigma_rad: float,
+                           params: _pa.PolarAttitudeParams = _pa.PolarAttitudeParams(), gyro_bias_rad_s=None,
+                           gyro_bias_sigma_rad_s: float | None = None) -> HeldPolarAttitude:
+    """estimators.polar_attitude.polar_attitude_init_at, held in the core (same arguments and checks)."""
+    for name, v in (("time_s", time_s), ("roll_rad", roll_rad), ("pitch_rad", pitch_rad)):
+        if not math.isfinite(v):
+            raise ValueError(f"{name} must be finite, got {v!r}")
+    if not (math.isfinite(tilt_sigma_rad) and tilt_sigma_rad > 0.0):
+        raise ValueError(f"tilt_sigma_rad must be finite and > 0, got {tilt_sigma_rad!r}")
+    bias = _bias_args(gyro_bias_rad_s, gyro_bias_sigma_rad_s)
+    held = HeldPolarAttitude(_core.PolarAttitude.init_at(_core.PolarAttitudeParams(params), float(time_s),
+                                                         float(roll_rad), float(pitch_rad), float(tilt_sigma_rad),
+                                                         *bias))
+    return held
+
+
+def polar_attitude_unseen(state, unseen_s: float, params: _pa.PolarAttitudeParams = _pa.PolarAttitudeParams()
+                          ) -> HeldPolarAttitude:
+    """estimators.polar_attitude.polar_attitude_unseen for either state (held in the core after it)."""
+    if not (math.isfinite(unseen_s) and unseen_s >= 0.0):
+        raise ValueError(f"unseen_s must be finite and >= 0, got {unseen_s!r}")
+    state = _held_pa(state)
+    state._c.unseen(state._p(params), float(unseen_s))
+    return state
+
+
+def _pa_diag(t: tuple, params: _pa.PolarAttitudeParams) -> _pa.PolarAttitudeDiag:
+    code = t[0]
+    if code != _PA_UPDATE:
+        if code == _PA_TIME:
+            return _pa.PolarAttitudeDiag(reason=f"time not increasing (dt={t[1]:.6f} s)")
+        if code == _PA_GAP:
+            return _pa.PolarAttitudeDiag(reason=f"gap of {t[1]:.3f} s not integrated; attitude sigma widened")
+        return _PA_FIXED[code]
+    _, _, fused, z, ratio, settle, raised, why, moved = t
+    if why == _PA_RELEVELLED:
+        reason = (f"re-levelled at rest: tilt corrected by {math.degrees(moved):.1f} deg from the accelerometer "
+                  f"after {params.relevel_rest_s:.1f} s of gated-out updates")
+    else:
+        reason = _PA_UPDATE_WHY[why]
+    out = object.__new__(_pa.PolarAttitudeDiag)  # a frozen record without __post_init__ (records.fast_replace)
+    out.__dict__.update(zip(_PA_DIAG_FIELDS, (True, fused, z, ratio, reason, settle, raised,
+                                              why == _PA_RELEVELLED, moved)))
+    return out
+
+
+def polar_attitude_step(state, time_s: float, gyro_body_rad_s, accel_body_m_s2,
+                        params: _pa.PolarAttitudeParams = _pa.PolarAttitudeParams()
+                        ) -> tuple[HeldPolarAttitude, _pa.PolarAttitudeDiag]:
+    """estimators.polar_attitude.polar_attitude_step with the state held in the core (a
+    PolarAttitudeState is taken in on the first call); the same results."""
+    w = np.asarray(gyro_body_rad_s, dtype=float)
+    f = np.asarray(accel_body_m_s2, dtype=float)
+    if w.shape != (3,) or f.shape != (3,):
+        return state, _pa.PolarAttitudeDiag(reason="gyro and accel must have shape (3,)")
+    state = _held_pa(state)
+    wx, wy, wz = w.tolist()
+    fx, fy, fz = f.tolist()
+    d = state._c.step(state._p(params), float(time_s), wx, wy, wz, fx, fy, fz)
+    return state, (_PA_PLAIN if d == 0 else _pa_diag(d, params))
+
+
+_AE_FIELDS = tuple(f.name for f in dataclasses.fields(_pa.AttitudeEstimate))
+
+
+def polar_attitude_estimate(state) -> _pa.AttitudeEstimate | None:
+    """estimators.polar_attitude.polar_attitude_estimate for either state."""
+    if not isinstance(state, HeldPolarAttitude):
+        return _pa.polar_attitude_estimate(state)
+    t = state._c.estimate()
+    if t is None:
+        return None
+    out = object.__new__(_pa.AttitudeEstimate)  # a frozen record without __post_init__
+    out.__dict__.update(zip(_AE_FIELDS, t))
+    return out
+
+
+def attitude_zero_rate_update(state, rate: _zr.RestRate, params: _zr.ZeroRateParams = _zr.ZeroRateParams()):
+    """estimators.zero_rate.attitude_zero_rate_update for either state: the reference's update on the
+    held state's record (once per rest chunk, not per sample), put back in the core when it fused."""
+    if not isinstance(state, HeldPolarAttitude):
+        return _zr.attitude_zero_rate_update(state, rate, params)
+    st, diag = _zr.attitude_zero_rate_update(state.to_state(), rate, params)
+    if diag.fused:
+        state._c.set_state(_fields(st))
+    return state, diag

@@ -17,7 +17,9 @@ from estimators import core
 from estimators import azimuth as _a_reference
 from estimators import mag_disturbance as _md_reference
 from estimators import mag_usability as _mu_reference
+from estimators import polar_attitude as _c_reference
 from estimators import synthetic_ahrs as _b_reference
+from estimators import zero_rate as _zr_reference
 from estimators.strapdown import strapdown_step as _strapdown_step_reference
 from service.input_checks import CoreImuInputChecks, ImuInputChecks
 
@@ -50,6 +52,19 @@ class Backend:
     """Method A's per-sample propagation (estimators.azimuth.azimuth_propagate's signature)."""
     mag_disturbance_step: Callable = _md_reference.mag_disturbance_step
     """Magnetic disturbances in motion (estimators.mag_disturbance.mag_disturbance_step's signature)."""
+    polar_attitude_init: Callable = _c_reference.polar_attitude_init
+    """Method C's attitude filter, a new one (estimators.polar_attitude.polar_attitude_init's signature) ..."""
+    polar_attitude_init_at: Callable = _c_reference.polar_attitude_init_at
+    """... started at a given roll/pitch (polar_attitude_init_at's signature) ..."""
+    polar_attitude_step: Callable = _c_reference.polar_attitude_step
+    """... one filter-rate sample (polar_attitude_step's signature) ..."""
+    polar_attitude_estimate: Callable = _c_reference.polar_attitude_estimate
+    """... its roll, pitch and covariance (polar_attitude_estimate's signature) ..."""
+    polar_attitude_unseen: Callable = _c_reference.polar_attitude_unseen
+    """... after an interval not seen (polar_attitude_unseen's signature) ..."""
+    attitude_zero_rate_update: Callable = _zr_reference.attitude_zero_rate_update
+    """... and its zero-rate update at rest (estimators.zero_rate.attitude_zero_rate_update's signature).
+    The six take and give the same state: the reference's record, or the core's held one."""
 
 
 def _say(level: int, text: str) -> None:
@@ -93,6 +108,14 @@ def select(environ=os.environ) -> Backend:
         return Backend("core", "compiled core (estimators._core), mag_disturbance in Python", core.strapdown_step_held,
                        core.synthetic_ahrs_step, core.synthetic_ahrs_unseen, CoreImuInputChecks,
                        core.mag_usability_step, core.mag_usability_stale, core.azimuth_propagate)
-    return Backend("core", "compiled core (estimators._core)", core.strapdown_step_held, core.synthetic_ahrs_step,
-                   core.synthetic_ahrs_unseen, CoreImuInputChecks, core.mag_usability_step, core.mag_usability_stale,
-                   core.azimuth_propagate, core.mag_disturbance_step)
+    ported = (core.strapdown_step_held, core.synthetic_ahrs_step, core.synthetic_ahrs_unseen, CoreImuInputChecks,
+              core.mag_usability_step, core.mag_usability_stale, core.azimuth_propagate, core.mag_disturbance_step)
+    if not core.POLAR_AVAILABLE:  # built before method C's attitude filter was ported
+        _say(logging.WARNING, "compiled core without method C's attitude filter (an older build): it runs the "
+                              "Python reference")
+        return Backend("core", "compiled core (estimators._core), C's attitude filter in Python", *ported)
+    return Backend("core", "compiled core (estimators._core)", *ported,
+                   polar_attitude_init=core.polar_attitude_init, polar_attitude_init_at=core.polar_attitude_init_at,
+                   polar_attitude_step=core.polar_attitude_step, polar_attitude_estimate=core.polar_attitude_estimate,
+                   polar_attitude_unseen=core.polar_attitude_unseen,
+                   attitude_zero_rate_update=core.attitude_zero_rate_update)

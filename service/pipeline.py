@@ -42,17 +42,14 @@ from estimators.mag_deviation import (DeviationParams, DeviationState, corrected
 from estimators.mag_error_kf import Kf1State
 from estimators.mag_disturbance import MagDisturbanceState, mag_disturbance_params_for_field
 from estimators.mag_usability import MagUsabilityState, mag_usability_params_for_field
-from estimators.polar_attitude import (PolarAttitudeParams, polar_attitude_estimate,
-                                       polar_attitude_init, polar_attitude_init_at, polar_attitude_step,
-                                       polar_attitude_unseen)
+from estimators.polar_attitude import PolarAttitudeParams
 from estimators.polar_heading import (HeadingInputs, PolarHeadingParams, polar_heading_attitude, polar_heading_estimate,
                                       polar_heading_init, polar_heading_step, polar_heading_unseen,
                                       vertical_rate_sigma_for_site)
 from estimators.rotations import (dcm_from_quat, euler_from_quat, quat_conj, quat_from_euler,
                                   quat_mul, wrap_2pi, wrap_pi)
 from estimators.output_propagation import OutputState, output_reset, output_step
-from estimators.zero_rate import (ZeroRateParams, ZeroRateState, attitude_zero_rate_update, heading_zero_rate_update,
-                                  rest_step)
+from estimators.zero_rate import ZeroRateParams, ZeroRateState, heading_zero_rate_update, rest_step
 from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init
 from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent, HeadingEvent, ImuEvent,
                                        SyntheticAhrsOutput, SyntheticAhrsParams, synthetic_ahrs_forget_fc_yaw,
@@ -235,7 +232,7 @@ class Pipeline:
             max_dt_s=cfg["mavlink"]["imu_gap_s"],
             sample_span_max_s=max(PolarAttitudeParams.sample_span_max_s, 1.0 / cfg["heading"]["filter_rate_hz"]),
             accel_bias_sigma_m_s2=imu["accel_bias_sigma_m_s2"], manoeuvre_speed_m_s=self._manoeuvre_speed_m_s(None))
-        self.polar_att = polar_attitude_init(self.polar_att_params)
+        self.polar_att = self.core.polar_attitude_init(self.polar_att_params)
         lat = cfg["site"]["lat_deg"]
         vr_sigma = (vertical_rate_sigma_for_site(math.radians(lat), heading["cruise_speed_m_s"])
                     if lat is not None else PolarHeadingParams().vertical_rate_sigma_rad_s)
@@ -396,7 +393,8 @@ class Pipeline:
         speed = self._manoeuvre_speed_m_s(t)
         if abs(speed - self.polar_att_params.manoeuvre_speed_m_s) >= MANOEUVRE_SPEED_STEP_M_S:
             self.polar_att_params = dc_replace(self.polar_att_params, manoeuvre_speed_m_s=speed)
-        self.polar_att, adiag = polar_attitude_step(self.polar_att, t, gyro_b, accel_b, self.polar_att_params)
+        self.polar_att, adiag = self.core.polar_attitude_step(self.polar_att, t, gyro_b, accel_b,
+                                                              self.polar_att_params)
         if adiag.relevelled:
             self._event("attitude", adiag.reason)
         # zero-rate updates only while the vehicle may be at rest (as the re-levelling): steady
@@ -407,8 +405,8 @@ class Pipeline:
         elif self.zero_rate.time_s is not None:
             self.zero_rate = ZeroRateState()
         if rest_rate is not None:
-            self.polar_att, _ = attitude_zero_rate_update(self.polar_att, rest_rate, self.zero_rate_params)
-        att = polar_attitude_estimate(self.polar_att)
+            self.polar_att, _ = self.core.attitude_zero_rate_update(self.polar_att, rest_rate, self.zero_rate_params)
+        att = self.core.polar_attitude_estimate(self.polar_att)
         tilt = self._heading_tilt(t, att, gyro_b)
         mag_b_hi = self._mag_disturbance(mag_b, t, att)   # m - learnt hard iron, None when disturbed
         if not self._mag_usable(mag_b, t, tilt, gyro_b) or mag_b_hi is None:
@@ -657,7 +655,7 @@ class Pipeline:
         from the accelerometer with a wide sigma; heading from what stays valid (FC when trusted,
         C's magnetometer heading re-acquired with the new tilt, B)."""
         p = self.phase_params.in_flight
-        old = polar_attitude_estimate(self.polar_att)
+        old = self.core.polar_attitude_estimate(self.polar_att)
         fc = self._fc_tilt_now(t)
         if fc is not None:
             roll, pitch = fc
@@ -670,7 +668,7 @@ class Pipeline:
                 f = self.C_body_from_sensor @ accel_sensor_m_s2
                 roll, pitch = math.atan2(-f[1], -f[2]), math.atan2(f[0], math.hypot(f[1], f[2]))
         bias = old.gyro_bias_rad_s if old is not None else None
-        self.polar_att = polar_attitude_init_at(t, roll, pitch, sigma, self.polar_att_params, bias)
+        self.polar_att = self.core.polar_attitude_init_at(t, roll, pitch, sigma, self.polar_att_params, bias)
         self.polar_hdg = polar_heading_init(params=self.polar_hdg_params)
         self._hdg_available = None
         self.zero_rate = ZeroRateState()
@@ -684,7 +682,7 @@ class Pipeline:
         if self._last_rx_s is None or not math.isfinite(s.time_rx_s):
             return
         unseen = max(0.0, s.time_rx_s - self._last_rx_s)
-        self.polar_att = polar_attitude_unseen(self.polar_att, unseen, self.polar_att_params)
+        self.polar_att = self.core.polar_attitude_unseen(self.polar_att, unseen, self.polar_att_params)
         self.polar_hdg = polar_heading_unseen(self.polar_hdg, unseen, self.polar_hdg_params)
         self.ahrs = self.core.synthetic_ahrs_unseen(self.ahrs, unseen, self.ahrs_params)
         self._disable_azimuth(f"FC clock restarted in flight ({unseen:.1f} s not seen)")
@@ -759,7 +757,7 @@ class Pipeline:
         ph, pp = self.phase, self.phase_params
         if ph.level is None or ph.level_block is None:
             return "no levelling before the take-off"
-        if ph.moved_rad > pp.moved_rad and polar_attitude_estimate(self.polar_att) is None:
+        if ph.moved_rad > pp.moved_rad and self.core.polar_attitude_estimate(self.polar_att) is None:
             return (f"the vehicle turned {math.degrees(ph.moved_rad):.1f} deg since its last still block "
                     f"(> {math.degrees(pp.moved_rad):g} deg) and the attitude filter has not levelled")
         if self.azimuth_params.launch_case == "inclined" and pp.vehicle not in ("launcher", "hand"):
@@ -775,7 +773,7 @@ class Pipeline:
         and whose spread gives the tilt noise |SEM_xy| / g = sigma_C (SEM = sigma_C g / sqrt(2) per
         axis), so levelling_result gives back C's tilt and sigma, and refuses a sigma above its
         max_tilt_noise_rad (None and why)."""
-        att = polar_attitude_estimate(self.polar_att)
+        att = self.core.polar_attitude_estimate(self.polar_att)
         g = float(np.linalg.norm(block.accel_mean_m_s2))
         roll, pitch = att.roll_rad, att.pitch_rad
         sigma = math.sqrt(max(att.cov_roll_pitch_rad2[0, 0], att.cov_roll_pitch_rad2[1, 1], 0.0))
@@ -910,7 +908,7 @@ class Pipeline:
         h = polar_heading_estimate(self.polar_hdg)
         if not (h.initialised and math.isfinite(h.heading_rad)):
             return mag_body_gauss
-        att = polar_attitude_estimate(self.polar_att)
+        att = self.core.polar_attitude_estimate(self.polar_att)
         if att is None:
             return mag_body_gauss
         return corrected_mag(self.deviation, mag_body_gauss, h.heading_rad, att.roll_rad, att.pitch_rad)

@@ -7,6 +7,7 @@ runs with ``[launch] vehicle`` set THEN it levels before the take-off, detects t
 within 2 s of the true one (the truth only scores), and method A runs, or says in one line why
 not. The Pipeline never sees the truth.
 """
+import dataclasses
 import math
 import sys
 from pathlib import Path
@@ -124,7 +125,6 @@ def test_the_attitude_filter_tilt_becomes_a_levelling_that_gives_it_back(monkeyp
     pick-up, and a still block on the ground (its gyro bias) WHEN it is written as method A's
     levelling THEN levelling_result gives back that roll, pitch and sigma (the accelerometer-bias
     allowance added), and the block's gyro bias; a sigma above the limit is refused with why."""
-    import service.pipeline as pl
     from estimators.levelling import LevellingState, levelling_result, levelling_step
     from estimators.polar_attitude import AttitudeEstimate
     from service.phases import PhaseState
@@ -137,10 +137,10 @@ def test_the_attitude_filter_tilt_becomes_a_levelling_that_gives_it_back(monkeyp
     roll, pitch = math.radians(3.0), math.radians(9.0)
     for sigma_deg, ok in ((0.3, True), (1.2, False)):
         s2 = math.radians(sigma_deg) ** 2
-        monkeypatch.setattr(pl, "polar_attitude_estimate",
-                            lambda _st: AttitudeEstimate(roll_rad=roll, pitch_rad=pitch,
-                                                         cov_roll_pitch_rad2=np.diag([s2, 0.5 * s2]),
-                                                         gyro_bias_rad_s=np.zeros(3), q_P_from_body=np.array([1.0, 0, 0, 0])))
+        est = AttitudeEstimate(roll_rad=roll, pitch_rad=pitch, cov_roll_pitch_rad2=np.diag([s2, 0.5 * s2]),
+                               gyro_bias_rad_s=np.zeros(3), q_P_from_body=np.array([1.0, 0, 0, 0]))
+        # C's estimate as the Pipeline reads it (through its core backend: service/core_backend.py)
+        monkeypatch.setattr(p, "core", dataclasses.replace(p.core, polar_attitude_estimate=lambda _st, e=est: e))
         p.phase = PhaseState(moved_rad=math.radians(10.0))
         lev, why = p._level_block_from_attitude_filter(block)
         if not ok:

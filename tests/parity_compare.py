@@ -1,0 +1,87 @@
+"""One 1e-9 relative comparison for the compiled core's parity tests (tests/test_core_*.py): the
+core against its Python reference (issue 19: state and covariance to 1e-9 relative, events
+identical).
+
+``differences(a, b, path)`` walks two values (dataclass records, dicts, tuples/lists, numpy arrays,
+numbers, strings) and lists (path, why) for every leaf that is not equal in this sense:
+
+- a float: |a - b| <= RTOL max(|a|, |b|), or both NaN;
+- a vector or a matrix that is not a covariance: max |a - b| <= RTOL max(max |a|, max |b|) (the
+  max norm of the array: quaternions, biases, direction cosines);
+- a covariance (a square 2-D array whose name is ``P``, starts with ``P_`` or holds ``cov``): per
+  element |a_ij - b_ij| <= RTOL sqrt(|a_ii a_jj|). The core's matrix products sum in another order
+  than numpy's BLAS: an element that is 0 in exact arithmetic comes out ~1e-21 there, which no
+  relative measure of the element itself can take;
+- anything else (bools, ints, strings, None, types): identical (numpy scalars count as the Python
+  ones: references hold some flags as numpy.bool_).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+RTOL = 1e-9
+
+
+def _is_cov(path: str) -> bool:
+    name = path.rsplit(".", 1)[-1].split("[", 1)[0]
+    return name == "P" or name.startswith("P_") or "cov" in name
+
+
+def differences(a, b, path: str = "", rtol: float = RTOL) -> list[tuple[str, str]]:
+    """(path, why) of every leaf of ``a`` and ``b`` that differs (see the module docstring)."""
+    bad: list[tuple[str, str]] = []
+    _walk(a, b, path, rtol, bad)
+    return bad
+
+
+def _walk(a, b, path: str, rtol: float, bad: list) -> None:
+    a, b = (x.item() if isinstance(x, np.generic) else x for x in (a, b))
+    if dataclasses.is_dataclass(a) and not isinstance(a, type):
+        if type(a) is not type(b):
+            bad.append((path, f"{type(a).__name__} vs {type(b).__name__}"))
+            return
+        for f in dataclasses.fields(a):
+            _walk(getattr(a, f.name), getattr(b, f.name), f"{path}.{f.name}", rtol, bad)
+    elif isinstance(a, dict):
+        if not isinstance(b, dict) or set(a) != set(b):
+            bad.append((path, f"keys {sorted(a) if isinstance(a, dict) else a!r} vs "
+                              f"{sorted(b) if isinstance(b, dict) else b!r}"))
+            return
+        for k in a:
+            _walk(a[k], b[k], f"{path}.{k}", rtol, bad)
+    elif isinstance(a, (tuple, list)):
+        if not isinstance(b, (tuple, list)) or len(a) != len(b):
+            bad.append((path, f"{a!r} vs {b!r}"))
+            return
+        for i, (x, y) in enumerate(zip(a, b)):
+            _walk(x, y, f"{path}[{i}]", rtol, bad)
+    elif isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)):
+            bad.append((path, f"{a!r} vs {b!r}"))
+            return
+        x, y = a.astype(float), b.astype(float)
+        if x.shape != y.shape:
+            bad.append((path, f"shape {x.shape} vs {y.shape}"))
+        elif x.ndim == 2 and x.shape[0] == x.shape[1] and _is_cov(path):
+            scale = np.sqrt(np.abs(np.outer(np.diag(x), np.diag(x))))
+            over = np.abs(x - y) - rtol * scale
+            if not np.all(over <= 0.0):   # NaN fails too
+                i, j = np.unravel_index(int(np.nanargmax(np.where(np.isnan(over), np.inf, over))), x.shape)
+                bad.append((path, f"covariance [{i}, {j}] {x[i, j]!r} vs {y[i, j]!r}: off by "
+                                  f"{abs(x[i, j] - y[i, j]):.3g} > {rtol:g} sqrt(P_ii P_jj) = {rtol * scale[i, j]:.3g}"))
+        else:
+            same_nan = np.isnan(x) & np.isnan(y)
+            m = max(float(np.max(np.abs(np.where(same_nan, 0.0, x)), initial=0.0)),
+                    float(np.max(np.abs(np.where(same_nan, 0.0, y)), initial=0.0)))
+            ok = same_nan | (np.abs(x - y) <= rtol * m)
+            if not np.all(ok):
+                bad.append((path, f"{x!r} vs {y!r}"))
+    elif (isinstance(a, float) or isinstance(b, float)) and all(
+            isinstance(x, (float, int)) and not isinstance(x, bool) for x in (a, b)):
+        if not (a == b or (math.isnan(a) and math.isnan(b)) or abs(a - b) <= rtol * max(abs(a), abs(b))):
+            bad.append((path, f"{a!r} vs {b!r}"))
+    elif a != b or type(a) is not type(b):
+        bad.append((path, f"{a!r} vs {b!r}"))
