@@ -457,11 +457,12 @@ def time_case(factory, run, items, n_imu: int, budget_s: float) -> dict:
 
 # --- latency and CPU through two processes -------------------------------------------------------
 
-def match_latency_ms(imu_fwd, att_rx) -> tuple[np.ndarray, int]:
+def match_latency_ms(imu_fwd, att_rx, per_message: bool = False) -> tuple[np.ndarray, int]:
     """RAW_IMU -> ATTITUDE latencies (ms) and the number of ATTITUDE left unmatched. ``imu_fwd``:
     (time_usec, tap forward monotonic s) of every RAW_IMU forwarded to the daemon; ``att_rx``:
     (time_boot_ms, tap receive monotonic s) of the daemon's ATTITUDE. An ATTITUDE is matched by FC
-    time to the one RAW_IMU within 1 ms of its time_boot_ms."""
+    time to the one RAW_IMU within 1 ms of its time_boot_ms. ``per_message``: one latency per
+    ATTITUDE in ``att_rx``'s order, NaN where unmatched."""
     imu_us = np.array([u for u, _ in imu_fwd], dtype=np.int64)
     imu_t = np.array([t for _, t in imu_fwd], dtype=float)
     order = np.argsort(imu_us, kind="stable")
@@ -475,6 +476,8 @@ def match_latency_ms(imu_fwd, att_rx) -> tuple[np.ndarray, int]:
         hi = np.searchsorted(imu_us, ms * 1000 + 1000, side="right")
         if hi - lo != 1:
             unmatched += 1
+            if per_message:
+                lat.append(math.nan)
             continue
         lat.append(t_rx - imu_t[lo])
     return np.array(lat, dtype=float) * 1e3, unmatched
@@ -1024,8 +1027,17 @@ def busy_run(busy_s: float, competitors: int = BUSY_COMPETITORS, imu_batch: bool
         out["attitude_rate_fc_clock_hz"] = (len(ms) - 1) / ((ms[-1] - ms[0]) / 1e3) if ms[-1] > ms[0] else math.nan
         out["attitude_interval_max_ms"] = float(gaps_ms.max())
         out["attitude_intervals_over_2_periods"] = int(np.sum(gaps_ms > 2 * period_ms))
-    lat_ms, unmatched = match_latency_ms(list(zip(imu_us, imu_t)), [(att_ms[k], att_t[k]) for k in win_att])
+    lat_all, unmatched = match_latency_ms(list(zip(imu_us, imu_t)), [(att_ms[k], att_t[k]) for k in win_att],
+                                          per_message=True)
+    lat_ms = lat_all[np.isfinite(lat_all)]
     out.update({"attitude_matched": int(lat_ms.size), "attitude_unmatched": unmatched})
+    if len(win_att) > 1 and lat_ms.size:
+        # where ATTITUDE slots go: the latency of the message that ends an interval over 1.5 periods
+        # (a slot passed) against all messages' (the daemon woke late, or the input came late)
+        after_gap = lat_all[1:][np.diff(np.array([att_t[k] for k in win_att])) > 1.5e-3 * period_ms]
+        after_gap = after_gap[np.isfinite(after_gap)]
+        out["attitude_after_missed_slot_latency_p50_ms"] = float(np.median(after_gap)) if after_gap.size else None
+        out["attitude_missed_slot_intervals"] = int(after_gap.size)
     if lat_ms.size:
         out.update({"latency_p50_ms": float(np.percentile(lat_ms, 50)),
                     "latency_p99_ms": float(np.percentile(lat_ms, 99)),
@@ -1132,6 +1144,10 @@ def busy_part(args) -> dict:
           f"configured {b['attitude_rate_configured_hz']:.0f}; "
           f"FC clock {b.get('attitude_rate_fc_clock_hz', math.nan):.2f} Hz; longest interval "
           f"{b.get('attitude_interval_max_ms', math.nan):.0f} ms)")
+    if b.get("attitude_missed_slot_intervals"):
+        print(f"  {b['attitude_missed_slot_intervals']} ATTITUDE intervals over 1.5 periods; the message after one came "
+              f"{b['attitude_after_missed_slot_latency_p50_ms']:.1f} ms after its RAW_IMU (median; all: "
+              f"{b.get('latency_p50_ms', math.nan):.1f} ms)")
     if "latency_p99_ms" in b:
         print(f"  latency RAW_IMU in -> ATTITUDE out under load: p50 {b['latency_p50_ms']:.3f} ms, p99 "
               f"{b['latency_p99_ms']:.3f} ms, max {b['latency_max_ms']:.3f} ms ({b['attitude_matched']} matched)")
