@@ -92,10 +92,11 @@ inline void ahrs_trust(Ahrs& s, double time_s, const AhrsParams& p) {
             // silent: also take back the attitude the failing reference pulled, re-propagating the
             // snapshot's attitude with our gyro-only increments since then
             const Q4 q = quat_mul(quat_mul(old->q, quat_conj(old->q_free)), s.q_gyro_free);
-            P9 P = s.kf2.P;
+            // the snapshot's whole covariance goes with its attitude and biases (its attitude block
+            // alone beside today's cross-covariances is no covariance), the attitude widened
+            P9 P = old->P;
             const double v = 1.0 * std::pow(p.health.sigma_bias_rad_s * (time_s - old->t), 2);
-            for (int i = 0; i < 3; ++i)
-                for (int j = 0; j < 3; ++j) P[i * KN + j] = old->P[i * KN + j] + (i == j ? v : 0.0);
+            for (int i = 0; i < 3; ++i) P[i * KN + i] += v;
             s.kf2.gyro_bias_rad_s = old->b_g;
             s.kf2.mag_bias = old->b_m;
             s.kf2.q_nav_from_body = quat_unit(q);

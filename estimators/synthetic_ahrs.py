@@ -377,8 +377,12 @@ def _trust(state: SyntheticAhrsState, time_s: float, params: SyntheticAhrsParams
             # the snapshot's attitude with our gyro-only increments since then
             t_s, b_g, b_m, q_s, qf_s, P_s = old[-1]
             q = quat_mul(quat_mul(q_s, quat_conj(qf_s)), state.q_gyro_free)
-            P = state.kf2.P.copy()
-            P[0:3, 0:3] = P_s[0:3, 0:3] + np.eye(3) * (params.health.sigma_bias_rad_s * (time_s - t_s)) ** 2
+            # the snapshot's whole covariance goes with its attitude and biases (its attitude block
+            # alone beside today's cross-covariances is no covariance: negative variances were seen,
+            # runway_gnss_denied with the FC's yaw excluded), the attitude widened by the gyro-bias
+            # error integrated since
+            P = P_s.copy()
+            P[0:3, 0:3] += np.eye(3) * (params.health.sigma_bias_rad_s * (time_s - t_s)) ** 2
             state = _upd(state, kf2=_upd(state.kf2, gyro_bias_rad_s=b_g.copy(), mag_bias=b_m.copy(),
                                          q_nav_from_body=q / math.sqrt(float(q @ q)), P=P))
         elif old:
