@@ -217,6 +217,9 @@ MagDisturbance dist_from(const py::handle& st) {
         for (int i = 0; i < 3; ++i) s.cand[i] = v[i];
     }
     s.reason = st.attr("reason").cast<std::string>();
+    py::object ml = st.attr("m_last");
+    s.has_m_last = !ml.is_none();
+    if (s.has_m_last) s.m_last = fixed<3>(py::module_::import("numpy").attr("ravel")(ml), "m_last");
     return s;
 }
 
@@ -249,6 +252,7 @@ py::dict dist_state(const MagDisturbance& s) {
     d["candidate"] = s.has_candidate ? py::object(py::make_tuple(s.cand[0], s.cand[1], s.cand[2]))
                                      : py::object(py::none());
     d["reason"] = s.reason;
+    d["m_last"] = s.has_m_last ? py::object(arr_out(s.m_last.data(), 3)) : py::object(py::none());
     return d;
 }
 
@@ -348,5 +352,6 @@ void bind_checks(py::module_& m) {
         .def_readonly("n_relearns", &MagDisturbance::n_relearns)
         .def_readonly("relearning", &MagDisturbance::relearning)
         .def_readonly("reason", &MagDisturbance::reason)
+        .def_property_readonly("time_s", [](const MagDisturbance& s) { return opt(s.has_time, s.time_s); })
         .def("get_state", &dist_state, "MagDisturbanceState's fields as a dict.");
 }

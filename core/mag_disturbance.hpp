@@ -61,6 +61,8 @@ struct MagDisturbance {
     bool has_candidate = false;
     double cand[3] = {0, 0, 0};
     std::string reason = "no magnetometer sample yet";
+    bool has_m_last = false;  // the last new sample: a repeat of it is not a new one
+    V3 m_last{};
 
     static double lp(bool has_prev, double prev, double x, double dt, double tau) {
         if (!has_prev || dt <= 0.0) return x;
@@ -69,6 +71,22 @@ struct MagDisturbance {
 
     // m, q finite, t not before the last sample (the caller checked)
     MagDisturbanceOut step(double t, const V3& m, const Q4& q, const MagDisturbanceParams& p) {
+        if (has_m_last && m[0] == m_last[0] && m[1] == m_last[1] && m[2] == m_last[2]) {
+            // a held repeat: nothing new; the last fresh sample's verdict
+            MagDisturbanceOut out;
+            out.usable = reason.empty();
+            out.reason = reason;
+            out.changed = false;
+            out.mag_corrected_gauss = {m[0] - hard_iron_gauss[0], m[1] - hard_iron_gauss[1], m[2] - hard_iron_gauss[2]};
+            out.hard_iron_gauss = hard_iron_gauss;
+            const double dmax = std::max(std::max(P[0], P[4]), P[8]);
+            out.hard_iron_sigma_gauss = std::sqrt(std::max(dmax, 0.0));
+            if (!relearning && has_norm_ref) {
+                out.norm_ratio = norm_lp / norm_ref;
+                out.dip_diff_rad = dip_lp - dip_ref;
+            }
+            return out;
+        }
         const double dt = has_time ? t - time_s : 0.0;
         M3 Pk = has_P ? P : M3{};
         if (!has_P) {  // np.eye(3) * prior^2
@@ -269,6 +287,8 @@ struct MagDisturbance {
         cand[1] = c1;
         cand[2] = c2;
         reason = why;
+        has_m_last = true;
+        m_last = m;
         return out;
     }
 };

@@ -39,6 +39,15 @@ Two questions, answered from different evidence so the one cannot be mistaken fo
    e.g. the vehicle moved into a building), never just because it lasted: a magnet lying beside
    the vehicle for minutes is still not the Earth's field.
 
+A repeat of the previous vector is the same sample handed on again (RAW_IMU carries the compass's
+latest reading at the IMU rate, a log reader holds its MAG onto the IMU samples; a live sensor's
+noise makes two fresh readings differ), not a new one: it is dated at its first appearance, so it
+neither forms a pair nor moves the low-passed field, and its verdict is the last fresh sample's.
+Paired with the attitude of a later IMU sample, a reading held for up to a compass period is turned
+by rate x age: in ArduPlane SITL (a 10 Hz MAG held onto a 100 Hz IMU, 84 % repeats) every banked
+turn's pair then failed the NIS gate (|nu| 0.05-0.25 G) and the hard iron was "re-learnt" three
+times on a clean magnetometer (the heading coasted on the gyros ~85 s); with repeats skipped, 0.
+
 Pure: ``mag_disturbance_step(state, time_s, mag_body_gauss, q_P_from_body, params) ->
 (state, verdict)``; ``verdict.mag_corrected_gauss`` is m - b (None while not usable).
 """
@@ -141,6 +150,8 @@ class MagDisturbanceState:
     candidate: tuple | None = None
     """(norm, dip, steady seconds with turning) of a new field."""
     reason: str = "no magnetometer sample yet"
+    m_last: np.ndarray | None = None
+    """The last new sample (gauss, body); a repeat of it is not a new sample (module docstring)."""
 
 
 @dataclass(frozen=True)
@@ -190,6 +201,14 @@ def mag_disturbance_step(state: MagDisturbanceState, time_s: float, mag_body_gau
     st = state
     P = st.P_hard_iron if st.P_hard_iron is not None else np.eye(3) * p.hard_iron_prior_sigma_gauss ** 2
     b = st.hard_iron_gauss
+    if st.m_last is not None and np.array_equal(m, st.m_last):
+        # a held repeat (module docstring): nothing new; the last fresh sample's verdict
+        usable = not st.reason
+        judged = not st.relearning and st.norm_ref is not None
+        return st, MagDisturbanceVerdict(usable, st.reason, False, m - b if usable else None, b.copy(),
+                                         float(math.sqrt(max(np.max(np.diag(P)), 0.0))),
+                                         st.norm_lp / st.norm_ref if judged else math.nan,
+                                         st.dip_lp - st.dip_ref if judged else math.nan, False)
     C_PB = dcm_from_quat(q)
     relearned = False
 
@@ -294,6 +313,6 @@ def mag_disturbance_step(state: MagDisturbanceState, time_s: float, mag_body_gau
     new = replace(st, hard_iron_gauss=b, P_hard_iron=P, time_s=t, anchor=anchor, bad_pairs=bad,
                   relearning=relearning, last_pair_ok=last_ok, n_pairs=n_pairs, n_relearns=n_rel,
                   norm_lp=norm_lp, dip_lp=dip_lp, norm_ref=norm_ref, dip_ref=dip_ref, undisturbed_s=undist,
-                  disturbed=disturbed, candidate=cand, reason=reason)
+                  disturbed=disturbed, candidate=cand, reason=reason, m_last=m.copy())
     return new, MagDisturbanceVerdict(usable, reason, changed, mc if usable else None, b.copy(), sigma_b,
                                       ratio, ddip, relearned)
