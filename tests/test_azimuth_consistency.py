@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from estimators import azimuth as az
 from estimators.geomag import earth_field
@@ -88,3 +89,46 @@ def test_given_the_consumer_grade_then_no_excess_is_invented_for_a_consistent_fi
     hd_new, hs_new = az._heading_now(st, st.solution)
     assert st.solution.wander_var_rad2 <= 3.0 * hs_new ** 2
     assert abs(err_end) <= 3.0 * sigma_end
+
+
+def test_the_check_widens_only_on_a_significant_excess(monkeypatch):
+    # GIVEN a first solution with heading sigma 1.0 deg and a later (nested) one with 0.6 deg: under
+    # A's model their headings differ by d with var(d) = 1.0^2 - 0.6^2 = 0.64 deg^2
+    st = az.azimuth_init(az.AzimuthParams(e_ned_gauss=np.array([0.2, 0.0, 0.4])))
+    ref, new = object(), object()
+    deg = math.radians
+    var_d = deg(1.0) ** 2 - deg(0.6) ** 2
+
+    def heading_now(d_deg):
+        return lambda state, sol: (0.0, deg(1.0)) if sol is ref else (deg(d_deg), deg(0.6))
+
+    # WHEN d is 1.25 sigma_d (d^2 / var(d) = 1.56: a draw a consistent fit gives on 21 % of checks)
+    monkeypatch.setattr(az, "_heading_now", heading_now(1.0))
+    # THEN nothing is added (session 6's check added d^2 - var(d) = 0.36 deg^2)
+    assert az._wander_var(st, ref, new) == 0.0
+    # WHEN d is 2.5 sigma_d (d^2 / var(d) = 6.25, below the 1 % test's 6.63) THEN still nothing
+    monkeypatch.setattr(az, "_heading_now", heading_now(2.0))
+    assert az._wander_var(st, ref, new) == 0.0
+    # WHEN d is 3.75 sigma_d THEN the whole excess d^2 - var(d) is added
+    monkeypatch.setattr(az, "_heading_now", heading_now(-3.0))
+    assert az._wander_var(st, ref, new) == pytest.approx(deg(3.0) ** 2 - var_d, rel=1e-12)
+    # a var(d) <= 0 (the later fit's sigma not below the first's) leaves any d an excess
+    monkeypatch.setattr(az, "_heading_now", lambda state, sol: (0.0 if sol is ref else deg(0.3), deg(1.0)))
+    assert az._wander_var(st, ref, new) == pytest.approx(deg(0.3) ** 2, rel=1e-12)
+    # the threshold is a parameter; 0 counts every excess (the session 6 rule)
+    monkeypatch.setattr(az, "_heading_now", heading_now(1.0))
+    st0 = az.azimuth_init(az.AzimuthParams(e_ned_gauss=np.array([0.2, 0.0, 0.4]), consistency_chi2=0.0))
+    assert az._wander_var(st0, ref, new) == pytest.approx(deg(1.0) ** 2 - var_d, rel=1e-12)
+    for bad in (-1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="consistency_chi2"):
+            az.AzimuthParams(e_ned_gauss=np.array([0.2, 0.0, 0.4]), consistency_chi2=bad)
+
+
+def test_given_a_consistent_consumer_flight_then_its_sigma_is_not_widened():
+    # GIVEN the consumer grade as drawn on a flight whose re-solves stay within their model
+    # (measured: largest d^2 / var(d) of its 17 checks 3.8; error at 30 s -1.25 deg at 1.27 deg sigma)
+    rows = _fly(seed=2, walk_rad_s_rts=2e-5, after_launch_s=30.0)
+    # THEN the check adds nothing (session 6's rule added 0.99 deg in quadrature: every excess of a
+    # chi-square draw counted) and the error stays within 3 sigma
+    assert all(st.solution.wander_var_rad2 == 0.0 for _, _, _, st in rows)
+    assert all(abs(e) <= 3.0 * s for _, e, s, _ in rows)
