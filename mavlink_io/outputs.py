@@ -50,6 +50,8 @@ from typing import TYPE_CHECKING
 
 from pymavlink.dialects.v20 import common as mavlink2
 
+from mavlink_io.output_gate import ODOMETRY_MAX_LAG_S
+
 if TYPE_CHECKING:  # encoders only read its attributes
     from mavlink_io.navsolution import NavSolution
 
@@ -269,14 +271,42 @@ def encode_named_values(sol: NavSolution) -> list[mavlink2.MAVLink_named_value_f
     return out
 
 
+SLOT_EPSILON = 1e-6
+"""Fraction of a slot: a sample stamped on a slot's boundary (to floating-point rounding of its FC time)
+belongs to that slot."""
+
+CATCH_UP_MAX_LAG_S = ODOMETRY_MAX_LAG_S
+"""Oldest solution sent, by its IMU sample against the FC's clock (s), for every message: older slots are
+counted in ``slots_late`` and never sent. The FC's EKFs take a delayed measurement by its time stamp only
+within their fusion horizon: ArduPilot's EKF3 (NavEKF3_core::writeExtNavData) moves a sample older than its
+delayed IMU time up to that time (fused misdated), and its observation buffer recalls only samples less
+than 100 ms before it; PX4's EKF2 (EstimatorInterface::setExtVisionData, RingBuffer::pop_first_older_than)
+fuses a sample only within 100 ms before its delayed horizon and drops older ones. The horizon is the
+EKF's largest sensor delay, about 0.2 s (output_gate.ODOMETRY_MAX_LAG_S, measured against ArduPlane). A
+catch-up burst of older attitudes is of no use to any consumer and would crowd a telemetry link."""
+
+
 class OutputScheduler:
     """Decides per message whether it is due at its configured rate, and builds what is due.
 
     Rates in Hz (``DEFAULT_RATES_HZ`` keys); 0 disables a message, ODOMETRY must be >= 5 Hz.
-    A message is due when ``now_s`` reaches its next slot; slots advance by one period so the
-    mean rate is exact under IMU-sample jitter, and re-synchronise after a gap. ODOMETRY is
-    only produced while the heading is usable and ``odometry_allowed`` (the daemon clears it while
-    the FC's parameters say the placeholder position could be fused, mavlink_io.fc_yaw_feed);
+
+    Slots are on the FC's clock: slot k of a message at rate f covers FC time [k/f, (k+1)/f). Each
+    solution (its IMU sample's FC time) is offered in sample order (``messages``); the first solution in
+    a slot fills it, with its own values and time stamp. So a burst of input worked off at once (the
+    loop behind after a stall) sends one message per slot, each the solution of that slot's sample, the
+    same set a replay of the same input sends; only slots older than CATCH_UP_MAX_LAG_S (``late``) are
+    skipped, counted in ``slots_late``. Slots no solution fell in (the FC's samples stopped, or came
+    sparser than the slots) are counted in ``slots_gap`` when the next solution comes.
+
+    When the FC's samples are sparser than half a slot (e.g. ArduPlane's stock 25 Hz RAW_IMU against
+    50 Hz ATTITUDE), a slot between two samples has none of its own: ``fill`` sends it on the local
+    clock, at the time the slot's FC time is reached, with the newest solution (repeated with its own
+    stamp if it was already sent), counted in ``slots_filled``. The daemon does so only while that
+    solution is fresher than max_extrapolation_s, so the configured rates hold whatever the IMU rate.
+
+    ODOMETRY is only produced while the heading is usable and ``odometry_allowed`` (the daemon clears it
+    while the FC's parameters say the placeholder position could be fused, mavlink_io.fc_yaw_feed);
     ``reset_counter`` counts real heading discontinuities: the heading usable again after a gap, or a
     step between consecutive solutions larger than RESET_JUMP_SIGMAS sigma (and RESET_JUMP_MIN_RAD)
     beyond what the body rates explain. A change of the source *name* is not one: the arbitration
@@ -298,8 +328,23 @@ class OutputScheduler:
             raise ValueError(f"outputs rate for ODOMETRY must be >= {MIN_ODOMETRY_RATE_HZ} Hz, "
                              f"got {rates['ODOMETRY']}")
         self.rates_hz: dict[str, float] = rates
+        self._enabled = tuple(n for n, r in rates.items() if r > 0.0)
         self.profile: OdometryProfile = profile or ODOMETRY_PROFILES["mavlink"]
-        self._next_due_s: dict[str, float | None] = {name: None for name in rates}
+        self._last_slot: dict[str, int | None] = {name: None for name in rates}
+        """Per message: the FC-time slot last taken (sent, or passed by a solution that had no such message)."""
+        self._next_slot_fc_s = -math.inf
+        """FC time of the earliest next slot of an enabled message (-inf before the first solution)."""
+        self.slots_late: dict[str, int] = {name: 0 for name in rates}
+        """Slots whose message was not sent: its solution lagged the FC's clock by more than
+        CATCH_UP_MAX_LAG_S (``messages(..., late=True)``)."""
+        self.slots_gap: dict[str, int] = {name: 0 for name in rates}
+        """Slots that passed with no solution in them (no IMU sample processed in that FC time)."""
+        self.slots_filled: dict[str, int] = {name: 0 for name in rates}
+        """Slots sent on the local clock with the newest solution (``fill``: samples sparser than slots)."""
+        self._offered: tuple[float, float] | None = None
+        """(FC time s, local time s) of the newest solution offered."""
+        self.sample_interval_s: float | None = None
+        """FC time between the last two solutions offered (the FC's sample interval)."""
         self.reset_counter = 0
         self.odometry_allowed = True
         self.odometry_late = 0
@@ -313,32 +358,84 @@ class OutputScheduler:
         """Switch the ODOMETRY encoding (e.g. once the FC's HEARTBEAT names its autopilot)."""
         self.profile = profile
 
-    def due(self, name: str, now_s: float) -> bool:
-        """True (and the slot consumed) when ``name`` is due at local time ``now_s`` (s)."""
-        rate = self.rates_hz[name]
-        if rate <= 0.0:
+    def restart_fc_clock(self) -> None:
+        """The FC rebooted (its clock restarts): its slots start again from its next sample."""
+        self._last_slot = {name: None for name in self.rates_hz}
+        self._next_slot_fc_s = -math.inf
+        self._offered = None
+        self.sample_interval_s = None
+        self._last_heading = None
+
+    def slot_index(self, name: str, time_fc_s: float) -> int:
+        """The slot of ``name`` that FC time ``time_fc_s`` (s) falls in (its rate must be > 0)."""
+        if not math.isfinite(time_fc_s):
+            raise ValueError(f"time_fc_s must be finite, got {time_fc_s}")
+        return math.floor(time_fc_s * self.rates_hz[name] + SLOT_EPSILON)
+
+    def _take(self, name: str, k: int) -> None:
+        last = self._last_slot[name]
+        if last is not None:
+            self.slots_gap[name] += k - last - 1
+        self._last_slot[name] = k
+        # a little before the boundary (2 SLOT_EPSILON): only a pre-filter for ``due``, which decides
+        self._next_slot_fc_s = min((self._last_slot[n] + 1 - 2.0 * SLOT_EPSILON) / self.rates_hz[n]
+                                   if self._last_slot[n] is not None else -math.inf for n in self._enabled)
+
+    def due(self, name: str, time_fc_s: float) -> bool:
+        """True (and the slot taken) when a solution at FC time ``time_fc_s`` (s) is the first in a slot
+        of ``name`` after the one taken last; the slots between are counted in ``slots_gap``."""
+        if self.rates_hz[name] <= 0.0:
             return False
-        period = 1.0 / rate
-        next_due = self._next_due_s[name]
-        if next_due is None or now_s >= next_due:
-            if next_due is None or now_s - next_due > period:
-                next_due = now_s  # first call, or a gap: re-synchronise
-            self._next_due_s[name] = next_due + period
-            return True
-        return False
+        k = self.slot_index(name, time_fc_s)
+        last = self._last_slot[name]
+        if last is not None and k <= last:
+            return False
+        self._take(name, k)
+        return True
 
-    def next_due_s(self) -> float:
-        """Local time at which the next message is due (-inf before the first call)."""
-        dues = [d if d is not None else -math.inf for n, d in self._next_due_s.items() if self.rates_hz[n] > 0]
-        return min(dues) if dues else math.inf
+    def reaches_slot(self, time_fc_s: float) -> bool:
+        """True when a solution at FC time ``time_fc_s`` would take a slot of some message (cheap: the
+        daemon asks it for every IMU sample before it builds anything)."""
+        return bool(self._enabled) and time_fc_s >= self._next_slot_fc_s
 
-    def next_slot_after(self, now_s: float) -> float | None:
-        """The earliest slot of an enabled message later than ``now_s`` (None: none). A slot
-        already past belongs to a message the last solution did not produce (ATTITUDE_QUATERNION
-        without a valid heading, ODOMETRY not allowed): it passes when a solution that has it comes,
-        and is no reason to wake the daemon's loop (Daemon.loop_wait_s)."""
-        later = [d for n, d in self._next_due_s.items() if self.rates_hz[n] > 0 and d is not None and d > now_s]
-        return min(later) if later else None
+    def note(self, time_fc_s: float, now_s: float) -> None:
+        """A solution at FC time ``time_fc_s`` was produced at local time ``now_s`` (every solution, in
+        sample order, whether or not it takes a slot): the sample interval and what ``fill`` extends."""
+        if self._offered is not None and time_fc_s > self._offered[0]:
+            self.sample_interval_s = time_fc_s - self._offered[0]
+        self._offered = (time_fc_s, now_s)
+
+    def _fillable(self, name: str) -> bool:
+        """Samples sparser than half a slot of ``name`` (or one sample so far): some of its slots fall
+        between two samples."""
+        return self._last_slot[name] is not None and (self.sample_interval_s is None
+                                                      or self.sample_interval_s > 0.5 / self.rates_hz[name])
+
+    def next_fill_s(self) -> float | None:
+        """Local time at which ``fill`` has a slot to send (None: every slot gets a sample of its own, or no
+        solution yet): the next slot's FC time carried to the local clock from the newest solution."""
+        if self._offered is None:
+            return None
+        t_fc, t_local = self._offered
+        times = [t_local + (self._last_slot[n] + 1) / self.rates_hz[n] - t_fc
+                 for n in self._enabled if self._fillable(n)]
+        return min(times) if times else None
+
+    def fill(self, sol: NavSolution, now_s: float, late: bool = False) -> list:
+        """The slots that local time ``now_s`` reached without a sample of their own, each message sent
+        once with ``sol`` (the newest solution, the one last offered, gated); slots the local clock passed
+        over entirely count in ``slots_gap``. Empty when the samples are dense (``next_fill_s`` None)."""
+        if self._offered is None:
+            return []
+        t_fc, t_local = self._offered
+        t_fc_now = t_fc + (now_s - t_local)  # the FC's clock, from the newest solution's
+        take = {}
+        for n in self._enabled:
+            if self._fillable(n) and self.slot_index(n, t_fc_now) > self._last_slot[n]:
+                self._take(n, self.slot_index(n, t_fc_now))
+                self.slots_filled[n] += 1
+                take[n] = True
+        return self._build(sol, take, late)
 
     def _heading_jumped(self, sol: NavSolution) -> bool:
         if self._last_heading is None:
@@ -364,24 +461,42 @@ class OutputScheduler:
         self._heading_was_usable = usable
 
     def messages(self, sol: NavSolution, now_s: float, late: bool = False) -> list:
-        """All messages due for this solution at local monotonic time ``now_s`` (s). ``late``: the
-        solution lags the FC's clock beyond what the FC can date (output_gate.ODOMETRY_MAX_LAG_S): its
-        ODOMETRY slot passes without one (counted in ``odometry_late``), the rest goes as usual."""
+        """The messages whose FC-time slot this solution is the first to reach (``sol`` gated, offered in
+        sample order; ``now_s``: local monotonic time it was produced, s). ``late``: the solution lags the
+        FC's clock beyond CATCH_UP_MAX_LAG_S: its slots are taken but nothing is sent (``slots_late``;
+        ODOMETRY also in ``odometry_late``)."""
+        self.note(sol.time_fc_s, now_s)
+        take = {n: True for n in self._enabled if self.due(n, sol.time_fc_s)}
+        if not take:
+            return []
         self._track_resets(sol)
+        return self._build(sol, take, late)
+
+    def _build(self, sol: NavSolution, take: Mapping[str, bool], late: bool) -> list:
+        """The messages of the slots in ``take`` that ``sol`` has; with ``late`` none, counted instead."""
         out: list = []
-        if self.due("ATTITUDE", now_s):
+
+        def emit(name: str, msg) -> None:
+            if late:
+                self.slots_late[name] += 1
+            else:
+                out.append(msg)
+
+        if take.get("ATTITUDE"):
             msg = encode_attitude(sol)
             if msg is not None:
-                out.append(msg)
-        if sol.heading_valid and self.due("ATTITUDE_QUATERNION", now_s):
+                emit("ATTITUDE", msg)
+        if take.get("ATTITUDE_QUATERNION") and sol.heading_valid:
             msg = encode_attitude_quaternion(sol)
             if msg is not None:
-                out.append(msg)
-        if self.odometry_allowed and heading_usable(sol) and self.due("ODOMETRY", now_s):
+                emit("ATTITUDE_QUATERNION", msg)
+        if take.get("ODOMETRY") and self.odometry_allowed and heading_usable(sol):
             if late:
                 self.odometry_late += 1
+            emit("ODOMETRY", encode_odometry(sol, self.profile, self.reset_counter))
+        if take.get("NAMED_VALUE_FLOAT"):
+            if late:
+                self.slots_late["NAMED_VALUE_FLOAT"] += 1
             else:
-                out.append(encode_odometry(sol, self.profile, self.reset_counter))
-        if self.due("NAMED_VALUE_FLOAT", now_s):
-            out.extend(encode_named_values(sol))
+                out.extend(encode_named_values(sol))
         return out

@@ -29,9 +29,9 @@ from mavlink_io.commands import CommandProtocol, CommandProtocolParams, statuste
 from mavlink_io.decode import FcParam, FcStatusText
 from mavlink_io.imu_batch import ImuBatch
 from mavlink_io.link import LinkConfig, LinkEvent, MavlinkLink
-from mavlink_io.outputs import OutputScheduler, _time_boot_ms, odometry_profile_for_autopilot
+from mavlink_io.outputs import CATCH_UP_MAX_LAG_S, OutputScheduler, _time_boot_ms, odometry_profile_for_autopilot
 from mavlink_io.outputs import encode_attitude, encode_attitude_quaternion
-from mavlink_io.output_gate import ODOMETRY_MAX_LAG_S, FcLagMeter, OutputLimits, gate_solution
+from mavlink_io.output_gate import FcLagMeter, OutputLimits, gate_solution
 from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, FcSysStatus,
                                 ImuSample, IncomingCommand, PressureSample)
 from service import state_file
@@ -185,7 +185,9 @@ class Daemon:
         self._last_sent_fc_s = -math.inf
         """FC time stamp of the last MAVLink output: a stamp never goes back (until an FC reboot)."""
         self._last_sent_sol = None
-        """Daemon clock when the pipeline last produced a solution."""
+        """The solution last sent (the same one may fill a later slot with its own stamp)."""
+        self._offered_sol = None
+        """The solution last offered to the scheduler's FC-time slots (``_publish_due``)."""
         self.output_limits = OutputLimits(math.radians(out["max_tilt_sigma_deg"]),
                                           math.radians(out["max_heading_sigma_deg"]), out["max_extrapolation_s"])
         self.attitude_to_fc = out["attitude_to_fc"]
@@ -397,7 +399,9 @@ class Daemon:
                 pass
         c = self.pipeline.counters
         fields = {"imu_samples": c.imu_samples, "imu_rejected": c.imu_rejected, "sent": self.sent,
-                  "internal_faults": self.internal_faults, "pipeline_rebuilds": self.pipeline_rebuilds}
+                  "internal_faults": self.internal_faults, "pipeline_rebuilds": self.pipeline_rebuilds,
+                  # output slots not sent (late, gap) or filled on the local clock, e.g. slots_late_attitude
+                  **{k.lower(): v for k, v in self._slot_counters().items()}}
         if self.link is not None:  # what the link saw, for the count in vs processed (RELIABILITY.md)
             ls = self.link.stats
             imu = sum(ls.messages_by_type.get(k, 0) for k in ("RAW_IMU", "HIGHRES_IMU", "SCALED_IMU"))
@@ -444,15 +448,17 @@ class Daemon:
 
     def loop_wait_s(self) -> float:
         """How long the next step may block on the link (it returns at once on input, and the link
-        shortens the wait to its own next timer): until the next MAVLink output slot, the command
-        protocol's next try, else LOOP_MAX_WAIT_S. A time already past was declined by the step
-        that just ran (an output: no fresh solution, FC time not past the last sent, a message this
-        solution does not have; a command: no target yet) and waits for input: never a busy loop."""
+        shortens the wait to its own next timer): until the next MAVLink output slot that no sample will
+        fill (the FC's samples sparser than the slots: OutputScheduler.fill; with denser samples each
+        slot is sent as its sample is handled), the command protocol's next try, else LOOP_MAX_WAIT_S.
+        A time already past was declined by the step that just ran (an output: no fresh solution, FC
+        time not past the last sent; a command: no target yet) and waits for input: never a busy loop."""
         now = self.clock()
         due = now + LOOP_MAX_WAIT_S
-        if self.last_solution is not None:
-            out_due = self.scheduler.next_slot_after(now)
-            if out_due is not None and out_due < due:
+        if self.last_solution is not None:  # a slot between two sparse samples (OutputScheduler.fill)
+            out_due = self.scheduler.next_fill_s()
+            if out_due is not None and now < out_due < due \
+                    and out_due - self._last_solution_s <= self.output_limits.max_extrapolation_s:
                 due = out_due
         if self.commands is not None:
             cmd_due = self.commands.next_due_s()
@@ -593,6 +599,7 @@ class Daemon:
             self._event(item.kind, item.detail)
             if item.kind == "fc_reboot":
                 self._last_sent_fc_s = -math.inf  # the FC clock restarted: stamps start again
+                self.scheduler.restart_fc_clock()  # and its output slots
                 self.fc_lag.reset()
                 self.pipeline.on_fc_reboot()
                 self._fc_yaw_feed_start()  # its parameters may have changed with the reboot
@@ -647,6 +654,7 @@ class Daemon:
         for sol in sols:
             self.last_solution = sol
             self._last_solution_s = self.clock()
+            self._publish_due(self._last_solution_s)  # each solution its FC-time slots
             self.publish(sol)
             if self.geofence is not None:
                 self._geofence_step(sol)
@@ -654,7 +662,6 @@ class Daemon:
         if prop is not None:
             self.last_solution = prop
             self._last_solution_s = self.clock()
-        if sols or prop is not None:
             self._publish_due(self._last_solution_s)
         self._pipeline_events()
 
@@ -778,37 +785,50 @@ class Daemon:
                 self.bus.publish("events", event_payload(kind, severity, detail, time_rx_s=self.clock()))
 
     def _publish_due(self, now: float) -> None:
-        """MAVLink outputs at their own rates: the last solution, brought to ``now``, without what
-        its sigma calls meaningless. Nothing once no solution was produced for max_extrapolation_s
-        (a slow IMU); a solution that was late when produced (the loop behind a burst) is sent as
-        it is, with its own time stamp, rather than pushed forward that far."""
-        sol, limit = self.last_solution, self.output_limits.max_extrapolation_s
-        if sol is None or self.link is None or now < self.scheduler.next_due_s() \
-                or now - self._last_solution_s > limit:
+        """MAVLink outputs at their own rates, on the FC's clock (mavlink_io/outputs.OutputScheduler): a new
+        solution takes the slots its sample is the first to reach, and is sent as it is, with its own FC
+        stamp and values (what the Pipeline produced and Zenoh published), so a backlog worked off at once
+        sends each slot its own solution; slots older than CATCH_UP_MAX_LAG_S against the FC's clock are
+        counted, never sent. When the FC's samples are sparser than the slots, the slots between two
+        samples are filled on the local clock with the newest solution while it is fresher than
+        max_extrapolation_s (a slow IMU's outputs repeat it; nothing once it is older)."""
+        sol = self.last_solution
+        if sol is None or self.link is None:
             return
-        # The solution goes as it is, its own FC stamp and values (what the Pipeline produced and Zenoh
-        # published). Not brought forward by its local age (output_gate.extrapolate_solution): when the
-        # daemon works off a backlog, that age is queueing delay, the prediction ran ahead of the FC
-        # stream, and the monotonic stamp below then held back every real solution (e2e: 6 ATTITUDE in
-        # 5 s and 2-3 deg errors after a stall). A slow IMU's outputs repeat the last solution while it
-        # is fresher than max_extrapolation_s.
-        # A stamp brought forward by the local age runs ahead of the FC clock when the sender stalled
-        # and then resumes (its next samples are older than our prediction): send nothing until the
-        # FC time passes what was already sent, so receivers never see time go back.
-        # Two different attitudes must not carry the same stamp either (receivers key on the 1 ms
-        # time_boot_ms): an equal millisecond only for the very same, unextrapolated solution.
+        sched = self.scheduler
+        if sol is not self._offered_sol:
+            self._offered_sol = sol
+            if not sched.reaches_slot(sol.time_fc_s):
+                sched.note(sol.time_fc_s, now)  # most samples: no slot, nothing to build
+                return
+            fill = False
+        else:
+            due_s = sched.next_fill_s()
+            if due_s is None or now < due_s or now - self._last_solution_s > self.output_limits.max_extrapolation_s:
+                return
+            fill = True
+        # Not brought forward by its local age (output_gate.extrapolate_solution): when the daemon works off
+        # a backlog that age is queueing delay, and a stamp pushed ahead of the FC stream held back every
+        # real solution (e2e: 6 ATTITUDE in 5 s and 2-3 deg errors after a stall). Receivers never see time
+        # go back, and two different attitudes never carry the same 1 ms time_boot_ms: an equal millisecond
+        # only for the very same solution (a slot filled with the solution already sent).
         ms = _time_boot_ms(sol.time_fc_s)
         last_ms = _time_boot_ms(self._last_sent_fc_s) if math.isfinite(self._last_sent_fc_s) else -math.inf
         if ms < last_ms or (ms == last_ms and sol is not self._last_sent_sol):
+            if not fill:
+                sched.note(sol.time_fc_s, now)
             return
-        # an ODOMETRY the FC would misdate (output_gate.ODOMETRY_MAX_LAG_S) is held back
+        # slots older than the FC's EKFs date a measurement are skipped (CATCH_UP_MAX_LAG_S)
         lag_s = self.fc_lag.lag_s(sol.time_fc_s, now)
-        late = lag_s > ODOMETRY_MAX_LAG_S
-        if late:
-            self.rl.log(logging.WARNING, "odometry_late", f"ODOMETRY held back: our solution lags the FC's clock by "
-                        f"{lag_s:.2f} s (> {ODOMETRY_MAX_LAG_S:g} s: the daemon is behind its input; the FC would "
-                        "fuse the yaw misdated)", event="odometry_late")
-        msgs = self.scheduler.messages(gate_solution(sol, self.output_limits), now, late=late)
+        late = lag_s > CATCH_UP_MAX_LAG_S
+        held, odometry_held = sum(sched.slots_late.values()), sched.odometry_late
+        gated = gate_solution(sol, self.output_limits)
+        msgs = sched.fill(gated, now, late=late) if fill else sched.messages(gated, now, late=late)
+        if late and sum(sched.slots_late.values()) > held:
+            self.rl.log(logging.WARNING, "outputs_late", f"outputs held back: our solution lags the FC's clock by "
+                        f"{lag_s:.2f} s (> {CATCH_UP_MAX_LAG_S:g} s: the daemon is behind its input; the FC would "
+                        "fuse a yaw misdated); their slots are counted (slots_late)",
+                        event="odometry_late" if sched.odometry_late > odometry_held else "outputs_late")
         if msgs:
             self._last_sent_fc_s, self._last_sent_sol = sol.time_fc_s, sol
         for msg in msgs:
@@ -847,6 +867,14 @@ class Daemon:
         ls = self.link.stats
         return {f"link_{k}": int(getattr(ls, k) or 0) for k in self._LINK_COUNTERS if hasattr(ls, k)}
 
+    def _slot_counters(self) -> dict[str, int]:
+        """The output slots not sent (``late``: the solution lagged the FC's clock over CATCH_UP_MAX_LAG_S;
+        ``gap``: no IMU sample in them) and those filled on the local clock, per enabled message."""
+        sc = self.scheduler
+        return {f"slots_{kind}_{name}": counts[name]
+                for kind, counts in (("late", sc.slots_late), ("gap", sc.slots_gap), ("filled", sc.slots_filled))
+                for name in sc.rates_hz if sc.rates_hz[name] > 0}
+
     def _publish_air_data(self, now: float) -> None:
         """Method B's air data (ISA altitude, density, TAS) when it has a new sample."""
         air = self.pipeline.air_data()
@@ -867,6 +895,7 @@ class Daemon:
             {"imu_samples": c.imu_samples, "imu_rejected": c.imu_rejected,
              "pressure_samples": c.pressure_samples, **{f"sent_{k}": v for k, v in self.sent.items()},
              "odometry_late": self.scheduler.odometry_late,
+             **self._slot_counters(),
              **{f"imu_input_{k}": v for k, v in self.pipeline.input_checks.counts.items()},
              **self._link_counters(),
              **{f"commands_{k.lower()}": v for k, v in self.command_server.counts.items()}},

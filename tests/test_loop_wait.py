@@ -99,17 +99,28 @@ def test_daemon_waits_for_the_next_output_or_command_and_never_spins(daemon):
     # GIVEN no solution yet and no command in flight: only input or the max wait wakes the loop
     d.last_solution, d.commands = None, None
     assert d.loop_wait_s() == pytest.approx(LOOP_MAX_WAIT_S)
-    # WHEN a solution was sent now (ATTITUDE at 50 Hz) THEN the loop wakes for the next output
-    d.last_solution = solution(t_rx=clock.t)
+    # WHEN a solution was sent now (ATTITUDE at 50 Hz), the first one (the FC's sample interval not
+    # known yet: its next slot may have no sample of its own) THEN the loop wakes for the next output
+    d.last_solution, d._last_solution_s = solution(t_fc=10.0, t_rx=clock.t), clock.t
     d.scheduler.messages(d.last_solution, clock.t)
     assert d.loop_wait_s() == pytest.approx(0.02, abs=1e-9)
     clock.t += 0.013
     assert d.loop_wait_s() == pytest.approx(0.007, abs=1e-9)
-    # (the ODOMETRY slot is not allowed yet and stays in the past: no reason to wake, no spin)
-    assert d.scheduler.next_due_s() < clock.t
+    # (the ODOMETRY slot, not allowed yet, was taken by that solution: no reason to wake, no spin)
     # WHEN that output time passed and the step declined it (no fresh solution) THEN no busy loop
     clock.t += 0.5
     assert d.loop_wait_s() == pytest.approx(LOOP_MAX_WAIT_S)
+    # WHEN the FC's samples come every 2.5 ms (denser than the slots) THEN each slot is sent as its
+    # sample is handled: no output wakes the loop, only input
+    for k in (1, 2):
+        d.last_solution, d._last_solution_s = solution(t_fc=10.5 + k * 0.0025, t_rx=clock.t), clock.t
+        d.scheduler.messages(d.last_solution, clock.t)
+    assert d.scheduler.next_fill_s() is None and d.loop_wait_s() == pytest.approx(LOOP_MAX_WAIT_S)
+    # WHEN they come every 40 ms (25 Hz, sparser than the 50 Hz slots) THEN the loop wakes for the slot
+    # between two samples, at its FC time carried to the local clock
+    d.last_solution, d._last_solution_s = solution(t_fc=10.5475, t_rx=clock.t), clock.t
+    d.scheduler.messages(d.last_solution, clock.t)
+    assert d.loop_wait_s() == pytest.approx(10.56 - 10.5475, abs=1e-9)
     # WHEN a command was sent and waits for its ACK THEN the loop wakes for its retry
     d.last_solution = None
     sent = []

@@ -179,12 +179,17 @@ def test_scheduler_no_odometry_without_heading_and_resyncs_after_gap():
     sol = make_solution(heading_valid=False)
     ids = {m.get_msgId() for m in sched.messages(sol, 0.0)}
     assert 331 not in ids and 31 not in ids and 30 in ids
-    assert sched.due("ODOMETRY", 0.0)  # first call is due
-    assert not sched.due("ODOMETRY", 0.05)
-    assert sched.due("ODOMETRY", 0.1)
-    assert sched.due("ODOMETRY", 5.0)  # gap: due at once, then one period later
-    assert not sched.due("ODOMETRY", 5.09)
-    assert sched.due("ODOMETRY", 5.1)
+    # slots on the FC clock (10 Hz: [k/10, (k+1)/10)); the solution above took ODOMETRY's slot 1234
+    assert not sched.due("ODOMETRY", 123.49)  # the same slot
+    assert sched.due("ODOMETRY", 200.0)  # the first sample in a later slot is due
+    assert not sched.due("ODOMETRY", 200.05)
+    assert sched.due("ODOMETRY", 200.1)
+    gaps = sched.slots_gap["ODOMETRY"]
+    assert sched.due("ODOMETRY", 205.0)  # gap: due at once, the slots without a sample counted
+    assert sched.slots_gap["ODOMETRY"] - gaps == 48
+    assert not sched.due("ODOMETRY", 205.09)
+    assert sched.due("ODOMETRY", 205.1)
+    assert not sched.due("ODOMETRY", 150.0)  # FC time going back (no reboot seen): nothing
 
 
 def test_scheduler_validation():

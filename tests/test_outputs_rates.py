@@ -168,10 +168,11 @@ def test_a_loop_behind_a_burst_still_publishes_its_late_solutions(daemon):
     assert np.all(t_fc_us % 40_000 == 0)  # on the 25 Hz sample times: not extrapolated
 
 
-def test_a_burst_of_solutions_in_one_poll_is_published_at_the_rates(daemon):
+def test_a_burst_of_solutions_older_than_the_catch_up_cap_is_counted_not_sent(daemon):
     """One poll returning 1 s of 25 Hz samples (the loop behind, the burst worked off in 1 s of
-    daemon time): the solutions are published as they are produced, at the configured rates, not one
-    message per poll."""
+    daemon time, every solution 1-2 s behind the FC's clock): each slot is taken by its own sample, but
+    none is sent, all counted in slots_late: older than the FC's EKFs date a measurement
+    (outputs.CATCH_UP_MAX_LAG_S). tests/test_output_slots.py has the burst within the cap."""
     from mavlink_io.samples import ImuSample
     t = [2000.0]
     daemon.clock = lambda: t[0]
@@ -194,10 +195,12 @@ def test_a_burst_of_solutions_in_one_poll_is_published_at_the_rates(daemon):
     finally:
         daemon.pipeline, daemon.clock = real, __import__("time").monotonic
     sent = [m.get_type() for m in daemon.link.sent]
-    assert sent.count("ATTITUDE") == 25  # every 40 ms slot
+    assert sent.count("ATTITUDE") == 0 and daemon.scheduler.slots_late["ATTITUDE"] == 25  # every 40 ms slot
     # the 10 Hz ODOMETRY slots pass without one: these solutions lag the FC's clock by 1-2 s, which
     # ArduPilot would misdate (mavlink_io/output_gate.ODOMETRY_MAX_LAG_S, tests/test_odometry_lag.py)
     assert sent.count("ODOMETRY") == 0 and daemon.scheduler.odometry_late == 10
+    # and the 50 Hz slots between two 25 Hz samples had none of their own (no idle loop to fill them)
+    assert daemon.scheduler.slots_late["ODOMETRY"] == 10 and daemon.scheduler.slots_gap["ATTITUDE"] == 24
 
 
 def test_given_a_sender_that_stalls_then_resumes_when_outputs_go_on_then_their_time_never_goes_back(daemon):
