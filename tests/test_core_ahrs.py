@@ -33,6 +33,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 from sitl import feed_pipeline, pipeline_inputs, scenario_site  # noqa: E402
 
 from estimators import core  # noqa: E402
+from parity_compare import differences  # noqa: E402
 from estimators import synthetic_ahrs as ref  # noqa: E402
 from estimators.synthetic_ahrs import FcAttitudeEvent, ImuEvent, SyntheticAhrsParams  # noqa: E402
 from service.config import validate  # noqa: E402
@@ -41,7 +42,6 @@ from service.pipeline import Pipeline  # noqa: E402
 DATA = ROOT.parent / "shared" / "data"
 if not DATA.is_dir():
     DATA = Path("/work/shared/data")
-RTOL = 1e-9
 
 pytestmark = pytest.mark.skipif(not core.AVAILABLE, reason=f"compiled core not built: {core.IMPORT_ERROR}")
 
@@ -117,39 +117,9 @@ def recorded(request):
 
 def _differs(a, b, path: str, bad: list) -> None:
     """Append (path, why) for every leaf of a and b (records, tuples, arrays, numbers) that is not
-    equal as the module docstring says (numpy scalars count as the Python ones: the reference holds
-    some flags as numpy.bool_)."""
-    a, b = (x.item() if isinstance(x, np.generic) else x for x in (a, b))
-    if dataclasses.is_dataclass(a):
-        if type(a) is not type(b):
-            bad.append((path, f"{type(a).__name__} vs {type(b).__name__}"))
-            return
-        for f in dataclasses.fields(a):
-            _differs(getattr(a, f.name), getattr(b, f.name), f"{path}.{f.name}", bad)
-    elif isinstance(a, (tuple, list)):
-        if not isinstance(b, (tuple, list)) or len(a) != len(b):
-            bad.append((path, f"{a!r} vs {b!r}"))
-            return
-        for i, (x, y) in enumerate(zip(a, b)):
-            _differs(x, y, f"{path}[{i}]", bad)
-    elif isinstance(a, np.ndarray):
-        x, y = a.astype(float), np.asarray(b, float)
-        if x.shape != y.shape:
-            bad.append((path, f"shape {x.shape} vs {y.shape}"))
-        elif x.ndim == 2 and x.shape[0] == x.shape[1] and path.endswith("P"):  # a covariance
-            scale = np.sqrt(np.outer(np.diag(x), np.diag(x)))
-            err = float(np.max(np.abs(x - y) - RTOL * scale))
-            if err > 0.0:
-                bad.append((path, f"covariance off by {err:.3g} beyond 1e-9 sqrt(P_ii P_jj)"))
-        elif not np.all(np.abs(x - y) <= RTOL * max(float(np.max(np.abs(x), initial=0.0)),
-                                                    float(np.max(np.abs(y), initial=0.0)))):
-            bad.append((path, f"{x} vs {y}"))
-    elif isinstance(a, float) and not isinstance(b, bool):
-        if not (isinstance(b, (float, int)) and (a == b or (math.isnan(a) and math.isnan(b))
-                                                 or abs(a - b) <= RTOL * max(abs(a), abs(b)))):
-            bad.append((path, f"{a!r} vs {b!r}"))
-    elif a != b or type(a) is not type(b):
-        bad.append((path, f"{a!r} vs {b!r}"))
+    equal as the module docstring says (tests/parity_compare.py, shared by the core's parity tests;
+    numpy scalars count as the Python ones: the reference holds some flags as numpy.bool_)."""
+    bad.extend(differences(a, b, path))
 
 
 def _run(calls, start, impl=core):

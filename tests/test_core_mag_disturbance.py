@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import math
 import sys
 from pathlib import Path
 
@@ -29,40 +28,20 @@ sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT / "tests"))
 
 from estimators import core  # noqa: E402
+from parity_compare import differences  # noqa: E402
 from estimators import mag_disturbance as ref  # noqa: E402
 from estimators.mag_disturbance import MagDisturbanceState  # noqa: E402
 from mavlink_io.samples import ImuSample  # noqa: E402
 
 DATA = Path("/work/shared/data")
-RTOL = 1e-9
 pytestmark = pytest.mark.skipif(not core.MAG_DISTURBANCE_AVAILABLE,
                                 reason=f"compiled core without mag_disturbance: {core.IMPORT_ERROR or 'old build'}")
 
 
-def _close(a, b) -> bool:
-    if a is None or b is None:
-        return a is b
-    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-        a, b = np.asarray(a, float), np.asarray(b, float)
-        if a.shape != b.shape:
-            return False
-        if a.shape == (3, 3):  # a covariance: against sqrt(P_ii P_jj)
-            scale = np.sqrt(np.outer(np.abs(np.diag(a)), np.abs(np.diag(a))))
-            return bool(np.all(np.abs(a - b) <= RTOL * scale + 1e-300))
-        m = max(float(np.max(np.abs(a))), float(np.max(np.abs(b))))
-        return float(np.max(np.abs(a - b))) <= RTOL * m
-    if isinstance(a, float) or isinstance(b, float):
-        if math.isnan(a) or math.isnan(b):
-            return math.isnan(a) and math.isnan(b)
-        return abs(a - b) <= RTOL * max(abs(a), abs(b))
-    if isinstance(a, tuple):
-        return isinstance(b, tuple) and len(a) == len(b) and all(_close(x, y) for x, y in zip(a, b))
-    return a == b
-
-
 def _same(a, b) -> list:
-    """The fields of two records (verdicts or states) that differ."""
-    return [f.name for f in dataclasses.fields(a) if not _close(getattr(a, f.name), getattr(b, f.name))]
+    """The fields of two records (verdicts or states) that differ beyond 1e-9 relative
+    (tests/parity_compare.py; the hard iron's covariance against sqrt(P_ii P_jj))."""
+    return differences(a, b)
 
 
 def _replay(calls, params):

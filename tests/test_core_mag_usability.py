@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import math
 import sys
 from pathlib import Path
 
@@ -29,38 +28,24 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 
 from estimators import core  # noqa: E402
+from parity_compare import differences  # noqa: E402
 from estimators import mag_usability as ref  # noqa: E402
 from estimators.mag_usability import MagUsabilityState, mag_usability_params_for_field  # noqa: E402
 from test_mag_usability import FIELD_NED_GAUSS, body_field  # noqa: E402  (the model field and its body-axes helper)
 
 DATA = Path("/work/shared/data")
-RTOL = 1e-9
 P = mag_usability_params_for_field(FIELD_NED_GAUSS)
 pytestmark = pytest.mark.skipif(not core.MAG_USABILITY_AVAILABLE,
                                 reason=f"compiled core without mag_usability: {core.IMPORT_ERROR or 'old build'}")
 
 
-def _close(a, b) -> bool:
-    if isinstance(a, float) or isinstance(b, float):
-        if a is None or b is None:
-            return a is b
-        if math.isnan(a) or math.isnan(b):
-            return math.isnan(a) and math.isnan(b)
-        return abs(a - b) <= RTOL * max(abs(a), abs(b))
-    if isinstance(a, tuple):
-        return isinstance(b, tuple) and len(a) == len(b) and all(_close(x, y) for x, y in zip(a, b))
-    return a == b
-
-
 def _same_verdict(a, b) -> bool:
-    if a is None or b is None:
-        return a is b
-    return (a.usable, a.reason, a.new_sample, a.changed) == (b.usable, b.reason, b.new_sample, b.changed) and \
-        all(_close(getattr(a, k), getattr(b, k)) for k in ("norm_ratio", "dip_rad", "rate_hz"))
+    """Equal verdicts: flags and reason identical, the numbers to 1e-9 relative (tests/parity_compare.py)."""
+    return not differences(a, b)
 
 
 def _same_state(a: MagUsabilityState, b: MagUsabilityState) -> bool:
-    return all(_close(getattr(a, k), getattr(b, k)) for k in MagUsabilityState.__dataclass_fields__)
+    return not differences(a, b)
 
 
 def _replay(calls, params=P):

@@ -415,3 +415,20 @@ def test_the_backend_selects_c(monkeypatch, caplog):
     assert old.polar_attitude_step is ref.polar_attitude_step and old.polar_attitude_init is ref.polar_attitude_init
     assert [r.getMessage() for r in caplog.records] == [
         "compiled core without method C's attitude filter (an older build): it runs the Python reference"]
+
+
+def test_the_shared_compare_flags_what_it_must():
+    # tests/parity_compare.differences (the core's parity tests share it): a covariance element off
+    # by 2e-9 sqrt(P_ii P_jj) is flagged and 0.5e-9 is not, also where the element itself is ~0; a
+    # vector in its max norm; NaN equals NaN; a reason string, a flag or a None that differs is flagged
+    P = np.array([[4.0, 1e-20], [1e-20, 1.0]])
+    for off, flagged in ((2e-9, True), (0.5e-9, False)):
+        Q = P.copy()
+        Q[0, 1] = Q[1, 0] = 1e-20 + off * 2.0
+        assert bool(differences({"P": P}, {"P": Q})) is flagged
+        assert bool(differences(np.array([1.0, 1e-12]), np.array([1.0, 1e-12 + off]))) is flagged
+    d = ref.PolarAttitudeDiag(updated=True, innovation_m_s2=np.array([0.1, math.nan, 0.0]), reason="x")
+    assert not differences(d, dataclasses.replace(d, innovation_m_s2=np.array([0.1, math.nan, 0.0])))
+    assert [p for p, _ in differences(d, dataclasses.replace(d, reason="y", fused=np.bool_(True)))] == \
+        [".fused", ".reason"]
+    assert differences((1.0, None), (1.0, 0.0)) and not differences((np.bool_(True), 2), (True, 2))
