@@ -12,6 +12,8 @@ namespace azimuthd {
 
 constexpr int KN = 9;
 using P9 = Mat<KN, KN>;
+constexpr int NC = 10;  // consider parameters: the soft iron (9, KF1's order), the declination error
+using S9 = Mat<KN, NC>;
 
 struct Kf2Params {
     double gyro_noise_rad_s_rthz, gyro_scale_sigma, gyro_scale_corr_s, gyro_bias_sigma_rad_s, gyro_bias_tau_s;
@@ -38,6 +40,8 @@ struct Kf2 {
     double acc_omega_sq = 0.0;
     long n_mag_fused = 0, n_mag_rejected = 0, n_mag_gated = 0, n_air_fused = 0, n_air_rejected = 0,
          n_ref_fused = 0, n_ref_rejected = 0, n_resets = 0;
+    bool has_S = false;  // consider_sens: None (zero) or S = d(error)/d(consider parameters)
+    S9 S{};
 };
 
 // Kf2Diag.reason, as a code (what the synthetic AHRS reads of it)
@@ -128,6 +132,7 @@ inline void kf2_propagate(Kf2& s, const Kf2Params& p) {
     }
     symmetrise<KN>(P);
     s.P = P;
+    if (s.has_S) s.S = mm<KN, KN, NC>(Phi, s.S);  // S <- Phi S
     s.cov_time_s = s.time_s;
     s.acc_angle_rad = {0.0, 0.0, 0.0};
     s.has_acc_angle = true;
@@ -159,6 +164,9 @@ inline void kf2_unseen(Kf2& s, double unseen_s, const Kf2Params& p) {
         for (int j = 0; j < 3; ++j) P[i * KN + j] += G[i * 3 + j] + (i == j ? vg : 0.0);
     symmetrise<KN>(P);
     s.P = P;
+    if (s.has_S)
+        for (int i = 0; i < KN; ++i)
+            for (int j = 0; j < NC; ++j) s.S[i * NC + j] = a[i] * s.S[i * NC + j];
 }
 
 // One IMU sample (body rate, rad/s): the attitude every sample, P every cov_period_s.
@@ -205,7 +213,7 @@ inline Kf2Diag kf2_predict(Kf2& s, const V3& gyro_body, double time_s, const Kf2
 // Gated update + closed-loop feedback (ahrs_kf2._update; filterpy's update with x = 0).
 template <int M>
 inline Kf2Diag kf2_update(Kf2& s, const std::array<double, M>& z, const Mat<M, KN>& H, const Mat<M, M>& R,
-                          double n_gate, const Kf2Params& p) {
+                          double n_gate, const Kf2Params& p, const Mat<M, NC>* D = nullptr) {
     kf2_propagate(s, p);
     const Mat<KN, M> Ht = tr<M, KN>(H);
     Mat<M, M> S = mm<M, KN, M>(mm<M, KN, KN>(H, s.P), Ht);
@@ -224,6 +232,15 @@ inline Kf2Diag kf2_update(Kf2& s, const std::array<double, M>& z, const Mat<M, K
     P9 I_KH = mm<KN, M, KN>(K, H);
     const P9 I = eye<KN>();
     for (int i = 0; i < KN * KN; ++i) I_KH[i] = I[i] - I_KH[i];
+    if (s.has_S || D) {  // the consider sensitivity: S <- (I - K H) S - K D
+        S9 Sn = s.has_S ? mm<KN, KN, NC>(I_KH, s.S) : S9{};
+        if (D) {
+            const S9 KD = mm<KN, M, NC>(K, *D);
+            for (int i = 0; i < KN * NC; ++i) Sn[i] = Sn[i] - KD[i];
+        }
+        s.S = Sn;
+        s.has_S = true;
+    }
     P9 P = mm<KN, KN, KN>(mm<KN, KN, KN>(I_KH, s.P), tr<KN, KN>(I_KH));
     const P9 KRK = mm<KN, M, KN>(mm<KN, M, M>(K, R), tr<KN, M>(K));
     for (int i = 0; i < KN * KN; ++i) P[i] = P[i] + KRK[i];
@@ -252,6 +269,16 @@ inline bool kf2_mag_gated(Kf2& s, const V3& m_n, const Kf2Params& p, Kf2Diag& d)
     return false;
 }
 
+// the soft iron's columns of KF1's D(B) (mag_error_kf.error_jacobian[:, 3:12]) at the body field b
+inline Mat<3, 9> kf2_soft_iron_jacobian(const V3& b) {
+    Mat<3, 9> D{};
+    D[0 * 9 + 0] = b[0]; D[1 * 9 + 1] = b[1]; D[2 * 9 + 2] = b[2];
+    D[0 * 9 + 3] = b[1]; D[0 * 9 + 4] = b[2];
+    D[1 * 9 + 5] = b[0]; D[1 * 9 + 6] = b[2];
+    D[2 * 9 + 7] = b[0]; D[2 * 9 + 8] = b[1];
+    return D;
+}
+
 inline void kf2_count_mag(Kf2& s, const Kf2Diag& d) {
     if (d.fused) s.n_mag_fused += 1;
     else { s.n_mag_rejected += 1; s.n_mag_gated += 1; }
@@ -276,7 +303,15 @@ inline Kf2Diag kf2_update_mag(Kf2& s, const V3& m, const V3& Bn, const Kf2Params
     }
     const double r = std::pow(p.mag_sigma, 2);
     const M3 R{r * 1.0, 0, 0, 0, r * 1.0, 0, 0, 0, r * 1.0};
-    d = kf2_update<3>(s, z, H, R, p.mag_gate_sigma, p);
+    // D_c: the soft iron at b0 and the declination turning the model field about down
+    Mat<3, NC> D{};
+    const Mat<3, 9> Ds = kf2_soft_iron_jacobian(b0);
+    const V3 dB = mv<3, 3>(tr<3, 3>(C), V3{-(Bn[1] / norm), Bn[0] / norm, 0.0});
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 9; ++j) D[i * NC + j] = Ds[i * 9 + j];
+        D[i * NC + 9] = dB[i];
+    }
+    d = kf2_update<3>(s, z, H, R, p.mag_gate_sigma, p, &D);
     kf2_count_mag(s, d);
     return d;
 }
@@ -304,7 +339,12 @@ inline Kf2Diag kf2_update_mag_heading(Kf2& s, const V3& m, const V3& Bn, const K
         H[6 + j] = -(x * C[3 + j] - y * C[j]) / r2;
     }
     const Mat<1, 1> R{std::pow(p.mag_sigma / bh, 2)};
-    d = kf2_update<1>(s, z, H, R, p.mag_gate_sigma, p);
+    // D = dz/dm D(b0) for the soft iron (dz/dm: H's dbeta columns), -1 for the declination
+    const Mat<3, 9> Ds = kf2_soft_iron_jacobian(mv<3, 3>(tr<3, 3>(C), V3{Bn[0] / norm, Bn[1] / norm, Bn[2] / norm}));
+    Mat<1, NC> D{};
+    for (int j = 0; j < 9; ++j) D[j] = (H[6] * Ds[j] + H[7] * Ds[9 + j]) + H[8] * Ds[18 + j];
+    D[9] = -1.0;
+    d = kf2_update<1>(s, z, H, R, p.mag_gate_sigma, p, &D);
     kf2_count_mag(s, d);
     return d;
 }
@@ -360,6 +400,8 @@ inline Kf2Diag kf2_update_reference(Kf2& s, const V3& e_ref, double time_ref_s, 
         set_block3(P, 0, 0, gamma_cov_from_euler_sigmas(q_ref, sigma_tilt, sh));
         s.q_nav_from_body = quat_unit(q_ref);
         s.P = P;
+        if (s.has_S && use_yaw)  // the attitude is the reference's now
+            for (int i = 0; i < 3 * NC; ++i) s.S[i] = 0.0;
         s.n_resets += 1;
         return {true, Kf2Code::reset_to_reference};
     }

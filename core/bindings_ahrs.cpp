@@ -74,11 +74,15 @@ AhrsParams params_from(const py::object& p) {
     c.init_without_reference_s = f(p, "init_without_reference_s");
     c.init_sigma_tilt_rad = f(p, "init_sigma_tilt_rad");
     c.init_sigma_heading_rad = f(p, "init_sigma_heading_rad");
+    c.field_model_sigma_rad = f(p, "field_model_sigma_rad");
+    c.consider_mag_errors = p.attr("consider_mag_errors").cast<bool>();
     const py::object a = p.attr("air");
     c.air = {f(a, "alt_rate_tau_s"), a.attr("use_measured_temperature").cast<bool>(), f(a, "min_airspeed_m_s"),
              f(a, "blocked_change_pa"), f(a, "blocked_time_s"), f(a, "noise_tau_s"), f(a, "max_noise_std_m_s"),
              f(a, "max_dt_s")};
     const py::object k1 = p.attr("kf1");
+    c.kf1_sigma_scale_init = f(k1, "sigma_scale_init");
+    c.kf1_sigma_cross_init = f(k1, "sigma_cross_init");
     c.kf1 = {f(k1, "sigma_rw_per_sqrt_s"), f(k1, "sigma_meas"), f(k1, "chi2_gate"), f(k1, "max_rate_rad_s"),
              f(k1, "min_update_interval_s")};
     const py::object k = p.attr("kf2");
@@ -114,6 +118,13 @@ py::dict kf2_dict(const Kf2& k) {
     d["n_mag_fused"] = k.n_mag_fused; d["n_mag_rejected"] = k.n_mag_rejected; d["n_mag_gated"] = k.n_mag_gated;
     d["n_air_fused"] = k.n_air_fused; d["n_air_rejected"] = k.n_air_rejected; d["n_ref_fused"] = k.n_ref_fused;
     d["n_ref_rejected"] = k.n_ref_rejected; d["n_resets"] = k.n_resets;
+    if (k.has_S) {
+        py::array_t<double> a({static_cast<py::ssize_t>(KN), static_cast<py::ssize_t>(NC)});
+        for (int i = 0; i < KN * NC; ++i) a.mutable_data()[i] = k.S[i];
+        d["consider_sens"] = a;
+    } else {
+        d["consider_sens"] = py::none();
+    }
     return d;
 }
 
@@ -134,6 +145,8 @@ Kf2 kf2_from(const py::dict& d) {
     k.n_mag_gated = d["n_mag_gated"].cast<long>(); k.n_air_fused = d["n_air_fused"].cast<long>();
     k.n_air_rejected = d["n_air_rejected"].cast<long>(); k.n_ref_fused = d["n_ref_fused"].cast<long>();
     k.n_ref_rejected = d["n_ref_rejected"].cast<long>(); k.n_resets = d["n_resets"].cast<long>();
+    k.has_S = d.contains("consider_sens") && !py::object(d["consider_sens"]).is_none();
+    if (k.has_S) k.S = arr<KN * NC>(d["consider_sens"]);
     return k;
 }
 

@@ -26,6 +26,9 @@ struct AhrsParams {
     double air_roll_limit_rad, air_pitch_limit_rad, air_rate_limit_rad_s, air_sigma_roll_rad, air_sigma_pitch_rad,
         air_sigma_alt_rate_m_s, alpha_tau_s, rate_lp_tau_s, bias_revert_age_s, bias_snapshot_period_s,
         init_without_reference_s, init_sigma_tilt_rad, init_sigma_heading_rad;
+    double field_model_sigma_rad;
+    bool consider_mag_errors;
+    double kf1_sigma_scale_init, kf1_sigma_cross_init;  // KF1's prior (P_c when no estimate is applied)
     AirParams air;
     Kf1Params kf1;
     Kf2Params kf2;
@@ -154,6 +157,8 @@ inline void ahrs_reacquire_heading(Ahrs& s, const V3& mag_body, double t, const 
     k.q_nav_from_body = fresh.q_nav_from_body;
     k.P = P;
     k.n_resets += 1;
+    if (k.has_S)  // the attitude anew (its heading sigma covers it)
+        for (int i = 0; i < 3 * NC; ++i) k.S[i] = 0.0;
     s.reacquire_heading = false;
     s.ref_heading_sens = 0.0;
     s.last_mag_update_s = t;
@@ -415,8 +420,33 @@ inline AhrsOut ahrs_output(const Ahrs& s, const AhrsParams& p) {
     V3 e;
     M3 cov;
     kf2_euler_and_cov(s.kf2, e, cov);
-    // the filter's heading variance plus the FC yaw error it inherited
-    const double var_h = cov[8] + std::pow(s.ref_heading_sens * p.fc_sigma_yaw_rad, 2);
+    // the filter's heading variance plus the FC yaw error it inherited and the magnetometer's
+    // consider parameters' share [T S_gamma P_c S_gamma^T T^T]_33 (synthetic_ahrs module docstring)
+    double var_h = cov[8] + std::pow(s.ref_heading_sens * p.fc_sigma_yaw_rad, 2);
+    if (p.consider_mag_errors && s.kf2.has_S) {
+        const M3 T = euler_rate_matrix(e[0], e[1]);
+        std::array<double, NC> h{};  // row 3 of T S_gamma
+        for (int j = 0; j < NC; ++j)
+            h[j] = (T[6] * s.kf2.S[0 * NC + j] + T[7] * s.kf2.S[1 * NC + j]) + T[8] * s.kf2.S[2 * NC + j];
+        Mat<NC, NC> Pc{};
+        if (kf1_applied_usable(s)) {
+            for (int i = 0; i < 9; ++i)
+                for (int j = 0; j < 9; ++j) Pc[i * NC + j] = s.kf1_applied->P[(3 + i) * K1 + 3 + j];
+        } else {
+            for (int i = 0; i < 9; ++i) {
+                const double sg = i < 3 ? p.kf1_sigma_scale_init : p.kf1_sigma_cross_init;
+                Pc[i * NC + i] = sg * sg;
+            }
+        }
+        Pc[NC * NC - 1] = std::pow(p.field_model_sigma_rad, 2);
+        double v = 0.0;
+        for (int i = 0; i < NC; ++i) {
+            double r = 0.0;
+            for (int j = 0; j < NC; ++j) r += Pc[i * NC + j] * h[j];
+            v += h[i] * r;
+        }
+        var_h += v;
+    }
     return {true, e[0], e[1], e[2], std::sqrt(cov[0]), std::sqrt(cov[4]), std::sqrt(var_h)};
 }
 

@@ -38,6 +38,29 @@ default here is 3 because the seed's gate rejects 5-30 % of good data). After ev
 estimated errors are fed back (closed loop, seed "wire 17/18"): q <- q * q(gamma),
 b_hat <- b_hat + db_g, beta_hat <- beta_hat + dbeta, x <- 0.
 
+Consider parameters (Schmidt; not estimated, their effect tracked). The magnetometer's errors that
+KF2 does not model, c = [s (3), k (6), dD] (NC = 10): the scale factors and cross-couplings KF1's
+model carries (after KF1's correction, their residual; normalised) and the declination error of the
+model field (rad, the true horizontal field turned east of the model's). The measured field then is
+m_n = C^T B_n / |B| + beta + D_c c + e with, at the predicted body field b0 = C_hat^T B_n / |B|,
+
+    D_c = [ D(b0)[:, 3:12] | C_hat^T (d x B_n) / |B| ],   d = [0, 0, 1] (down): d x B_n = [-B_E, B_N, 0]
+
+(D(B) = d(dB)/dx of KF1, mag_error_kf.error_jacobian; a declination dD turns B_n about down by dD).
+KF2 takes z = H x + e, so its error e = x_true - x_hat has a part linear in c, e = e_f + S c, with
+the sensitivity S = de/dc (9 x NC, ``consider_sens``; 0 at the start and wherever the attitude is
+taken anew). With KF2's own gain K (unchanged: the estimates are those of the filter without it):
+
+    propagation:          S <- Phi S
+    update (z = Hx + D c): S <- (I - K H) S - K D     (D = D_c for the magnetometer, 0 otherwise)
+    an unseen interval:   the Markov rows decay as their states (S_b <- a S_b)
+
+so the error covariance is P + S P_c S^T (c independent of the noises; P_c the caller's, e.g. KF1's
+covariance). A magnetometer that learnt the gyro bias with a wrong heading leaves it in S's bias
+rows, and while the magnetometer is not fused (disturbed, rejected) gamma_dot = -db_g turns it into a
+heading sensitivity growing with the time coasted. The magnetometer-heading update has D =
+dz/dm D(b0)[:, 3:12] for the soft iron (dz/dm: its H's dbeta columns) and -1 for dD.
+
 The Kalman mechanics are estimators/kalman.py's predict and Joseph-form update (the same
 arithmetic as filterpy's KalmanFilter, without importing it), on the state's (x, P) at every call,
 so the step functions are pure.
@@ -50,6 +73,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from estimators.kalman import kf_predict, kf_update
+from estimators.mag_error_kf import error_jacobian
 from estimators.records import fast_replace
 
 from estimators.euler_kinematics import body_rate_matrix, euler_rate_matrix
@@ -57,6 +81,8 @@ from estimators.rotations import (dcm_from_quat, euler_from_dcm, quat_from_euler
                                   quat_mul, skew, wrap_pi)
 
 N = 9
+NC = 10
+"""Consider parameters: s_x s_y s_z k_xy k_xz k_yx k_yz k_zx k_zy (mag_error_kf's order), dD."""
 G_M_S2 = 9.80665
 
 
@@ -144,6 +170,8 @@ class Kf2State:
     n_ref_fused: int = 0
     n_ref_rejected: int = 0
     n_resets: int = 0
+    consider_sens: np.ndarray | None = None
+    """S = d(error state)/d(consider parameters), 9 x NC (module docstring); None: zero."""
 
 
 @dataclass(frozen=True)
@@ -207,8 +235,10 @@ def _propagate_cov(state: Kf2State, params: Kf2Params) -> Kf2State:
     q_b = 2.0 * params.gyro_bias_sigma_rad_s ** 2 / params.gyro_bias_tau_s * dt
     q_m = 2.0 * params.mag_bias_sigma ** 2 / params.mag_bias_tau_s * dt
     _, P = kf_predict(np.zeros(N), state.P, Phi, np.diag([q_g] * 3 + [q_b] * 3 + [q_m] * 3))
+    S = state.consider_sens
     return _upd(state, P=0.5 * (P + P.T), cov_time_s=state.time_s,
-                   acc_angle_rad=np.zeros(3), acc_omega_sq=0.0)
+                   acc_angle_rad=np.zeros(3), acc_omega_sq=0.0,
+                   consider_sens=None if S is None else Phi @ S)     # S <- Phi S
 
 
 def kf2_propagate(state: Kf2State, params: Kf2Params = Kf2Params()) -> Kf2State:
@@ -246,7 +276,8 @@ def kf2_unseen(state: Kf2State, unseen_s: float, params: Kf2Params = Kf2Params()
     P[6:9, 6:9] += np.eye(3) * (1.0 - a[6] ** 2) * params.mag_bias_sigma ** 2
     P[0:3, 0:3] += (_gamma_cov_from_euler_sigmas(state.q_nav_from_body, s_t, s_h)
                     + np.eye(3) * (params.gyro_bias_sigma_rad_s * unseen_s) ** 2)
-    return _upd(state, P=0.5 * (P + P.T))
+    S = state.consider_sens
+    return _upd(state, P=0.5 * (P + P.T), consider_sens=None if S is None else a[:, None] * S)
 
 
 def kf2_predict(state: Kf2State, gyro_body_rad_s: np.ndarray, time_s: float,
@@ -280,19 +311,28 @@ def kf2_predict(state: Kf2State, gyro_body_rad_s: np.ndarray, time_s: float,
 
 
 def _update(state: Kf2State, z: np.ndarray, H: np.ndarray, R: np.ndarray, n_gate: float,
-            params: Kf2Params) -> tuple[Kf2State, Kf2Diag]:
-    """Gated update + closed-loop feedback. Returns the state unchanged (P propagated) when gated."""
+            params: Kf2Params, D: np.ndarray | None = None) -> tuple[Kf2State, Kf2Diag]:
+    """Gated update + closed-loop feedback. Returns the state unchanged (P propagated) when gated.
+    ``D``: dz/dc of the consider parameters (m x NC; None: z does not depend on them)."""
     state = _propagate_cov(state, params)
     S = H @ state.P @ H.T + R
     s_diag = np.diag(S).copy()
     ratio = float(np.max(np.abs(z) / (n_gate * np.sqrt(s_diag))))
     if ratio > 1.0:
         return state, Kf2Diag(False, "gate", z.copy(), s_diag, ratio)
+    S_c = state.consider_sens
+    if S_c is not None or D is not None:
+        # the same gain kf_update forms (same operations): S <- (I - K H) S - K D
+        PHT = state.P @ H.T
+        K = PHT @ np.linalg.inv(H @ PHT + R)
+        S_c = (np.eye(N) - K @ H) @ (np.zeros((N, NC)) if S_c is None else S_c)
+        if D is not None:
+            S_c = S_c - K @ D
     dx, P = kf_update(np.zeros(N), state.P, z, H, R)   # error state: x- = 0
     q = quat_mul(state.q_nav_from_body, quat_from_rotvec(dx[0:3]))   # C <- C (I + [gamma x])
     q = q / math.sqrt(float(q @ q))
     new = _upd(state, q_nav_from_body=q, gyro_bias_rad_s=state.gyro_bias_rad_s + dx[3:6],
-                  mag_bias=state.mag_bias + dx[6:9], P=0.5 * (P + P.T))
+                  mag_bias=state.mag_bias + dx[6:9], P=0.5 * (P + P.T), consider_sens=S_c)
     return new, Kf2Diag(True, "", z.copy(), s_diag, ratio)
 
 
@@ -307,6 +347,25 @@ def _mag_inputs(mag_body_gauss, field_nav_gauss):
     if not norm > 0.0:
         raise ValueError("field_nav_gauss must be non-zero")
     return m, Bn, norm
+
+
+def mag_consider_jacobian(C_nav_from_body: np.ndarray, b0: np.ndarray, field_nav_unit: np.ndarray) -> np.ndarray:
+    """D_c = dm_n/dc (3 x NC, module docstring): the soft iron at the predicted body field b0
+    (normalised), and a declination error turning the model field about down."""
+    D = np.zeros((3, NC))
+    D[:, 0:9] = error_jacobian(b0)[:, 3:12]
+    D[:, 9] = C_nav_from_body.T @ np.array([-field_nav_unit[1], field_nav_unit[0], 0.0])
+    return D
+
+
+def kf2_consider_euler_cov(state: Kf2State, P_c: np.ndarray) -> np.ndarray:
+    """The consider parameters' share of the (roll, pitch, heading) covariance, T S_gamma P_c
+    S_gamma^T T^T (rad^2, 3 x 3); zeros while S is."""
+    if state.consider_sens is None:
+        return np.zeros((3, 3))
+    e = euler_from_dcm(dcm_from_quat(state.q_nav_from_body))
+    A = euler_rate_matrix(e[0], e[1]) @ state.consider_sens[0:3, :]
+    return A @ P_c @ A.T
 
 
 def _mag_gates(state: Kf2State, m_n: np.ndarray, params: Kf2Params) -> tuple[Kf2State, Kf2Diag] | None:
@@ -336,7 +395,8 @@ def kf2_update_mag(state: Kf2State, mag_body_gauss: np.ndarray, field_nav_gauss:
     H = np.zeros((3, N))
     H[:, 0:3] = skew(b0)
     H[:, 6:9] = np.eye(3)
-    new, diag = _update(state, z, H, params.mag_sigma ** 2 * np.eye(3), params.mag_gate_sigma, params)
+    new, diag = _update(state, z, H, params.mag_sigma ** 2 * np.eye(3), params.mag_gate_sigma, params,
+                        mag_consider_jacobian(C, b0, Bn / norm))
     if diag.fused:
         return _upd(new, n_mag_fused=new.n_mag_fused + 1), diag
     return _upd(new, n_mag_rejected=new.n_mag_rejected + 1, n_mag_gated=new.n_mag_gated + 1), diag
@@ -374,7 +434,10 @@ def kf2_update_mag_heading(state: Kf2State, mag_body_gauss: np.ndarray, field_na
     H[0, 0:3] = euler_rate_matrix(roll, pitch)[2, :]
     H[0, 6:9] = -(x * C[1, :] - y * C[0, :]) / r2
     R = np.array([[(params.mag_sigma / bh) ** 2]])
-    new, diag = _update(state, z, H, R, params.mag_gate_sigma, params)
+    D = np.zeros((1, NC))
+    D[:, 0:9] = H[:, 6:9] @ error_jacobian(C.T @ (Bn / norm))[:, 3:12]    # dz/dm D(b0)
+    D[0, 9] = -1.0
+    new, diag = _update(state, z, H, R, params.mag_gate_sigma, params, D)
     if diag.fused:
         return replace(new, n_mag_fused=new.n_mag_fused + 1), diag
     return replace(new, n_mag_rejected=new.n_mag_rejected + 1, n_mag_gated=new.n_mag_gated + 1), diag
@@ -431,8 +494,12 @@ def kf2_update_reference(state: Kf2State, euler_ref_rad: np.ndarray, time_ref_s:
         P[:, 0:3] = 0.0
         P[0:3, 0:3] = _gamma_cov_from_euler_sigmas(
             q_ref, sigma_tilt_rad, sigma_yaw_rad if use_yaw else math.sqrt(kf2_heading_var(state)))
+        S = state.consider_sens
+        if S is not None and use_yaw:
+            S = S.copy()
+            S[0:3, :] = 0.0                                  # the attitude is the reference's now
         return (_upd(state, q_nav_from_body=q_ref / math.sqrt(float(q_ref @ q_ref)), P=P,
-                        n_resets=state.n_resets + 1), Kf2Diag(True, "reset to reference", z))
+                        n_resets=state.n_resets + 1, consider_sens=S), Kf2Diag(True, "reset to reference", z))
     H = np.zeros((3, N))
     H[:, 0:3] = euler_rate_matrix(roll, pitch)
     R = np.diag([sigma_tilt_rad ** 2, sigma_tilt_rad ** 2, sigma_yaw_rad ** 2])

@@ -49,6 +49,24 @@ than the simulator's 1 deg FC, so the NEES of the FC-aligned heading is ~0.5 the
 taken as constant (no decay with its correlation time): conservative. After the FC is no longer
 trusted a only shrinks as the magnetometer corrects the heading.
 
+Heading sigma from the magnetometer's own persistent errors. KF2 fuses the magnetometer as if its
+errors were white noise about the model field plus a body-fixed bias (its beta states); they are not:
+the scale factors and cross-couplings that KF1's correction leaves (its covariance: the applied
+estimate's, or KF1's prior when none is applied) and the model field's declination error stay for
+the whole flight, and turn with the attitude. Without the FC's yaw nothing shows them, and they
+were measured at 4.5-8 sigma of KF2's heading sigma (ArduPlane SITL's 'ours' flight; the simulator's
+inclined rail with the FC's yaw excluded: 16 sigma, 5.1 deg RMS at a 1.1 deg median sigma). They are
+consider parameters c of KF2 (ahrs_kf2 module docstring: S = de/dc follows every propagation and
+update with KF2's own gain, so its estimates are unchanged), with covariance
+
+    P_c = blockdiag(P_kf1[3:12, 3:12], sigma_D^2)     (sigma_D = ``field_model_sigma_rad``)
+
+and the published heading variance is v + a^2 sigma_eps^2 + [T S_gamma P_c S_gamma^T T^T]_33 (the FC's
+yaw error, above, and c are independent). Where the FC's yaw is fused its updates shrink S as they
+shrink a magnetometer error in the heading ((I - K H) S); while the magnetometer is not fused, S's
+gyro-bias rows (a bias learnt from a wrong magnetometer heading) make the heading's share grow with
+the time coasted. ``consider_mag_errors`` False leaves the sigma without this share.
+
 Reference health: reference_health (signalled status + agreement of the FC attitude with our
 gyro-only attitude, which is integrated here with the current bias estimate and never reset).
 
@@ -67,9 +85,9 @@ from estimators.records import fast_replace
 
 from estimators.ahrs_b1 import (B1Params, B1State, b1_air_step, b1_heading_step, b1_imu_step,
                                 b1_init, b1_output, b1_reference_step)
-from estimators.ahrs_kf2 import (Kf2Params, Kf2State, kf2_euler_and_cov, kf2_heading_var, kf2_init,
-                                 kf2_predict, kf2_propagate, kf2_unseen, kf2_update_air, kf2_update_mag,
-                                 kf2_update_mag_heading, kf2_update_reference)
+from estimators.ahrs_kf2 import (NC, Kf2Params, Kf2State, kf2_consider_euler_cov, kf2_euler_and_cov,
+                                 kf2_heading_var, kf2_init, kf2_predict, kf2_propagate, kf2_unseen,
+                                 kf2_update_air, kf2_update_mag, kf2_update_mag_heading, kf2_update_reference)
 from estimators.air_data import AirData, AirDataParams, AirDataState, air_data_step
 from estimators.euler_kinematics import euler_rates
 from estimators.geomag import earth_field_ned_gauss
@@ -151,6 +169,11 @@ class SyntheticAhrsParams:
     fc_sigma_tilt_rad: float = math.radians(0.5)
     """1-sigma of the trusted FC roll/pitch as a KF2 measurement."""
     fc_sigma_yaw_rad: float = math.radians(1.5)
+    field_model_sigma_rad: float = 0.0
+    """1-sigma of the model field's declination at the site (rad; e.g. the WMM's uncertainty,
+    estimators.geomag ``declination_sigma_rad``): a consider parameter of the heading (module docstring)."""
+    consider_mag_errors: bool = True
+    """The heading sigma carries the magnetometer's unmodelled errors (module docstring)."""
     use_fc_yaw: bool = True
     """False: the FC's yaw is used nowhere (e.g. it is our own heading fed back): the reference
     update fuses the FC's roll/pitch only, KF1 (which needs the FC's full attitude) does not learn,
@@ -209,7 +232,7 @@ class SyntheticAhrsParams:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
-        for name in ("ref_update_interval_s", "mag_update_interval_s", "air_update_interval_s"):
+        for name in ("ref_update_interval_s", "mag_update_interval_s", "air_update_interval_s", "field_model_sigma_rad"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0.0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
@@ -306,6 +329,17 @@ def synthetic_ahrs_init(params: SyntheticAhrsParams, kf1_learn: Kf1State | None 
 
 
 # --- helpers --------------------------------------------------------------------------------
+
+def _consider_cov(state: SyntheticAhrsState, params: SyntheticAhrsParams) -> np.ndarray:
+    """P_c (NC x NC): the soft-iron block of the applied KF1 estimate's covariance (KF1's prior when
+    none is applied), and the declination's variance (module docstring)."""
+    k1 = state.kf1_applied
+    P1 = k1.P if k1 is not None and k1.field_norm_gauss is not None else kf1_init(params.kf1).P
+    P_c = np.zeros((NC, NC))
+    P_c[0:9, 0:9] = P1[3:12, 3:12]
+    P_c[9, 9] = params.field_model_sigma_rad ** 2
+    return P_c
+
 
 def _C_bs(params: SyntheticAhrsParams) -> np.ndarray:
     return np.array(params.C_body_from_sensor)
@@ -556,7 +590,12 @@ def _reacquire_heading(state: SyntheticAhrsState, mag_body_gauss: np.ndarray, t:
     P[0:3, :] = 0.0
     P[:, 0:3] = 0.0
     P[0:3, 0:3] = fresh.P[0:3, 0:3]
-    return _upd(state, kf2=_upd(kf2, q_nav_from_body=fresh.q_nav_from_body, P=P, n_resets=kf2.n_resets + 1),
+    S = kf2.consider_sens
+    if S is not None:
+        S = S.copy()
+        S[0:3, :] = 0.0                 # the attitude anew (its 30-deg heading sigma covers it)
+    return _upd(state, kf2=_upd(kf2, q_nav_from_body=fresh.q_nav_from_body, P=P, n_resets=kf2.n_resets + 1,
+                                consider_sens=S),
                 reacquire_heading=False, ref_heading_sens=0.0, last_mag_update_s=t)
 
 
@@ -591,7 +630,12 @@ def synthetic_ahrs_forget_fc_yaw(state: SyntheticAhrsState, params: SyntheticAhr
         P[:, k] = 0.0
     P[0:3, 0:3] = fresh.P[0:3, 0:3]
     P[6:9, 6:9] = fresh.P[6:9, 6:9]
-    kf2 = _upd(kf2, mag_bias=np.zeros(3), P=P, n_resets=kf2.n_resets + 1)
+    S = kf2.consider_sens
+    if S is not None:
+        S = S.copy()
+        S[0:3, :] = 0.0
+        S[6:9, :] = 0.0
+    kf2 = _upd(kf2, mag_bias=np.zeros(3), P=P, n_resets=kf2.n_resets + 1, consider_sens=S)
     return _upd(state, kf2=kf2, ref_heading_sens=0.0, reacquire_heading=True, bias_snapshots=())
 
 
@@ -721,8 +765,11 @@ def synthetic_ahrs_output(state: SyntheticAhrsState, params: SyntheticAhrsParams
                                    roll_sigma_rad=nan, pitch_sigma_rad=nan, heading_sigma_rad=nan, **common)
     e, cov = kf2_euler_and_cov(state.kf2)
     k = state.kf2
-    # the filter's heading variance plus the FC yaw error it inherited (module docstring)
+    # the filter's heading variance plus the FC yaw error it inherited and the magnetometer's
+    # consider parameters' share (module docstring)
     var_h = cov[2, 2] + (state.ref_heading_sens * params.fc_sigma_yaw_rad) ** 2
+    if params.consider_mag_errors:
+        var_h += kf2_consider_euler_cov(k, _consider_cov(state, params))[2, 2]
     return SyntheticAhrsOutput(valid=True, roll_rad=float(e[0]), pitch_rad=float(e[1]), heading_rad=float(e[2]),
                                roll_sigma_rad=math.sqrt(cov[0, 0]), pitch_sigma_rad=math.sqrt(cov[1, 1]),
                                heading_sigma_rad=math.sqrt(var_h), mag_fused=k.n_mag_fused,

@@ -213,6 +213,7 @@ class Pipeline:
                                                C_body_from_sensor=self.C_body_from_sensor,
                                                field_nav_gauss=self.field.e_ned_gauss,
                                                fc_sigma_yaw_rad=math.radians(heading["fc_yaw_sigma_deg"]),
+                                               field_model_sigma_rad=self.declination_sigma_rad,
                                                use_fc_yaw=heading.get("use_fc_yaw", True))
         self.ahrs = synthetic_ahrs_init(self.ahrs_params, kf1_learn=kf1_learn, kf1_applied=kf1_applied)
         self._kf1_learn_start = kf1_learn

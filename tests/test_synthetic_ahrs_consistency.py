@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from estimators.ahrs_kf2 import Kf2Params, kf2_euler_and_cov, kf2_init, kf2_predict, kf2_unseen
+from estimators.ahrs_kf2 import Kf2Params, kf2_consider_euler_cov, kf2_euler_and_cov, kf2_init, kf2_predict, kf2_unseen
 from estimators.rotations import dcm_from_euler, quat_from_euler
-from estimators.synthetic_ahrs import (FcAttitudeEvent, FcStatusEvent, ImuEvent, SyntheticAhrsParams,
+from estimators.synthetic_ahrs import (FcAttitudeEvent, FcStatusEvent, ImuEvent, SyntheticAhrsParams, _consider_cov,
                                        synthetic_ahrs_init, synthetic_ahrs_step, synthetic_ahrs_unseen)
 
 FIELD = np.array([0.23, 0.046, 0.394])
@@ -76,8 +76,13 @@ def test_b2_aligned_to_the_fc_inherits_its_yaw_error_in_the_sigma():
     assert math.degrees(math.sqrt(cov[2, 2])) < 0.4                   # the filter's own part
     assert 0.5 < st.ref_heading_sens <= 1.0
     assert abs(err) < 2.0 * sig                                         # the old sigma: 5 sigma
-    assert sig == pytest.approx(math.hypot(math.degrees(math.sqrt(cov[2, 2])),
-                                           st.ref_heading_sens * math.degrees(params.fc_sigma_yaw_rad)), rel=1e-9)
+    # the magnetometer's consider share (its soft iron, the declination): next to nothing while the
+    # FC's yaw is fused (its updates shrink the magnetometer's sensitivity as they shrink its error)
+    consider = math.degrees(math.sqrt(kf2_consider_euler_cov(st.kf2, _consider_cov(st, params))[2, 2]))
+    assert consider < 0.05
+    assert sig == pytest.approx(math.sqrt(math.degrees(math.sqrt(cov[2, 2])) ** 2 + consider ** 2
+                                          + (st.ref_heading_sens * math.degrees(params.fc_sigma_yaw_rad)) ** 2),
+                                rel=1e-9)
 
 
 def test_b2_after_a_gap_with_the_fc_trusted_is_realigned_to_it():
