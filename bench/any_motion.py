@@ -1,6 +1,6 @@
 """Attitude and heading through any motion: azimuthd beside VQF and x-io Fusion on the same IMU.
 
-    python bench/any_motion.py [--quick] [--json PATH] [--seeds N] [--seed0 S]
+    python bench/any_motion.py [--quick] [--json PATH] [--seeds N] [--seed0 S] [--scenarios a,b]
 
 Scenarios (sim/scenarios/any_motion_*.toml, launcher type ``rig``: the attitude follows scripted
 segments, the position stays put; consumer IMU at 100 Hz with the simulator's own Earth field,
@@ -278,7 +278,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--seed0", type=int, default=0, help="first seed (e.g. 100: seeds no default was chosen on)")
     ap.add_argument("--json", type=pathlib.Path, help="write the figures here")
+    ap.add_argument("--scenarios", default=None,
+                    help="comma-separated subset, short names (e.g. magnet_nearby,hover_spin; default: all five)")
     args = ap.parse_args(argv)
+    scenarios = SCENARIOS
+    if args.scenarios:
+        want = ["any_motion_" + x.strip().removeprefix("any_motion_") for x in args.scenarios.split(",") if x.strip()]
+        unknown = [w for w in want if w not in SCENARIOS]
+        if unknown or not want:
+            ap.error(f"--scenarios: unknown {[u.removeprefix('any_motion_') for u in unknown] or args.scenarios!r}; known: "
+                     + ", ".join(n.removeprefix("any_motion_") for n in SCENARIOS))
+        scenarios = {n: SCENARIOS[n] for n in want}
     from sim.offline import simulate
     seeds = [args.seed0] if args.quick else list(range(args.seed0, args.seed0 + max(1, args.seeds)))
     missing = {e: peer_missing(e) for e in ESTIMATORS if peer_missing(e)}
@@ -286,7 +296,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"skipped {msg}")
     per: dict = {}
     t0 = time.monotonic()
-    for name, disturbed in SCENARIOS.items():
+    for name, disturbed in scenarios.items():
         rows = {e: [] for e in ESTIMATORS if e not in missing}
         for seed in seeds:
             run = simulate(name, seed=seed, imu_grade="consumer", imu_rate_hz=IMU_HZ)

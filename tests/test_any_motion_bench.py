@@ -138,3 +138,11 @@ def test_rig_segments_and_magnet_disturbances_in_the_simulator():
     # and a bad entry is refused with a named error
     with pytest.raises(ValueError, match=r"mag.disturbances\[0\]"):
         simulate({**sc, "mag": {"disturbances": [{"start_s": 1.0}]}}, seed=0)
+
+
+def test_scenarios_option_rejects_an_unknown_name_and_lists_the_known(capsys):
+    with pytest.raises(SystemExit) as e:
+        am.main(["--scenarios", "magnet_nearby,nope"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "unknown ['nope']" in err and "magnet_nearby" in err and "hover_spin" in err
