@@ -276,14 +276,18 @@ SLOT_EPSILON = 1e-6
 belongs to that slot."""
 
 CATCH_UP_MAX_LAG_S = ODOMETRY_MAX_LAG_S
-"""Oldest solution sent, by its IMU sample against the FC's clock (s), for every message: older slots are
-counted in ``slots_late`` and never sent. The FC's EKFs take a delayed measurement by its time stamp only
-within their fusion horizon: ArduPilot's EKF3 (NavEKF3_core::writeExtNavData) moves a sample older than its
-delayed IMU time up to that time (fused misdated), and its observation buffer recalls only samples less
-than 100 ms before it; PX4's EKF2 (EstimatorInterface::setExtVisionData, RingBuffer::pop_first_older_than)
-fuses a sample only within 100 ms before its delayed horizon and drops older ones. The horizon is the
-EKF's largest sensor delay, about 0.2 s (output_gate.ODOMETRY_MAX_LAG_S, measured against ArduPlane). A
-catch-up burst of older attitudes is of no use to any consumer and would crowd a telemetry link."""
+"""Catch-up cap (s): a slot whose solution lags the FC's clock by more than this (its IMU sample against
+the FC's clock, output_gate.FcLagMeter) is *late*. The FC's EKFs take a delayed measurement by its time
+stamp only within their fusion horizon: ArduPilot's EKF3 (NavEKF3_core::writeExtNavData) moves a sample
+older than its delayed IMU time up to that time (fused misdated), and its observation buffer recalls only
+samples less than 100 ms before it; PX4's EKF2 (EstimatorInterface::setExtVisionData,
+RingBuffer::pop_first_older_than) fuses a sample only within 100 ms before its delayed horizon and drops
+older ones. The horizon is the EKF's largest sensor delay, about 0.2 s (output_gate.ODOMETRY_MAX_LAG_S,
+measured against ArduPlane). So a late ODOMETRY is never sent (``odometry_late``). The other messages
+(ATTITUDE, ATTITUDE_QUATERNION, NAMED_VALUE_FLOAT) are fused by no EKF: late, they are sent at most at
+their rate of the local clock, each slot still with its own solution (``slots_behind``), and the rest
+of a catch-up burst is skipped (``slots_late``), so a daemon that works off a stall does not flood a
+telemetry link, and one that stays behind (a slow computer) still shows its attitude, stamped."""
 
 
 class OutputScheduler:
@@ -295,8 +299,9 @@ class OutputScheduler:
     solution (its IMU sample's FC time) is offered in sample order (``messages``); the first solution in
     a slot fills it, with its own values and time stamp. So a burst of input worked off at once (the
     loop behind after a stall) sends one message per slot, each the solution of that slot's sample, the
-    same set a replay of the same input sends; only slots older than CATCH_UP_MAX_LAG_S (``late``) are
-    skipped, counted in ``slots_late``. Slots no solution fell in (the FC's samples stopped, or came
+    same set a replay of the same input sends. Slots older than CATCH_UP_MAX_LAG_S (``late``) are not
+    sent if ODOMETRY, and paced on the local clock otherwise (see there): counted in ``slots_late``
+    when skipped. Slots no solution fell in (the FC's samples stopped, or came
     sparser than the slots) are counted in ``slots_gap`` when the next solution comes.
 
     When the FC's samples are sparser than half a slot (e.g. ArduPlane's stock 25 Hz RAW_IMU against
@@ -336,7 +341,12 @@ class OutputScheduler:
         """FC time of the earliest next slot of an enabled message (-inf before the first solution)."""
         self.slots_late: dict[str, int] = {name: 0 for name in rates}
         """Slots whose message was not sent: its solution lagged the FC's clock by more than
-        CATCH_UP_MAX_LAG_S (``messages(..., late=True)``)."""
+        CATCH_UP_MAX_LAG_S (``messages(..., late=True)``): every late ODOMETRY, and the other messages
+        beyond their rate on the local clock."""
+        self.slots_behind: dict[str, int] = {name: 0 for name in rates}
+        """Slots sent although late (not ODOMETRY; at most at the message's rate of the local clock)."""
+        self._late_next_s: dict[str, float | None] = {name: None for name in rates}
+        """Per message: local time from which a late message may go again (its rate on the local clock)."""
         self.slots_gap: dict[str, int] = {name: 0 for name in rates}
         """Slots that passed with no solution in them (no IMU sample processed in that FC time)."""
         self.slots_filled: dict[str, int] = {name: 0 for name in rates}
@@ -365,6 +375,7 @@ class OutputScheduler:
         self._offered = None
         self.sample_interval_s = None
         self._last_heading = None
+        self._late_next_s = {name: None for name in self.rates_hz}
 
     def slot_index(self, name: str, time_fc_s: float) -> int:
         """The slot of ``name`` that FC time ``time_fc_s`` (s) falls in (its rate must be > 0)."""
@@ -435,7 +446,7 @@ class OutputScheduler:
                 self._take(n, self.slot_index(n, t_fc_now))
                 self.slots_filled[n] += 1
                 take[n] = True
-        return self._build(sol, take, late)
+        return self._build(sol, take, late, now_s)
 
     def _heading_jumped(self, sol: NavSolution) -> bool:
         if self._last_heading is None:
@@ -463,24 +474,39 @@ class OutputScheduler:
     def messages(self, sol: NavSolution, now_s: float, late: bool = False) -> list:
         """The messages whose FC-time slot this solution is the first to reach (``sol`` gated, offered in
         sample order; ``now_s``: local monotonic time it was produced, s). ``late``: the solution lags the
-        FC's clock beyond CATCH_UP_MAX_LAG_S: its slots are taken but nothing is sent (``slots_late``;
-        ODOMETRY also in ``odometry_late``)."""
+        FC's clock beyond CATCH_UP_MAX_LAG_S: its slots are taken, its ODOMETRY is not sent
+        (``odometry_late``), the others only within their rate on the local clock (CATCH_UP_MAX_LAG_S);
+        what is not sent is counted in ``slots_late``."""
         self.note(sol.time_fc_s, now_s)
         take = {n: True for n in self._enabled if self.due(n, sol.time_fc_s)}
         if not take:
             return []
         self._track_resets(sol)
-        return self._build(sol, take, late)
+        return self._build(sol, take, late, now_s)
 
-    def _build(self, sol: NavSolution, take: Mapping[str, bool], late: bool) -> list:
-        """The messages of the slots in ``take`` that ``sol`` has; with ``late`` none, counted instead."""
+    def _late_paced(self, name: str, now_s: float) -> bool:
+        """A late message may go at local time ``now_s``: at most its rate on the local clock (the slots
+        advance by one period, so the mean rate holds under jitter; re-synchronised after a pause)."""
+        period = 1.0 / self.rates_hz[name]
+        nxt = self._late_next_s[name]
+        if nxt is not None and now_s < nxt:
+            return False
+        self._late_next_s[name] = (now_s if nxt is None or now_s - nxt > period else nxt) + period
+        return True
+
+    def _build(self, sol: NavSolution, take: Mapping[str, bool], late: bool, now_s: float) -> list:
+        """The messages of the slots in ``take`` that ``sol`` has; with ``late``, ODOMETRY none and the
+        others paced on the local clock (``_late_paced``); what is not sent is counted."""
         out: list = []
 
         def emit(name: str, msg) -> None:
-            if late:
-                self.slots_late[name] += 1
-            else:
+            if not late:
                 out.append(msg)
+            elif name != "ODOMETRY" and self._late_paced(name, now_s):
+                self.slots_behind[name] += 1
+                out.append(msg)
+            else:
+                self.slots_late[name] += 1
 
         if take.get("ATTITUDE"):
             msg = encode_attitude(sol)
@@ -495,8 +521,11 @@ class OutputScheduler:
                 self.odometry_late += 1
             emit("ODOMETRY", encode_odometry(sol, self.profile, self.reset_counter))
         if take.get("NAMED_VALUE_FLOAT"):
-            if late:
-                self.slots_late["NAMED_VALUE_FLOAT"] += 1
-            else:
+            if not late:
                 out.extend(encode_named_values(sol))
+            elif self._late_paced("NAMED_VALUE_FLOAT", now_s):
+                self.slots_behind["NAMED_VALUE_FLOAT"] += 1
+                out.extend(encode_named_values(sol))
+            else:
+                self.slots_late["NAMED_VALUE_FLOAT"] += 1
         return out

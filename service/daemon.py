@@ -789,7 +789,7 @@ class Daemon:
         solution takes the slots its sample is the first to reach, and is sent as it is, with its own FC
         stamp and values (what the Pipeline produced and Zenoh published), so a backlog worked off at once
         sends each slot its own solution; slots older than CATCH_UP_MAX_LAG_S against the FC's clock are
-        counted, never sent. When the FC's samples are sparser than the slots, the slots between two
+        counted (ODOMETRY never sent; the others at most at their rate of the local clock). When the FC's samples are sparser than the slots, the slots between two
         samples are filled on the local clock with the newest solution while it is fresher than
         max_extrapolation_s (a slow IMU's outputs repeat it; nothing once it is older)."""
         sol = self.last_solution
@@ -827,7 +827,7 @@ class Daemon:
         if late and sum(sched.slots_late.values()) > held:
             self.rl.log(logging.WARNING, "outputs_late", f"outputs held back: our solution lags the FC's clock by "
                         f"{lag_s:.2f} s (> {CATCH_UP_MAX_LAG_S:g} s: the daemon is behind its input; the FC would "
-                        "fuse a yaw misdated); their slots are counted (slots_late)",
+                        "fuse a yaw misdated): no ODOMETRY, the rest at most at its rate; counted (slots_late)",
                         event="odometry_late" if sched.odometry_late > odometry_held else "outputs_late")
         if msgs:
             self._last_sent_fc_s, self._last_sent_sol = sol.time_fc_s, sol
@@ -868,11 +868,14 @@ class Daemon:
         return {f"link_{k}": int(getattr(ls, k) or 0) for k in self._LINK_COUNTERS if hasattr(ls, k)}
 
     def _slot_counters(self) -> dict[str, int]:
-        """The output slots not sent (``late``: the solution lagged the FC's clock over CATCH_UP_MAX_LAG_S;
-        ``gap``: no IMU sample in them) and those filled on the local clock, per enabled message."""
+        """Per enabled message, the output slots not sent (``late``: the solution lagged the FC's clock over
+        CATCH_UP_MAX_LAG_S, every ODOMETRY and the others beyond their rate on the local clock; ``gap``: no
+        IMU sample in them), those sent although late (``behind``) and those filled on the local clock
+        between sparse samples (``filled``)."""
         sc = self.scheduler
         return {f"slots_{kind}_{name}": counts[name]
-                for kind, counts in (("late", sc.slots_late), ("gap", sc.slots_gap), ("filled", sc.slots_filled))
+                for kind, counts in (("late", sc.slots_late), ("behind", sc.slots_behind), ("gap", sc.slots_gap),
+                                     ("filled", sc.slots_filled))
                 for name in sc.rates_hz if sc.rates_hz[name] > 0}
 
     def _publish_air_data(self, now: float) -> None:
