@@ -333,7 +333,13 @@ inline void ahrs_on_fc_attitude(Ahrs& s, const V3& e, double t, const AhrsParams
         s.health.fc_time_s = t;
         clear_anchors(s.health);
     } else if (s.has_q_free) {
-        health_on_attitude(s.health, dcm_from_euler(e[0], e[1], e[2]), dcm_from_quat(s.q_gyro_free), t, p.health,
+        Q4 q_g = s.q_gyro_free;
+        if (s.has_gyro_prev && s.has_time && t != s.time_s) {  // our gyro-only attitude at the FC's time
+            const double lead = t - s.time_s;
+            q_g = quat_mul(q_g, quat_from_rotvec(V3{s.gyro_prev_rad_s[0] * lead, s.gyro_prev_rad_s[1] * lead,
+                                                    s.gyro_prev_rad_s[2] * lead}));
+        }
+        health_on_attitude(s.health, dcm_from_euler(e[0], e[1], e[2]), dcm_from_quat(q_g), t, p.health,
                            s.gyro_free_var_rad2);
     }
     s.has_fc_last = true;

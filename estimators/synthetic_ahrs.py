@@ -709,7 +709,13 @@ def _on_fc_attitude(state: SyntheticAhrsState, ev: FcAttitudeEvent, params: Synt
         state = _upd(state, health=_upd(state.health, fc_time_s=t, anchors=()))
     elif state.q_gyro_free is not None:
         C_fc = dcm_from_euler(*e)
-        h = health_on_attitude(state.health, C_fc, dcm_from_quat(state.q_gyro_free), t, params.health,
+        q_g = state.q_gyro_free
+        if state.gyro_prev_rad_s is not None and state.time_s is not None and t != state.time_s:
+            # our gyro-only attitude at the FC's time, not at our last sample's: carried by the last
+            # rate over the difference (ArduPlane SITL: ATTITUDE up to 29.6 ms after the last RAW_IMU,
+            # 2.3 deg at its 79 deg/s take-off rotation: read as "disagrees with gyros")
+            q_g = quat_mul(q_g, quat_from_rotvec(state.gyro_prev_rad_s * (t - state.time_s)))
+        h = health_on_attitude(state.health, C_fc, dcm_from_quat(q_g), t, params.health,
                                state.gyro_free_var_rad2)
         state = _upd(state, health=h)
     state = _upd(state, fc_last=(t, e.copy()))
