@@ -112,6 +112,7 @@ void bind_synthetic_ahrs(py::module_& m);  // core/bindings_ahrs.cpp: method B
 void bind_checks(py::module_& m);          // core/bindings_checks.cpp: the per-sample checks
 void bind_azimuth(py::module_& m);         // core/bindings_azimuth.cpp: method A's propagation
 void bind_polar(py::module_& m);           // core/bindings_polar.cpp: method C's attitude filter
+void bind_polar_heading(py::module_& m);   // core/bindings_polar_heading.cpp: method C's heading filter
 
 PYBIND11_MODULE(_core, m) {
     m.doc() = "azimuthd's compiled estimator core (estimators/core.py is its Python face)";
@@ -119,6 +120,7 @@ PYBIND11_MODULE(_core, m) {
     bind_checks(m);
     bind_azimuth(m);
     bind_polar(m);
+    bind_polar_heading(m);
 
     m.def("strapdown_step",
           [](const ArrayD& q, bool has_prev, double time_prev_s, const ArrayD& gyro_prev, const ArrayD& gyro,

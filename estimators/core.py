@@ -8,7 +8,8 @@ on the same recorded flights and require equality). Two call forms:
   ``synthetic_ahrs_step`` / ``_output`` / ``_unseen``, the magnetometer usability's
   ``mag_usability_step`` / ``_stale``, method A's ``azimuth_propagate``, method C's attitude filter
   ``polar_attitude_init`` / ``_init_at`` / ``_step`` / ``_estimate`` / ``_unseen`` and its zero-rate
-  update ``attitude_zero_rate_update``) for callers that still step one sample or event at a time
+  update ``attitude_zero_rate_update``, method C's heading filter ``polar_heading_init`` / ``_step`` /
+  ``_unseen`` / ``_estimate`` / ``_attitude`` and ``heading_zero_rate_update``) for callers that still step one sample or event at a time
   (the held forms keep the state in the core between calls); the
   IMU input checks' decisions (``input_checks_core``, whose Python face is service/input_checks.py
   CoreImuInputChecks: a service module);
@@ -30,6 +31,7 @@ from estimators import levelling as _lev
 from estimators import mag_disturbance as _md
 from estimators import mag_usability as _mu
 from estimators import polar_attitude as _pa
+from estimators import polar_heading as _ph
 from estimators import strapdown as _sd
 from estimators import synthetic_ahrs as _sa
 from estimators import zero_rate as _zr
@@ -740,6 +742,178 @@ def attitude_zero_rate_update(state, rate: _zr.RestRate, params: _zr.ZeroRatePar
     if not isinstance(state, HeldPolarAttitude):
         return _zr.attitude_zero_rate_update(state, rate, params)
     st, diag = _zr.attitude_zero_rate_update(state.to_state(), rate, params)
+    if diag.fused:
+        state._c.set_state(_fields(st))
+    return state, diag
+
+
+# --- method C's heading filter (estimators/polar_heading.py) ---------------------------------------
+# Held in the core between filter steps (HeldPolarHeading) as C's attitude filter is. The core reads
+# the reference's HeadingInputs itself; an input it does not take as it stands (not a number, an
+# array of another shape, a zero quaternion) comes back untouched and the reference answers it on the
+# held state's record (whatever the reference does with it, the same). Diagnostics come back as
+# codes, worded here as the reference words them.
+
+POLAR_HEADING_AVAILABLE = AVAILABLE and hasattr(_core, "PolarHeading")
+
+# core/polar_heading.hpp Code and Why
+(_PH_PLAIN, _PH_NON_FINITE, _PH_TIME, _PH_NON_FINITE_MAG, _PH_PITCH, _PH_FIELD_WEAK, _PH_MEASURED,
+ _PH_BAD_DECLINATION, _PH_BAD_RESIDUAL) = range(9)
+_PH_FUSED, _PH_INITIALISED, _PH_RESET, _PH_GATED_OUT = range(4)
+_PH_SIMPLE = (_ph.HeadingDiag(source_available=False), _ph.HeadingDiag(source_available=True))
+_PH_REASON = {_PH_NON_FINITE: "non-finite input", _PH_NON_FINITE_MAG: "non-finite magnetometer",
+              _PH_PITCH: "pitch beyond max_abs_pitch_rad"}
+_PH_DIAG_FIELDS = tuple(f.name for f in dataclasses.fields(_ph.HeadingDiag))
+
+
+class HeldPolarHeading:
+    """A PolarHeadingState held in the core, stepped in place by ``polar_heading_step`` /
+    ``polar_heading_unseen``; it reads like the reference's state (every PolarHeadingState field, so
+    the reference's own functions read it too) and ``to_state()`` gives the reference's record. Not a
+    pure value: the owner replaces it, never shares it."""
+
+    __slots__ = ("_c", "_params", "_cp")
+
+    def __init__(self, state):
+        self._c = state if POLAR_HEADING_AVAILABLE and isinstance(state, _core.PolarHeading) else \
+            _core.PolarHeading(_fields(state))
+        self._params = self._cp = None
+
+    def _p(self, params: _ph.PolarHeadingParams):
+        """The converted params (converted again when the owner replaced them)."""
+        if params is not self._params:
+            self._params, self._cp = params, _core.PolarHeadingParams(params)
+        return self._cp
+
+    initialised = property(lambda self: self._c.initialised)
+    time_s = property(lambda self: self._c.time_s)
+    x = property(lambda self: self._c.x)
+    P = property(lambda self: self._c.P)
+    last_mag_time_s = property(lambda self: self._c.last_mag_time_s)
+    source_available = property(lambda self: self._c.source_available)
+    rejected_since_s = property(lambda self: self._c.rejected_since_s)
+    n_fused = property(lambda self: self._c.n_fused)
+    n_rejected = property(lambda self: self._c.n_rejected)
+    n_resets = property(lambda self: self._c.n_resets)
+    r_corr_avg_rad2 = property(lambda self: self._c.r_corr_avg_rad2)
+    r_uncal_rad2 = property(lambda self: self._c.r_uncal_rad2)
+    platform = property(lambda self: self._c.platform)
+    q_P_from_body = property(lambda self: self._c.q_P_from_body)
+    gyro_bias_prev_rad_s = property(lambda self: self._c.gyro_bias_prev_rad_s)
+
+    def to_state(self) -> _ph.PolarHeadingState:
+        return _ph.PolarHeadingState(**self._c.get_state())
+
+    def to_dict(self) -> dict:
+        return self.to_state().to_dict()
+
+    def __reduce__(self):  # copy.deepcopy / pickle: through the reference's record (exact)
+        return HeldPolarHeading, (self.to_state(),)
+
+
+def _held_ph(state) -> HeldPolarHeading:
+    return state if isinstance(state, HeldPolarHeading) else HeldPolarHeading(state)
+
+
+def polar_heading_init(heading_rad: float | None = None, sigma_rad: float | None = None,
+                       params: _ph.PolarHeadingParams = _ph.PolarHeadingParams(),
+                       gyro_bias_yz_rad_s=None) -> HeldPolarHeading:
+    """estimators.polar_heading.polar_heading_init, held in the core (same arguments and checks)."""
+    by = bz = 0.0
+    if gyro_bias_yz_rad_s is not None:
+        b = np.asarray(gyro_bias_yz_rad_s, float)
+        if b.shape != (2,) or not np.all(np.isfinite(b)):
+            raise ValueError(f"gyro_bias_yz_rad_s must be 2 finite numbers, got {gyro_bias_yz_rad_s!r}")
+        by, bz = b.tolist()
+    has_b = gyro_bias_yz_rad_s is not None
+    cp = _core.PolarHeadingParams(params)
+    if heading_rad is None:
+        return HeldPolarHeading(_core.PolarHeading.init(cp, False, 0.0, 0.0, has_b, by, bz))
+    if not (math.isfinite(heading_rad) and sigma_rad is not None and math.isfinite(sigma_rad)
+            and sigma_rad > 0.0):
+        raise ValueError(f"heading_rad and sigma_rad > 0 must be finite, got {heading_rad}, {sigma_rad}")
+    return HeldPolarHeading(_core.PolarHeading.init(cp, True, float(heading_rad), float(sigma_rad), has_b, by, bz))
+
+
+def polar_heading_unseen(state, unseen_s: float, params: _ph.PolarHeadingParams = _ph.PolarHeadingParams()
+                         ) -> HeldPolarHeading:
+    """estimators.polar_heading.polar_heading_unseen for either state (held in the core after it)."""
+    if not (math.isfinite(unseen_s) and unseen_s >= 0.0):
+        raise ValueError(f"unseen_s must be finite and >= 0, got {unseen_s!r}")
+    state = _held_ph(state)
+    state._c.unseen(state._p(params), float(unseen_s))
+    return state
+
+
+def _ph_diag(t: tuple, u: _ph.HeadingInputs, params: _ph.PolarHeadingParams) -> _ph.HeadingDiag:
+    code, sa, dt, H, z, nu, S, ratio, jump, why = t
+    if code == _PH_MEASURED:
+        if why == _PH_INITIALISED:
+            vals = (True, True, True, H, z, 0.0, S, 0.0, False, 0.0, "initialised from source")
+        elif why == _PH_RESET:
+            vals = (True, False, True, H, z, nu, S, ratio, True, jump,
+                    "re-initialised from the source after continuous rejection")
+        else:
+            vals = (True, why == _PH_FUSED, True, H, z, nu, S, ratio, False, 0.0,
+                    "innovation gated out" if why == _PH_GATED_OUT else "")
+        out = object.__new__(_ph.HeadingDiag)  # a frozen record without __post_init__
+        out.__dict__.update(zip(_PH_DIAG_FIELDS, vals))
+        return out
+    if code == _PH_TIME:
+        return _ph.HeadingDiag(reason=f"time not increasing (dt={dt:.6f} s)")
+    if code == _PH_FIELD_WEAK:
+        return _ph.HeadingDiag(measured=False, source_available=False, horizontal_field_gauss=H,
+                               reason=f"horizontal field {H:.4f} G < {params.min_horizontal_field_gauss} G")
+    if code == _PH_BAD_RESIDUAL:
+        raise ValueError(f"mag_residual_sigma_gauss must be finite and >= 0 or None, got "
+                         f"{u.mag_residual_sigma_gauss!r}")
+    return _ph.HeadingDiag(reason=_PH_REASON[code], source_available=sa)
+
+
+def polar_heading_step(state, u: _ph.HeadingInputs, params: _ph.PolarHeadingParams = _ph.PolarHeadingParams()
+                       ) -> tuple[HeldPolarHeading, _ph.HeadingDiag]:
+    """estimators.polar_heading.polar_heading_step with the state held in the core (a
+    PolarHeadingState is taken in on the first call); the same results."""
+    state = _held_ph(state)
+    d = state._c.step(state._p(params), u)
+    if d is None:  # an input the core does not take as it stands: the reference answers it
+        st, diag = _ph.polar_heading_step(state.to_state(), u, params)
+        state._c.set_state(_fields(st))
+        return state, diag
+    return state, (_PH_SIMPLE[d] if d.__class__ is int else _ph_diag(d, u, params))
+
+
+def polar_heading_estimate(state) -> _ph.HeadingEstimate:
+    """estimators.polar_heading.polar_heading_estimate for either state."""
+    if not isinstance(state, HeldPolarHeading):
+        return _ph.polar_heading_estimate(state)
+    t = state._c.estimate()
+    if t is None:
+        return _ph.HeadingEstimate(math.nan, math.inf, state._c.source_available, False)
+    return _ph.HeadingEstimate(t[0], t[1], t[2], True)
+
+
+def polar_heading_attitude(state, heading_rad: float | None = None) -> np.ndarray | None:
+    """estimators.polar_heading.polar_heading_attitude for either state (a heading that is not a
+    finite number: the reference on the held state's record, which answers it)."""
+    if not isinstance(state, HeldPolarHeading):
+        return _ph.polar_heading_attitude(state, heading_rad)
+    c = state._c
+    if not (c.platform and c.initialised and c.q_P_from_body is not None):
+        return None
+    if heading_rad is None:
+        heading_rad = polar_heading_estimate(state).heading_rad
+    if not (isinstance(heading_rad, (float, int)) and math.isfinite(heading_rad)):
+        return _ph.polar_heading_attitude(state.to_state(), heading_rad)
+    return c.attitude(float(heading_rad))
+
+
+def heading_zero_rate_update(state, rate: _zr.RestRate, params: _zr.ZeroRateParams = _zr.ZeroRateParams()):
+    """estimators.zero_rate.heading_zero_rate_update for either state: the reference's update on the
+    held state's record (once per rest chunk, not per sample), put back in the core when it fused."""
+    if not isinstance(state, HeldPolarHeading):
+        return _zr.heading_zero_rate_update(state, rate, params)
+    st, diag = _zr.heading_zero_rate_update(state.to_state(), rate, params)
     if diag.fused:
         state._c.set_state(_fields(st))
     return state, diag

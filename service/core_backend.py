@@ -18,6 +18,7 @@ from estimators import azimuth as _a_reference
 from estimators import mag_disturbance as _md_reference
 from estimators import mag_usability as _mu_reference
 from estimators import polar_attitude as _c_reference
+from estimators import polar_heading as _ch_reference
 from estimators import synthetic_ahrs as _b_reference
 from estimators import zero_rate as _zr_reference
 from estimators.strapdown import strapdown_step as _strapdown_step_reference
@@ -64,6 +65,19 @@ class Backend:
     """... after an interval not seen (polar_attitude_unseen's signature) ..."""
     attitude_zero_rate_update: Callable = _zr_reference.attitude_zero_rate_update
     """... and its zero-rate update at rest (estimators.zero_rate.attitude_zero_rate_update's signature).
+    The six take and give the same state: the reference's record, or the core's held one."""
+    polar_heading_init: Callable = _ch_reference.polar_heading_init
+    """Method C's heading filter, a new one (estimators.polar_heading.polar_heading_init's signature) ..."""
+    polar_heading_step: Callable = _ch_reference.polar_heading_step
+    """... one filter-rate step (polar_heading_step's signature) ..."""
+    polar_heading_estimate: Callable = _ch_reference.polar_heading_estimate
+    """... its heading and published variance (polar_heading_estimate's signature) ..."""
+    polar_heading_attitude: Callable = _ch_reference.polar_heading_attitude
+    """... the platform formulation's attitude (polar_heading_attitude's signature) ..."""
+    polar_heading_unseen: Callable = _ch_reference.polar_heading_unseen
+    """... after an interval not seen (polar_heading_unseen's signature) ..."""
+    heading_zero_rate_update: Callable = _zr_reference.heading_zero_rate_update
+    """... and its zero-rate update at rest (estimators.zero_rate.heading_zero_rate_update's signature).
     The six take and give the same state: the reference's record, or the core's held one."""
 
 
@@ -114,8 +128,18 @@ def select(environ=os.environ) -> Backend:
         _say(logging.WARNING, "compiled core without method C's attitude filter (an older build): it runs the "
                               "Python reference")
         return Backend("core", "compiled core (estimators._core), C's attitude filter in Python", *ported)
-    return Backend("core", "compiled core (estimators._core)", *ported,
-                   polar_attitude_init=core.polar_attitude_init, polar_attitude_init_at=core.polar_attitude_init_at,
-                   polar_attitude_step=core.polar_attitude_step, polar_attitude_estimate=core.polar_attitude_estimate,
-                   polar_attitude_unseen=core.polar_attitude_unseen,
-                   attitude_zero_rate_update=core.attitude_zero_rate_update)
+    c_attitude = dict(polar_attitude_init=core.polar_attitude_init, polar_attitude_init_at=core.polar_attitude_init_at,
+                      polar_attitude_step=core.polar_attitude_step, polar_attitude_estimate=core.polar_attitude_estimate,
+                      polar_attitude_unseen=core.polar_attitude_unseen,
+                      attitude_zero_rate_update=core.attitude_zero_rate_update)
+    if not core.POLAR_HEADING_AVAILABLE:  # built before method C's heading filter was ported
+        _say(logging.WARNING, "compiled core without method C's heading filter (an older build): it runs the "
+                              "Python reference")
+        return Backend("core", "compiled core (estimators._core), C's heading filter in Python", *ported,
+                       **c_attitude)
+    return Backend("core", "compiled core (estimators._core)", *ported, **c_attitude,
+                   polar_heading_init=core.polar_heading_init, polar_heading_step=core.polar_heading_step,
+                   polar_heading_estimate=core.polar_heading_estimate,
+                   polar_heading_attitude=core.polar_heading_attitude,
+                   polar_heading_unseen=core.polar_heading_unseen,
+                   heading_zero_rate_update=core.heading_zero_rate_update)

@@ -43,13 +43,11 @@ from estimators.mag_error_kf import Kf1State
 from estimators.mag_disturbance import MagDisturbanceState, mag_disturbance_params_for_field
 from estimators.mag_usability import MagUsabilityState, mag_usability_params_for_field
 from estimators.polar_attitude import PolarAttitudeParams
-from estimators.polar_heading import (HeadingInputs, PolarHeadingParams, polar_heading_attitude, polar_heading_estimate,
-                                      polar_heading_init, polar_heading_step, polar_heading_unseen,
-                                      vertical_rate_sigma_for_site)
+from estimators.polar_heading import HeadingInputs, PolarHeadingParams, vertical_rate_sigma_for_site
 from estimators.rotations import (dcm_from_quat, euler_from_quat, quat_conj, quat_from_euler,
                                   quat_mul, wrap_2pi, wrap_pi)
 from estimators.output_propagation import OutputState, output_reset, output_step
-from estimators.zero_rate import ZeroRateParams, ZeroRateState, heading_zero_rate_update, rest_step
+from estimators.zero_rate import ZeroRateParams, ZeroRateState, rest_step
 from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init
 from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent, HeadingEvent, ImuEvent,
                                        SyntheticAhrsOutput, SyntheticAhrsParams, synthetic_ahrs_forget_fc_yaw,
@@ -242,7 +240,7 @@ class Pipeline:
                                                    uncalibrated_hard_iron_gauss=heading["uncalibrated_hard_iron_gauss"],
                                                    uncalibrated_soft_iron=heading["uncalibrated_soft_iron"],
                                                    mag_heading_floor_rad=math.radians(heading["mag_heading_floor_deg"]))
-        self.polar_hdg = polar_heading_init(params=self.polar_hdg_params)
+        self.polar_hdg = self.core.polar_heading_init(params=self.polar_hdg_params)
         self._hdg_available: bool | None = None
         # at rest, the mean gyro rate measures C's gyro biases (estimators/zero_rate)
         self.zero_rate_params = ZeroRateParams()
@@ -418,7 +416,7 @@ class Pipeline:
         if mag_b is not None:
             mag_b = self._deviation_corrected(mag_b)
         if tilt is not None:
-            self.polar_hdg, hdiag = polar_heading_step(
+            self.polar_hdg, hdiag = self.core.polar_heading_step(
                 self.polar_hdg, HeadingInputs(t, gyro_b, tilt[0], tilt[1], tilt[2],
                                               mag_b, self.declination_rad, self.declination_sigma_rad,
                                               # D applied: its residual; else C's uncalibrated model
@@ -428,7 +426,8 @@ class Pipeline:
                                               *self._heading_platform(att, tilt)),
                 self.polar_hdg_params)
             if rest_rate is not None:
-                self.polar_hdg, _ = heading_zero_rate_update(self.polar_hdg, rest_rate, self.zero_rate_params)
+                self.polar_hdg, _ = self.core.heading_zero_rate_update(self.polar_hdg, rest_rate,
+                                                                       self.zero_rate_params)
             if hdiag.measured:
                 self._hdg_measurement = (t, hdiag)
             if hdiag.measured and hdiag.source_available != self._hdg_available:
@@ -670,7 +669,7 @@ class Pipeline:
                 roll, pitch = math.atan2(-f[1], -f[2]), math.atan2(f[0], math.hypot(f[1], f[2]))
         bias = old.gyro_bias_rad_s if old is not None else None
         self.polar_att = self.core.polar_attitude_init_at(t, roll, pitch, sigma, self.polar_att_params, bias)
-        self.polar_hdg = polar_heading_init(params=self.polar_hdg_params)
+        self.polar_hdg = self.core.polar_heading_init(params=self.polar_hdg_params)
         self._hdg_available = None
         self.zero_rate = ZeroRateState()
         self._event("attitude", f"started in flight: roll/pitch from {src} (roll {math.degrees(roll):.1f} deg, "
@@ -684,7 +683,7 @@ class Pipeline:
             return
         unseen = max(0.0, s.time_rx_s - self._last_rx_s)
         self.polar_att = self.core.polar_attitude_unseen(self.polar_att, unseen, self.polar_att_params)
-        self.polar_hdg = polar_heading_unseen(self.polar_hdg, unseen, self.polar_hdg_params)
+        self.polar_hdg = self.core.polar_heading_unseen(self.polar_hdg, unseen, self.polar_hdg_params)
         self.ahrs = self.core.synthetic_ahrs_unseen(self.ahrs, unseen, self.ahrs_params)
         self._disable_azimuth(f"FC clock restarted in flight ({unseen:.1f} s not seen)")
         # the filter slots restart here (the samples accumulated before belong to the old clock)
@@ -906,7 +905,7 @@ class Pipeline:
                         f", needed {self.deviation_min_coverage:.2f}")
         if not use:
             return mag_body_gauss
-        h = polar_heading_estimate(self.polar_hdg)
+        h = self.core.polar_heading_estimate(self.polar_hdg)
         if not (h.initialised and math.isfinite(h.heading_rad)):
             return mag_body_gauss
         att = self.core.polar_attitude_estimate(self.polar_att)
@@ -976,8 +975,8 @@ class Pipeline:
         superseded = az is not None and az.valid  # A's solution: B and C are not offered
         out = [azimuth_source(az, self.azimuth_status(), t),
                synthetic_ahrs_source(self.ahrs_out, self.b_health, t, superseded, self.use_fc_yaw),
-               heading_filter_source(polar_heading_estimate(self.polar_hdg), self.polar_hdg, self._hdg_measurement,
-                                     t, superseded, self.polar_hdg_params.mag_update_period_s),
+               heading_filter_source(self.core.polar_heading_estimate(self.polar_hdg), self.polar_hdg,
+                                     self._hdg_measurement, t, superseded, self.polar_hdg_params.mag_update_period_s),
                fc_source(self.fc_attitude, self.ahrs_out, t, self.use_fc_heading, self.use_fc_yaw,
                          self.ahrs_params.fc_sigma_yaw_rad, self.arb_params.max_age_s)]
         return [r for r in out if isinstance(r, SourceReading)], [r for r in out if not isinstance(r, SourceReading)]
@@ -1052,7 +1051,7 @@ class Pipeline:
         flags["magnetometer"] = self.mag_status
         valid = arb_out.valid and arb_out.heading_rad is not None
         heading = arb_out.heading_rad if valid else None
-        q_nb = polar_heading_attitude(self.polar_hdg, heading) if valid and att is not None else None
+        q_nb = self.core.polar_heading_attitude(self.polar_hdg, heading) if valid and att is not None else None
         if q_nb is None:   # (the platform attitude avoids the Euler split of roll and yaw at pitch +-90 deg)
             q_nb = quat_from_euler(roll, pitch, heading if valid else 0.0)
         return NavSolution(t, s.time_rx_s, self.phase.phase, q_nb, roll, pitch, rates_body,
