@@ -114,7 +114,11 @@ def instrument(pipeline, timers: Timers) -> None:
                        ("mag_disturbance_step", "mag_disturbance_step"),
                        ("polar_attitude_step", "C: polar_attitude_step"),
                        ("polar_attitude_estimate", "C: polar_attitude_estimate"),
-                       ("attitude_zero_rate_update", "C: attitude_zero_rate_update (at rest)")):
+                       ("attitude_zero_rate_update", "C: attitude_zero_rate_update (at rest)"),
+                       ("polar_heading_step", "C: polar_heading_step"),
+                       ("polar_heading_estimate", "C: polar_heading_estimate"),
+                       ("polar_heading_attitude", "C: polar_heading_attitude"),
+                       ("heading_zero_rate_update", "C: heading_zero_rate_update (at rest)")):
         if hasattr(c, attr):
             object.__setattr__(c, attr, timers.wrap(name, getattr(c, attr)))
     pipeline.solver.submit = timers.wrap("A: solve (H8's solver, inline)", pipeline.solver.submit)

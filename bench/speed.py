@@ -334,6 +334,52 @@ def case_polar_attitude_core(run, items):
     return one_pass
 
 
+def _heading_inputs(run) -> list:
+    """Method C's heading filter's inputs per IMU sample, as the Pipeline builds them (the platform
+    formulation: the attitude filter's roll/pitch, covariance and attitude; the magnetometer with the
+    site's declination, gated to mag_update_period_s by the filter): made once, not timed."""
+    from estimators import core
+    from estimators import polar_attitude as pa
+    from estimators.geomag import earth_field_ned_gauss
+    from estimators.polar_heading import HeadingInputs
+    s = run.site
+    e = earth_field_ned_gauss(s["lat_deg"], s["lon_deg"], s["alt_m"], s["decimal_year"])
+    decl = math.atan2(e[1], e[0])
+    m = core if core.POLAR_AVAILABLE else pa
+    st = m.polar_attitude_init()
+    out = []
+    for t, g, a, mg in zip(run.time_s.tolist(), run.gyro_rad_s, run.accel_m_s2, run.mag_gauss):
+        st, _ = m.polar_attitude_step(st, t, g, a)
+        att = m.polar_attitude_estimate(st)
+        if att is None:
+            continue
+        out.append(HeadingInputs(t, g, att.roll_rad, att.pitch_rad, att.cov_roll_pitch_rad2, mg, decl, 0.01, None,
+                                 att.q_P_from_body, st.P[0:3, 0:3], att.gyro_bias_rad_s, False))
+    return out
+
+
+def case_polar_heading(run, items):
+    from estimators.polar_heading import polar_heading_init, polar_heading_step
+    us = _heading_inputs(run)
+
+    def one_pass():
+        st = polar_heading_init()
+        for u in us:
+            st, _ = polar_heading_step(st, u)
+    return one_pass
+
+
+def case_polar_heading_core(run, items):
+    from estimators import core
+    us = _heading_inputs(run)
+
+    def one_pass():
+        st = core.polar_heading_init()
+        for u in us:
+            st, _ = core.polar_heading_step(st, u)
+    return one_pass
+
+
 def case_air_data(run, items):
     """Per pressure sample (50 Hz), reported per IMU sample of the same stream."""
     from estimators.air_data import air_data_init, air_data_step
@@ -422,6 +468,8 @@ CASES = [
     ("method B synthetic AHRS (estimators.synthetic_ahrs)", "ours", case_synthetic_ahrs),
     ("polar attitude (estimators.polar_attitude)", "ours", case_polar_attitude),
     ("polar attitude, core, per sample (held state)", "ours", case_polar_attitude_core),
+    ("polar heading (estimators.polar_heading)", "ours", case_polar_heading),
+    ("polar heading, core, per sample (held state)", "ours", case_polar_heading_core),
     ("air data, per IMU sample (estimators.air_data)", "ours", case_air_data),
     ("imufusion Ahrs (x-io Fusion, C)", "imufusion", case_imufusion),
     ("vqf VQF (C++)", "vqf", case_vqf),
@@ -622,9 +670,11 @@ def ported_figures(rows: list[dict]) -> dict:
         "levelling_core_batch_us_per_sample": "rest accumulator, core, batch (N x 3 arrays)",
         "polar_attitude_python_us_per_sample": "polar attitude (estimators.polar_attitude)",
         "polar_attitude_core_held_us_per_sample": "polar attitude, core, per sample (held state)",
+        "polar_heading_python_us_per_sample": "polar heading (estimators.polar_heading)",
+        "polar_heading_core_held_us_per_sample": "polar heading, core, per sample (held state)",
     }
     out = {k: us.get(v, math.nan) for k, v in pick.items()}
-    for part in ("strapdown", "levelling", "polar_attitude"):
+    for part in ("strapdown", "levelling", "polar_attitude", "polar_heading"):
         base = out[f"{part}_python_us_per_sample"]
         for form in ("core_held", "core_step", "core_batch"):
             k = f"{part}_{form}_us_per_sample"
