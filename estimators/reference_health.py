@@ -91,10 +91,12 @@ class ReferenceHealthParams:
 
     def __post_init__(self):
         for name in ("max_attitude_age_s", "anchor_period_s", "window_s", "sigma_fc_tilt_rad", "sigma_fc_yaw_rad", "check_period_s",
-                     "sigma_bias_rad_s", "n_sigma", "retrust_hold_s", "status_wait_s"):
+                     "sigma_bias_rad_s", "n_sigma", "retrust_hold_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+        if not (math.isfinite(self.status_wait_s) and self.status_wait_s >= 0.0):   # 0: known to send none
+            raise ValueError(f"status_wait_s must be finite and >= 0, got {self.status_wait_s!r}")
         if self.margin_rad < 0.0:
             raise ValueError(f"margin_rad must be >= 0, got {self.margin_rad!r}")
 

@@ -499,6 +499,16 @@ class Pipeline:
                                                 "its attitude is judged on freshness and agreement with our "
                                                 "gyros alone")
 
+    def fc_sends_no_status(self, why: str) -> None:
+        """The FC's estimator status is known to be absent for the whole input (a log that records none:
+        service/replay.py asks the reader): its attitude is judged without one from the first ATTITUDE,
+        not after ``status_wait_s`` of waiting (estimators/reference_health). Call before any input."""
+        self.ahrs_params = dc_replace(self.ahrs_params,
+                                      health=dc_replace(self.ahrs_params.health, status_wait_s=0.0))
+        self._fc_status_missing_said = True
+        self._event("reference_status", f"{why}: the FC's attitude is judged on freshness and agreement with "
+                                        "our gyros alone")
+
     def on_fc_heartbeat(self, hb: FcHeartbeat) -> None:
         self.fc_armed = bool(hb.armed)
         if self.vehicle.pending:

@@ -271,6 +271,8 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
     from service.pipeline import Pipeline
 
     pipe = Pipeline(cfg)
+    if hasattr(reader, "estimator_status") and reader.estimator_status is None:
+        pipe.fc_sends_no_status("the log records no FC estimator status")
     # what the daemon's dispatch hands the Pipeline (service/daemon.py Daemon.dispatch)
     handlers = {ImuSample: pipe.on_imu, PressureSample: pipe.on_pressure, FcAttitude: pipe.on_fc_attitude,
                 FcHeartbeat: pipe.on_fc_heartbeat, FcEkfStatus: pipe.on_fc_ekf_status,

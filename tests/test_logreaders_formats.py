@@ -68,7 +68,7 @@ class UlogWriter:
 # --- ArduPilot DataFlash -------------------------------------------------------------------------
 
 _DF_STRUCT = {"Q": "Q", "q": "q", "B": "B", "b": "b", "f": "f", "h": "h", "H": "H", "c": "h", "C": "H",
-              "I": "I", "i": "i", "L": "i", "e": "i", "E": "I", "M": "B"}
+              "I": "I", "i": "i", "L": "i", "e": "i", "E": "I", "M": "B", "N": "16s"}
 
 
 class DataflashWriter:
@@ -118,12 +118,12 @@ MAG_A_GA, MAG_B_GA = (0.21, -0.03, 0.42), (0.5, 0.5, 0.5)
 
 
 def px4_ulog(path, *, seconds=4.0, imu_hz=200.0, mag_hz=2.0, mag_ids=(1, 2), temp_field="ambient_temperature",
-             home=None, gyro_field="gyro_rad", with_sensor_combined=True, raw_hz=1.0) -> None:
+             home=None, gyro_field="gyro_rad", with_sensor_combined=True, raw_hz=1.0, status_flags=None) -> None:
     """A still, tilted vehicle: sensor_combined at imu_hz; vehicle_magnetometer at mag_hz as instances
     ``mag_ids`` (the first MAG_A_GA, the others MAG_B_GA); vehicle_air_data with its temperature in
     ``temp_field`` (None: no temperature); vehicle_attitude; home_position = (valid_hpos, valid_alt)
     or None; vehicle_status disarmed -> armed at T0+1 s; vehicle_land_detected landed -> in air at
-    T0+2.5 s (the FC's own take-off)."""
+    T0+2.5 s (the FC's own take-off); estimator_status at 5 Hz with ``status_flags`` (None: not logged)."""
     w = UlogWriter()
     if with_sensor_combined:
         w.topic("sensor_combined", [("uint64_t", "timestamp"), ("float[3]", gyro_field),
@@ -144,6 +144,9 @@ def px4_ulog(path, *, seconds=4.0, imu_hz=200.0, mag_hz=2.0, mag_ids=(1, 2), tem
                               ("bool", "valid_alt"), ("bool", "valid_hpos")])
     w.topic("vehicle_status", [("uint64_t", "timestamp"), ("uint8_t", "arming_state")])
     w.topic("vehicle_land_detected", [("uint64_t", "timestamp"), ("bool", "landed"), ("bool", "maybe_landed")])
+    if status_flags is not None:
+        w.topic("estimator_status", [("uint64_t", "timestamp"), ("uint16_t", "solution_status_flags"),
+                                     ("float", "mag_test_ratio")])
     f = specific_force(ROLL_DEG, PITCH_DEG)
     us = lambda t: int(round(t * 1e6))  # noqa: E731
     for k in range(int(seconds * imu_hz)):
@@ -172,6 +175,9 @@ def px4_ulog(path, *, seconds=4.0, imu_hz=200.0, mag_hz=2.0, mag_ids=(1, 2), tem
         w.add("vehicle_status", us(T0_S + ts + 0.002), state)
     for ts, landed in ((0.0, True), (2.5, False), (3.5, False)):
         w.add("vehicle_land_detected", us(T0_S + ts + 0.003), landed, landed)
+    if status_flags is not None:
+        for k in range(int(seconds * 5)):
+            w.add("estimator_status", us(T0_S + 0.2 * k + 0.004), status_flags, 0.25)
     path.write_bytes(w.bytes())
 
 

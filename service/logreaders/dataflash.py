@@ -25,7 +25,15 @@ ARM    ArmState (1 armed, 0 disarmed)                FcFlightState (armed)
 STAT   isFlying, Armed (ArduPlane)                   FcFlightState (landed = not isFlying, armed)
 GPS    Status >= 3 (3D fix): Lat, Lng deg, Alt m;    the site (first 3D fix) and the date
        GWk/GMS (old: Week/TimeMS) GPS week and ms
+XKF4   SS: the EKF's solution status (nav_filter_    FcEkfStatus (attitude_ok = SS bit 0, the
+(NKF4) status bits); SV, SP, SH, SM test ratios;     attitude bit; horiz_pos_ok = bit 4); what
+       C: the core (EKF3; EKF2's NKF4 is core 0)     EKF_STATUS_REPORT says on a live link
 ====== ============================================= =============================================
+
+The estimator status is the EKF that ArduPilot's AHRS used (``AHRS_EKF_TYPE`` 3: XKF4, 2: NKF4;
+unset: the one logged), its lowest core. A log without one (``estimator_status`` None, said in the
+summary) has its FC attitude judged without a status from the start (service/replay.py), as a live
+FC that never sends one is after estimators/reference_health's ``status_wait_s``.
 
 Records come in file order; ArduPilot writes them in time order per message type. An IMU sample
 whose time does not increase is passed on (the Pipeline rejects and counts it).
@@ -47,7 +55,7 @@ from typing import Iterator
 
 import numpy as np
 
-from mavlink_io.samples import FcAttitude, FcFlightState, ImuSample, PressureSample
+from mavlink_io.samples import FcAttitude, FcEkfStatus, FcFlightState, ImuSample, PressureSample
 from service.logreaders import (GPS_EPOCH_UNIX_S, GPS_LEAP_S, FcIdentity, FlightStateTrack, LogError, LogSite,
                                 LogSummary, decimal_year_from_unix, one_line)
 from service.logreaders.dataflash_format import WalkStats, walk
@@ -62,6 +70,10 @@ _KINDS = {"IMU": ("IMU", "IMU2", "IMU3"), "MAG": ("MAG", "MAG2", "MAG3"), "BARO"
 _NEEDS = {"IMU": ("GyrX", "GyrY", "GyrZ", "AccX", "AccY", "AccZ"), "MAG": ("MagX", "MagY", "MagZ"),
           "BARO": ("Press",), "ARSP": ("DiffPress",), "GPS": ("Status", "Lat", "Lng"), "ATT": ("Roll", "Pitch", "Yaw")}
 _STATE_MSGS = {"EV", "ARM", "STAT"}
+_EKF_MSGS = {3: "XKF4", 2: "NKF4"}
+"""AHRS_EKF_TYPE -> the EKF's status record (solution status SS and innovation test ratios)."""
+_SS_ATTITUDE, _SS_HORIZ_POS_ABS = 1 << 0, 1 << 4
+"""ArduPilot's nav_filter_status bits (the same places as MAVLink's EKF_STATUS_FLAGS)."""
 # ArduPilot's LogEvent ids (AP_Logger): what each says about the armed / landed state
 _EV_ARMED, _EV_DISARMED, _EV_LAND_COMPLETE, _EV_NOT_LANDED = 10, 11, 18, 28
 
@@ -117,6 +129,9 @@ class DataflashReader:
         self._site: LogSite | None = None
         self._gps_unix_s: float | None = None
         self._takeoffs: list[float] = []
+        self.estimator_status: str | None = None
+        """The record the FC's estimator status comes from ("XKF4", "NKF4"), None when the log has none."""
+        self._ekf: tuple[str, int | None] | None = None
         self._start_state: tuple[bool | None, bool | None] = (None, None)
         """(armed, landed) the FC had at the log's start, implied by its first EV/ARM changes."""
         self._offset = 0
@@ -126,7 +141,8 @@ class DataflashReader:
 
     def _scan(self) -> None:
         st = WalkStats()
-        wanted = {n for names in _KINDS.values() for n in names} | _STATE_MSGS | {"ATT", "MSG", "PARM"}  # ATT: times as items()
+        wanted = ({n for names in _KINDS.values() for n in names} | _STATE_MSGS | set(_EKF_MSGS.values())
+                  | {"ATT", "MSG", "PARM"})  # ATT: times as items()
         firmware: str | None = None
         params: dict[str, float] = {}
         instances: dict[str, set] = {}
@@ -139,6 +155,8 @@ class DataflashReader:
                 last_t = t if t is not None else last_t
                 if "I" in rec:
                     instances.setdefault(name, set()).add(rec["I"])
+                elif "C" in rec and name in _EKF_MSGS.values():
+                    instances.setdefault(name, set()).add(rec["C"])
                 if name in _STATE_MSGS:
                     before = (track.armed, track.landed)
                     self._state_update(track, name, rec, last_t)
@@ -193,6 +211,7 @@ class DataflashReader:
                 self.summary.notes.append(f"ATT records have no {', '.join(lacking)}: no reference attitude")
             else:
                 self._use["ATT"] = ("ATT", None)
+        self._choose_ekf(st, names, params, instances)
         imu_cols = next(f for f in st.formats.values() if f.name == self._use["IMU"][0]).columns
         if "TimeUS" not in imu_cols and "TimeMS" not in imu_cols:
             raise LogError(f"{self.path}: the IMU records carry no time (no TimeUS or TimeMS column)")
@@ -204,6 +223,24 @@ class DataflashReader:
             self.summary.notes.append(f"{st.skipped_bytes} damaged bytes skipped"
                                       + (f", {st.bad_formats} unusable FMT records" if st.bad_formats else "")
                                       + " (corrupt log): records there are lost")
+
+    def _choose_ekf(self, st: WalkStats, names, params: dict, instances: dict) -> None:
+        """The status record of the EKF the AHRS used (module docstring), or a note that there is none."""
+        logged = [m for m in _EKF_MSGS.values() if m in names and st.counts.get(m)]
+        want = _EKF_MSGS.get(int(params["AHRS_EKF_TYPE"])) if "AHRS_EKF_TYPE" in params else None
+        msg = want if want in logged else (logged[0] if logged and want is None else None)
+        if msg is not None:
+            fmt = next(f for f in st.formats.values() if f.name == msg)
+            if "SS" not in fmt.columns:
+                msg = None
+        if msg is None:
+            self.summary.notes.append("no EKF solution status in the log (XKF4/NKF4 SS)" + (
+                f" for AHRS_EKF_TYPE {int(params['AHRS_EKF_TYPE'])}" if want is not None else "")
+                + ": the FC's attitude is judged without one")
+            return
+        core = min(instances[msg]) if msg in instances else None
+        self._ekf = (msg, core)
+        self.estimator_status = msg
 
     def _infer_start_state(self, first_change: dict[str, tuple[bool, float]]) -> None:
         """The state before the log's first EV/ARM changes (module docstring): a first disarm means
@@ -280,7 +317,7 @@ class DataflashReader:
         s = self.summary
         use = self._use
         by_msg = {msg: (kind, inst) for kind, (msg, inst) in use.items() if kind != "GPS"}
-        wanted = set(by_msg) | _STATE_MSGS
+        wanted = set(by_msg) | _STATE_MSGS | ({self._ekf[0]} if self._ekf else set())
         mag = None
         mag_t = -math.inf
         dp = None
@@ -289,7 +326,7 @@ class DataflashReader:
         last_t = 0.0
         track = FlightStateTrack()
         counts = {"imu": 0, "imu_with_mag": 0, "pressure": 0, "pressure_with_diff": 0, "attitude": 0,
-                  "flight_state": 0}
+                  "flight_state": 0, "estimator_status": 0}
         start_state = self._start_state if self._start_state != (None, None) else None
         for name, rec, pos in walk(self._data, wanted):
             self._offset = pos
@@ -307,6 +344,15 @@ class DataflashReader:
                 if st is not None:
                     counts["flight_state"] += 1
                     yield FcFlightState(t, t, st[0], st[1], name)
+                continue
+            if self._ekf is not None and name == self._ekf[0]:
+                if self._ekf[1] is not None and rec.get("C") != self._ekf[1]:
+                    continue
+                ss = rec.get("SS")
+                if isinstance(ss, int):
+                    counts["estimator_status"] += 1
+                    yield FcEkfStatus(t, bool(ss & _SS_ATTITUDE), bool(ss & _SS_HORIZ_POS_ABS), ss, name, t,
+                                      _f(rec, "SV"), _f(rec, "SP"), _f(rec, "SH"), _f(rec, "SM"))
                 continue
             kind, inst = by_msg[name]
             if inst is not None and rec.get("I") != inst:

@@ -28,6 +28,11 @@ airspeed               indicated_airspeed_m_s: q = rho0/2 IAS |IAS|  when differ
 vehicle_attitude       q[4] Hamilton wxyz, q_nav_from_body (NED     FcAttitude (ZYX Euler; yaw
                        from FRD); rollspeed.. if logged             (-pi, pi]); rates: rollspeed..
                                                                     if logged, else the last gyro
+estimator_status       solution_status_flags (MAVLink ESTIMATOR_     FcEkfStatus (attitude_ok = bit
+                       STATUS flags); vel/pos/hgt/mag_test_ratio    0, horiz_pos_ok = bit 4); none
+                                                                    when the flags are 0 throughout
+                                                                    (PX4 versions that left them
+                                                                    unset: noted)
 vehicle_status         arming_state (2: armed, in every PX4)        FcFlightState (armed)
 vehicle_land_detected  landed                                       FcFlightState (landed)
 vehicle_gps_position / fix_type >= 3: lat, lon (1e-7 deg), alt      the site (first 3D fix)
@@ -36,6 +41,10 @@ sensor_gps             (mm) or latitude_deg, longitude_deg,
 home_position          lat, lon deg only when valid_hpos; alt when  the site (no GNSS fix logged)
                        valid_alt
 ====================== ============================================ ==============================
+
+A log without an estimator status (``estimator_status`` None, noted) has its FC attitude judged
+without one from the start (service/replay.py), as a live FC that sends none is after
+estimators/reference_health's ``status_wait_s``.
 
 Times are the FC's boot clock in microseconds (``timestamp_sample`` where the topic has it);
 ``time_rx_s`` = ``time_fc_s`` (there is no receive clock in a log). A ULog has no end marker: a
@@ -53,7 +62,7 @@ from typing import Iterator
 
 import numpy as np
 
-from mavlink_io.samples import FcAttitude, FcFlightState, ImuSample, PressureSample
+from mavlink_io.samples import FcAttitude, FcEkfStatus, FcFlightState, ImuSample, PressureSample
 from service.logreaders import (FcIdentity, FlightStateTrack, LogError, LogSite, LogSummary, decimal_year_from_unix,
                                 one_line)
 
@@ -75,10 +84,13 @@ _ULOG_HEADER_BYTES = 16
 
 _TOPICS = ["sensor_combined", "sensor_gyro", "sensor_accel", "vehicle_magnetometer", "sensor_mag",
            "vehicle_air_data", "sensor_baro", "differential_pressure", "airspeed", "vehicle_attitude",
-           "vehicle_gps_position", "sensor_gps", "home_position", "vehicle_status", "vehicle_land_detected"]
+           "vehicle_gps_position", "sensor_gps", "home_position", "vehicle_status", "vehicle_land_detected",
+           "estimator_status"]
 
 # event kinds, in the order that ties are resolved (state, reference, pressure at the IMU time first)
-_STATE, _ATT, _PRESS, _IMU = 0, 1, 2, 3
+_STATE, _STATUS, _ATT, _PRESS, _IMU = 0, 1, 2, 3, 4
+_EST_ATTITUDE, _EST_POS_HORIZ_ABS = 1 << 0, 1 << 4
+"""MAVLink ESTIMATOR_STATUS_FLAGS bits, which estimator_status.solution_status_flags uses."""
 
 
 def _isa_pressure_pa(alt_m: np.ndarray) -> np.ndarray:
@@ -156,6 +168,9 @@ class UlogReader:
             self.summary.notes.append("pyulog reports file corruption: data after the damage may be missing")
         self._imu_check()
         self.summary.fc_identity = self._identity()
+        self._status_said = False
+        self.estimator_status: str | None = "estimator_status" if self._status()[0] is not None else None
+        """Where the FC's estimator status comes from, None when the log has none (said in the notes)."""
 
     def _identity(self) -> FcIdentity | None:
         """PX4's MAV_TYPE (its parameter, else vehicle_status.system_type) and its launch detection."""
@@ -400,17 +415,36 @@ class UlogReader:
             rates = np.column_stack([va["rollspeed"], va["pitchspeed"], va["yawspeed"]]).astype(np.float64)
         return self._time_s(va), q, rates
 
+    def _status(self):
+        """estimator_status: times, solution status flags, test ratios (vel, pos, hgt, mag; NaN where not
+        logged); Nones when the log has no usable status."""
+        es = self._topic("estimator_status")
+        flags = None if es is None else es.get("solution_status_flags")
+        said, self._status_said = self._status_said, True
+        if flags is None or not len(flags) or not np.any(np.asarray(flags) != 0):
+            if not said:
+                self.summary.notes.append("no estimator status in the log (estimator_status.solution_status_flags "
+                                          + ("absent" if flags is None or not len(flags) else "0 throughout")
+                                          + "): the FC's attitude is judged without one")
+            return None, None, None
+        if not said:
+            self._instance_note("estimator_status")
+        n = len(flags)
+        ratios = np.column_stack([np.asarray(es[k], np.float64) if k in es else np.full(n, math.nan)
+                                  for k in ("vel_test_ratio", "pos_test_ratio", "hgt_test_ratio", "mag_test_ratio")])
+        return self._time_s(es), np.asarray(flags, np.int64), ratios
+
     def items(self) -> Iterator:
         try:
             streams = (*self._imu(), *self._mag(), *self._baro(), *self._diff_pressure(), *self._attitude(),
-                       *self._flight_states())
+                       *self._status(), *self._flight_states())
         except (KeyError, IndexError, ValueError, TypeError) as exc:
             raise LogError(f"{self.path}: a topic has an unexpected layout ({one_line(exc)})") from None
         self._takeoffs = streams[-1]
         yield from self._merge(*streams[:-1])
 
     def _merge(self, t_imu, gyro, accel, imu_src, t_mag, mag, t_baro, p_abs, temp_k, t_dp, dp, t_att, q, rates,
-               t_st, states) -> Iterator:
+               t_es, es_flags, es_ratios, t_st, states) -> Iterator:
         from estimators.rotations import euler_from_quat
         s = self.summary
         n_imu = len(t_imu)
@@ -427,7 +461,8 @@ class UlogReader:
             ok = (j >= 0) & (t_baro - t_dp[np.maximum(j, 0)] <= PRESS_DIFF_MAX_AGE_S)
             dp_idx = np.where(ok, j, -1)
         # one merged, stable time order of all events
-        parts = [(t_imu, _IMU)] + [(t, k) for t, k in ((t_baro, _PRESS), (t_att, _ATT), (t_st, _STATE))
+        parts = [(t_imu, _IMU)] + [(t, k) for t, k in ((t_baro, _PRESS), (t_att, _ATT), (t_es, _STATUS),
+                                                        (t_st, _STATE))
                                    if t is not None and len(t)]
         all_t = np.concatenate([p[0] for p in parts])
         all_k = np.concatenate([np.full(len(p[0]), p[1], np.int8) for p in parts])
@@ -439,7 +474,7 @@ class UlogReader:
         last_gyro = None
         bad = 0
         counts = {"imu": 0, "imu_with_mag": 0, "pressure": 0, "pressure_with_diff": 0, "attitude": 0,
-                  "flight_state": 0}
+                  "flight_state": 0, "estimator_status": 0}
         for n, e in enumerate(order.tolist()):
             self._done = n
             kind, i = all_k[e], int(all_i[e])
@@ -479,6 +514,12 @@ class UlogReader:
                 counts["attitude"] += 1
                 t = float(t_att[i])
                 yield FcAttitude(t, t, roll, pitch, yaw, w)
+            elif kind == _STATUS:
+                f = int(es_flags[i])
+                t = float(t_es[i])
+                counts["estimator_status"] += 1
+                yield FcEkfStatus(t, bool(f & _EST_ATTITUDE), bool(f & _EST_POS_HORIZ_ABS), f, "estimator_status", t,
+                                  *(float(r) for r in es_ratios[i]))
             else:
                 armed, landed = states[i]
                 counts["flight_state"] += 1
