@@ -35,8 +35,9 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT / "tests"))
+from pipeline_recording import fly, run_with_backend  # noqa: E402
 from parity_compare import differences  # noqa: E402
-from sitl import feed_pipeline, pipeline_inputs, scenario_site  # noqa: E402
+from sitl import pipeline_inputs, scenario_site  # noqa: E402
 
 from estimators import core  # noqa: E402
 from estimators import polar_attitude as ref  # noqa: E402
@@ -103,48 +104,13 @@ _INPUTS: dict = {}
 
 
 def _fly(name: str):
-    """Run the flight through ``service.pipeline.Pipeline`` as looked up now: a simulated flight fed as
-    the daemon feeds it (bench/sitl.feed_pipeline: the solutions and events), a real log replayed as
-    ``azimuthd replay`` runs it (service/replay.run_replay: its rows and events)."""
-    import service.pipeline as sp
-    if name in SIMS:
-        if name not in _INPUTS:
-            _INPUTS[name] = SIMS[name]()
-        cfg, items = _INPUTS[name]
-        events: list = []
-        sols = list(feed_pipeline(sp.Pipeline(cfg), items, events))
-        return {"solutions": sols, "events": events}
-    from types import SimpleNamespace
-
-    from service.logreaders import open_log
-    from service.replay import build_config, run_replay
-    path = DATA / name
-    if not path.is_file():
-        pytest.skip(f"{path} not present (the shared real logs)")
-    log = open_log(path)
-    cfg, _ = build_config(SimpleNamespace(config=None, site=None, exclude_fc_yaw=False), log)
-    res = run_replay(log, cfg, None)
-    return {k: getattr(res, k) for k in ("time_s", "phase", "cols", "heading_source", "roll_sigma_deg",
-                                         "pitch_sigma_deg", "events", "phases", "imu_samples")}
+    """The flight through the Pipeline (tests/pipeline_recording.fly)."""
+    return fly(name, SIMS, _INPUTS, DATA, ())
 
 
 def _run(name: str, backend):
     """(what ``_fly`` returns, the Pipeline it ran) with ``backend`` as the Pipeline's core backend."""
-    import service.pipeline as sp
-    made: list = []
-
-    class Kept(sp.Pipeline):
-        def __init__(self, *a, **k):
-            super().__init__(*a, **k)
-            made.append(self)
-    mp = pytest.MonkeyPatch()
-    try:
-        mp.setattr(sp, "select_core", lambda: backend)
-        mp.setattr(sp, "Pipeline", Kept)
-        out = _fly(name)
-    finally:
-        mp.undo()
-    return out, made[-1]
+    return run_with_backend(_fly, name, backend)
 
 
 _CACHE: dict = {}
