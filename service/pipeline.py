@@ -306,6 +306,8 @@ class Pipeline:
         """Why method A is off for the rest of the flight (an interval it did not integrate)."""
         self._fc_status_seen = False
         """An estimator status (FcEkfStatus) reached method B since the start / the FC's reboot."""
+        self._fc_status_pending: FcEkfStatus | None = None
+        """The last status that came before the first IMU sample (no FC time to date it): B gets it there."""
         self._fc_first_attitude_s: float | None = None
         self._fc_status_missing_said = False
 
@@ -336,6 +338,9 @@ class Pipeline:
         if self._unseen_pending:
             self._unseen_pending = False
             self._account_unseen(s)
+        if self._fc_status_pending is not None:   # a status that came before the first sample's FC time
+            st, self._fc_status_pending = self._fc_status_pending, None
+            self.on_fc_ekf_status(st)
         self._last_rx_s = s.time_rx_s
 
         prev_phase = self.phase.phase
@@ -555,10 +560,12 @@ class Pipeline:
     def on_fc_ekf_status(self, st: FcEkfStatus) -> None:
         """The FC's estimator status. Until the first one its ATTITUDE is no reference (method B's
         reference health: an FC publishes a fallback attitude before its EKF runs)."""
-        if self.last_time_fc_s is not None:
-            self._fc_status_seen = True
-            self._step_ahrs(FcStatusEvent(self.last_time_fc_s, attitude_ok=st.attitude_ok,
-                                          horiz_pos_ok=st.horiz_pos_ok))
+        if self.last_time_fc_s is None:   # no FC time yet (before the first IMU sample): held for it
+            self._fc_status_pending = st
+            return
+        self._fc_status_seen = True
+        self._step_ahrs(FcStatusEvent(self.last_time_fc_s, attitude_ok=st.attitude_ok,
+                                      horiz_pos_ok=st.horiz_pos_ok))
 
     def on_fc_reboot(self) -> None:
         """The FC clock restarted: keep the attitude, restart the time bookkeeping. The interval

@@ -112,7 +112,7 @@ def run():
     return simulate(scenario="runway_takeoff", seed=3, imu_grade="consumer", imu_rate_hz=RATE_HZ, duration_s=7.0)
 
 
-def _trusted_from_s(run, told: bool, monkeypatch, core: str) -> float:
+def _trusted_from_s(run, told: bool, monkeypatch, core: str, status_first: bool = False) -> float:
     """First FC time at which B trusts a good FC that sends no estimator status (its ATTITUDE the
     simulator's FC attitude from t = 0), with the Pipeline told so (a log recording none) or not."""
     import sys
@@ -136,6 +136,8 @@ def _trusted_from_s(run, told: bool, monkeypatch, core: str) -> float:
     items += [(t, 0, FcAttitude(t, t, *(float(v) for v in e), np.zeros(3)))
               for t, e in zip(run.fc_time_s.tolist(), run.fc_euler_rad)]
     items.sort(key=lambda x: (x[0], x[1]))
+    if status_first:   # one good status before anything else (an FC already running when we connect), none after
+        items.insert(0, (0.0, -1, FcEkfStatus(0.0, True, True, 831, "EKF_STATUS_REPORT")))
     events: list = []
     for sol in feed_pipeline(p, [it for _t, _o, it in items], events, timed_events=True):
         if p.ahrs_out is not None and p.ahrs_out.reference_trusted:
@@ -163,3 +165,11 @@ def test_replay_of_a_dataflash_log_without_status_tells_the_pipeline(tmp_path, m
         dataflash_with_ekf(p, ekf=ekf, ahrs_ekf_type=typ)
         assert replay.main([str(p), "--site", "47.0,8.0", "--no-progress"]) == 0
     assert seen == ["the log records no FC estimator status"]   # the first only: the second records XKF4
+
+
+@pytest.mark.parametrize("core", ["core", "python"])
+def test_a_status_that_comes_before_the_first_imu_sample_is_not_lost(run, core, monkeypatch):
+    """GIVEN the FC's only estimator status (good) arriving before the first IMU sample WHEN the flight goes on
+    THEN B trusts the FC from the start: the status is held until an FC time dates it (before: dropped, and the
+    FC was untrusted until judged without a status after status_wait_s)."""
+    assert _trusted_from_s(run, False, monkeypatch, core, status_first=True) < 1.0
