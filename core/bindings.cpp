@@ -113,6 +113,7 @@ void bind_checks(py::module_& m);          // core/bindings_checks.cpp: the per-
 void bind_azimuth(py::module_& m);         // core/bindings_azimuth.cpp: method A's propagation
 void bind_polar(py::module_& m);           // core/bindings_polar.cpp: method C's attitude filter
 void bind_polar_heading(py::module_& m);   // core/bindings_polar_heading.cpp: method C's heading filter
+void bind_phases(py::module_& m);          // core/bindings_phases.cpp: the flight phases
 
 PYBIND11_MODULE(_core, m) {
     m.doc() = "azimuthd's compiled estimator core (estimators/core.py is its Python face)";
@@ -121,6 +122,7 @@ PYBIND11_MODULE(_core, m) {
     bind_azimuth(m);
     bind_polar(m);
     bind_polar_heading(m);
+    bind_phases(m);
 
     m.def("strapdown_step",
           [](const ArrayD& q, bool has_prev, double time_prev_s, const ArrayD& gyro_prev, const ArrayD& gyro,

@@ -23,6 +23,7 @@ from estimators import synthetic_ahrs as _b_reference
 from estimators import zero_rate as _zr_reference
 from estimators.strapdown import strapdown_step as _strapdown_step_reference
 from service.input_checks import CoreImuInputChecks, ImuInputChecks
+from service.phases import phase_step as _phase_step_reference
 
 log = logging.getLogger("azimuthd.core")
 
@@ -79,6 +80,9 @@ class Backend:
     heading_zero_rate_update: Callable = _zr_reference.heading_zero_rate_update
     """... and its zero-rate update at rest (estimators.zero_rate.heading_zero_rate_update's signature).
     The six take and give the same state: the reference's record, or the core's held one."""
+    phase_step: Callable = _phase_step_reference
+    """The flight phases, one IMU sample (service.phases.phase_step's signature; takes and gives the
+    reference's PhaseState or the core's held one)."""
 
 
 def _say(level: int, text: str) -> None:
@@ -86,6 +90,14 @@ def _say(level: int, text: str) -> None:
     if text not in _said:
         _said.add(text)
         log.log(level, text)
+
+
+def _phases_ported() -> bool:
+    """The flight phases are in the core; one log line when the build predates them."""
+    if not core.PHASES_AVAILABLE:
+        _say(logging.WARNING, "compiled core without the flight phases (an older build): they run the Python "
+                              "reference")
+    return core.PHASES_AVAILABLE
 
 
 def select(environ=os.environ) -> Backend:
@@ -142,4 +154,5 @@ def select(environ=os.environ) -> Backend:
                    polar_heading_estimate=core.polar_heading_estimate,
                    polar_heading_attitude=core.polar_heading_attitude,
                    polar_heading_unseen=core.polar_heading_unseen,
-                   heading_zero_rate_update=core.heading_zero_rate_update)
+                   heading_zero_rate_update=core.heading_zero_rate_update,
+                   **(dict(phase_step=core.phase_step) if _phases_ported() else {}))

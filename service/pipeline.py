@@ -61,7 +61,7 @@ from service.heading_arbitration import (ArbitrationParams, ArbitrationState, So
 from service.heading_sources import (SyntheticAhrsHealth, azimuth_source, deviation_record, fc_source,
                                      heading_filter_source, synthetic_ahrs_source)
 from service.phases import (IN_FLIGHT, LAUNCH, PRE_LAUNCH, FlightEvidence, InFlightParams, PhaseParams,
-                            PhaseState, phase_step)
+                            PhaseState)
 from mavlink_io.navsolution import NavSolution
 from mavlink_io.imu_batch import ImuBatch
 from service.vehicle_type import AUTO as AUTO_VEHICLE, VehicleResolver
@@ -345,7 +345,7 @@ class Pipeline:
 
         prev_phase = self.phase.phase
         evidence = self._flight_evidence(t) if prev_phase in (PRE_LAUNCH, LAUNCH) else None
-        self.phase, events = phase_step(self.phase, gyro_s, accel_s, t, self.phase_params, evidence)
+        self.phase, events = self.core.phase_step(self.phase, gyro_s, accel_s, t, self.phase_params, evidence)
         for ev in events:
             self._event(*ev)
         self._step_azimuth(prev_phase, gyro_s, accel_s, mag_s, t)
