@@ -175,6 +175,20 @@ def case_phases(run, items):
     return one_pass
 
 
+def case_phases_core(run, items):
+    """The flight phases held in the core (estimators.core.phase_step), the same samples and params."""
+    from estimators import core
+    from service.phases import PhaseParams, PhaseState
+    t, g, a = run.time_s.tolist(), list(run.gyro_rad_s), list(run.accel_m_s2)
+    params = PhaseParams()
+
+    def one_pass():
+        st = PhaseState()
+        for k in range(len(t)):
+            st, _ = core.phase_step(st, g[k], a[k], t[k], params)
+    return one_pass
+
+
 def case_strapdown(run, items):
     from estimators.strapdown import StrapdownParams, strapdown_init, strapdown_step
     t, g = run.time_s.tolist(), list(run.gyro_rad_s)
@@ -458,6 +472,7 @@ CASES = [
     ("azimuthd whole stack (service.pipeline.Pipeline)", "ours", case_pipeline),
     ("whole stack, Python reference (AZIMUTHD_CORE=python)", "ours", case_pipeline_python),
     ("phases: levelling + launch detection", "ours", case_phases),
+    ("phases, core, per sample (held state)", "ours", case_phases_core),
     ("strapdown (estimators.strapdown)", "ours", case_strapdown),
     ("strapdown, core, per sample (held state)", "ours", case_strapdown_core_held),
     ("strapdown, core, batch (N x 3 array)", "ours", case_strapdown_core_batch),
@@ -672,9 +687,11 @@ def ported_figures(rows: list[dict]) -> dict:
         "polar_attitude_core_held_us_per_sample": "polar attitude, core, per sample (held state)",
         "polar_heading_python_us_per_sample": "polar heading (estimators.polar_heading)",
         "polar_heading_core_held_us_per_sample": "polar heading, core, per sample (held state)",
+        "phases_python_us_per_sample": "phases: levelling + launch detection",
+        "phases_core_held_us_per_sample": "phases, core, per sample (held state)",
     }
     out = {k: us.get(v, math.nan) for k, v in pick.items()}
-    for part in ("strapdown", "levelling", "polar_attitude", "polar_heading"):
+    for part in ("strapdown", "levelling", "polar_attitude", "polar_heading", "phases"):
         base = out[f"{part}_python_us_per_sample"]
         for form in ("core_held", "core_step", "core_batch"):
             k = f"{part}_{form}_us_per_sample"
