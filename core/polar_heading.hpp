@@ -221,9 +221,10 @@ inline Q4 attitude(const State& s, double heading) {
 
 // --- the measurement ----------------------------------------------------------------------------------
 
-// _fuse_heading: initialise from, gate, fuse (or reset on) one heading measurement z of x[0]
+// _fuse_heading: initialise from, gate, fuse (or reset on) one heading measurement z of x[0]; r_uncal
+// becomes the state's consider term only where the measurement enters the heading (not when gated out)
 inline Diag fuse_heading(State& st, const Inputs& u, double z, double H, double R, double R_single, double r_corr,
-                         const Params& p) {
+                         double r_uncal, const Params& p) {
     Diag dg;
     dg.code = MEASURED;
     dg.source_available = true;
@@ -236,6 +237,7 @@ inline Diag fuse_heading(State& st, const Inputs& u, double z, double H, double 
         st.initialised = true;
         st.P = prior_P(R_single, p, n);
         st.source_available = true;
+        st.r_uncal_rad2 = r_uncal;
         dg.nu = 0.0;
         dg.S = R_single;
         dg.ratio = 0.0;
@@ -257,6 +259,7 @@ inline Diag fuse_heading(State& st, const Inputs& u, double z, double H, double 
             st.has_rejected_since = false;
             st.source_available = true;
             st.n_resets += 1;
+            st.r_uncal_rad2 = r_uncal;
             dg.why = RESET;
             dg.reset_jump = nu;
             return dg;
@@ -295,6 +298,7 @@ inline Diag fuse_heading(State& st, const Inputs& u, double z, double H, double 
     st.n_fused += 1;
     st.has_r_corr_avg = true;
     st.r_corr_avg_rad2 = avg;
+    st.r_uncal_rad2 = r_uncal;
     return dg;
 }
 
@@ -350,8 +354,8 @@ inline Diag measure(State& st, const Inputs& u, const Params& p) {
     const double R_single = r_white + r_corr;
     const double z = wrap_2pi(psi_m + u.declination);
     if (!residual_ok(u)) { Diag d; d.code = BAD_RESIDUAL; return d; }
-    st.r_uncal_rad2 = uncalibrated_heading_var(m, H, u.has_residual, u.residual_sigma, p);
-    return fuse_heading(st, u, z, H, R, R_single, r_corr, p);
+    const double r_uncal = uncalibrated_heading_var(m, H, u.has_residual, u.residual_sigma, p);
+    return fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, p);
 }
 
 // _predict (Euler formulation)
@@ -520,8 +524,8 @@ inline Diag measure_platform(State& st, const Inputs& u, const Q4& q, const Para
     const double R_single = r_white + r_corr;
     const double z = wrap_2pi(-std::atan2(mp[1], mp[0]) + u.declination);
     if (!residual_ok(u)) { Diag d; d.code = BAD_RESIDUAL; return d; }
-    st.r_uncal_rad2 = uncalibrated_heading_var(m, H, u.has_residual, u.residual_sigma, p);
-    return fuse_heading(st, u, z, H, R, R_single, r_corr, p);
+    const double r_uncal = uncalibrated_heading_var(m, H, u.has_residual, u.residual_sigma, p);
+    return fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, p);
 }
 
 // _platform_step (q_P finite with a norm > 0: the binding hands anything else to the reference)

@@ -216,8 +216,9 @@ class PolarHeadingState:
     """Running mean (time constant mag_error_tau_s) of the correlated measurement variance:
     the consider floor of the reported heading variance."""
     r_uncal_rad2: float = 0.0
-    """Consider term of the uncalibrated (or residual) magnetometer error at the last measurement
-    (rad^2, module docstring), added to the published heading variance."""
+    """Consider term of the uncalibrated (or residual) magnetometer error of the last measurement
+    that entered the heading (initialised, fused or reset on; not a gated-out one) (rad^2, module
+    docstring), added to the published heading variance."""
     platform: bool = False
     """True: the platform formulation (x = [psi_P, w_v, d_x, d_y, d_z], module docstring)."""
     q_P_from_body: np.ndarray | None = None
@@ -455,17 +456,23 @@ def _measure(st, u, Prp, p):
     R = r_white + r_corr * max(1.0, p.mag_error_tau_s / p.mag_update_period_s)
     R_single = r_white + r_corr          # the error of ONE measurement (initialisation, reset)
     z = wrap_2pi(psi_m + u.declination_rad)
-    st = replace(st, r_uncal_rad2=uncalibrated_heading_var(m, H, u.mag_residual_sigma_gauss, p))
-    return _fuse_heading(st, u, z, H, R, R_single, r_corr, p)
+    r_uncal = uncalibrated_heading_var(m, H, u.mag_residual_sigma_gauss, p)
+    return _fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, p)
 
 
-def _fuse_heading(st, u, z, H, R, R_single, r_corr, p):
-    """Initialise from, gate, fuse (or reset on) one heading measurement z (rad) of state x[0]."""
+def _fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, p):
+    """Initialise from, gate, fuse (or reset on) one heading measurement z (rad) of state x[0].
+    ``r_uncal``: the measurement's uncalibrated-magnetometer consider term; it becomes the state's
+    (the published one) only where the measurement enters the heading (initialised, fused, reset):
+    a gated-out sample is not in the estimate, and its field (a magnet nearby: a larger H) says
+    nothing about the error the estimate carries (it shrank C's published sigma 2.84 -> 1.88 deg
+    for the 20 s the magnet stayed, bench/any_motion.py magnet_nearby seed 1)."""
     n = len(st.x)
     if not st.initialised:
         x0 = st.x.copy()
         x0[0], x0[1] = z, 0.0
-        st = replace(st, initialised=True, x=x0, P=_prior_P(R_single, p, n), source_available=True)
+        st = replace(st, initialised=True, x=x0, P=_prior_P(R_single, p, n), source_available=True,
+                     r_uncal_rad2=r_uncal)
         return st, HeadingDiag(measured=True, fused=True, source_available=True,
                                horizontal_field_gauss=H, heading_meas_rad=z, innovation_rad=0.0,
                                innovation_var_rad2=R_single, test_ratio=0.0, reason="initialised from source")
@@ -485,7 +492,7 @@ def _fuse_heading(st, u, z, H, R, R_single, r_corr, p):
             x0 = st.x.copy()
             x0[0] = z
             st = replace(st, x=x0, P=P, rejected_since_s=None,
-                         source_available=True, n_resets=st.n_resets + 1)
+                         source_available=True, n_resets=st.n_resets + 1, r_uncal_rad2=r_uncal)
             return st, HeadingDiag(**diag_kw, reset=True, reset_jump_rad=nu,
                                    reason="re-initialised from the source after continuous rejection")
         st = replace(st, rejected_since_s=since, source_available=True, n_rejected=st.n_rejected + 1)
@@ -507,7 +514,7 @@ def _fuse_heading(st, u, z, H, R, R_single, r_corr, p):
         st.r_corr_avg_rad2 + (rc - st.r_corr_avg_rad2) * min(1.0, dt_m / p.mag_error_tau_s))
     P = 0.5 * (P + P.T)
     st = replace(st, x=x, P=P, rejected_since_s=None, source_available=True, n_fused=st.n_fused + 1,
-                 r_corr_avg_rad2=avg)
+                 r_corr_avg_rad2=avg, r_uncal_rad2=r_uncal)
     return st, HeadingDiag(**diag_kw, fused=True)
 
 
@@ -656,8 +663,8 @@ def _measure_platform(st, u, q, p):
          + r_body * max(1.0, tau_body / p.mag_update_period_s))
     R_single = r_white + r_corr
     z = wrap_2pi(-math.atan2(mp[1], mp[0]) + u.declination_rad)    # azimuth of P's x axis
-    st = replace(st, r_uncal_rad2=uncalibrated_heading_var(m, H, u.mag_residual_sigma_gauss, p))
-    return _fuse_heading(st, u, z, H, R, R_single, r_corr, p)
+    r_uncal = uncalibrated_heading_var(m, H, u.mag_residual_sigma_gauss, p)
+    return _fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, p)
 
 
 def polar_heading_attitude(state: PolarHeadingState, heading_rad: float | None = None) -> np.ndarray | None:
