@@ -183,6 +183,9 @@ class Pipeline:
         self.deviation_min_coverage = dev["min_coverage"]
         self.deviation_apply = dev["apply"]
         self._deviation_in_use: bool | None = None
+        self._deviation_hard_iron_changed = False
+        """The magnetometer's hard iron was re-learnt (estimators/mag_disturbance: a magnet attached)
+        since D's coefficients were learnt: their constant terms A_i are the old hard iron."""
         self._deviation_last_s = -math.inf
         self._deviation_coverage_reported = 0.0
 
@@ -412,6 +415,7 @@ class Pipeline:
             self.polar_att, _ = self.core.attitude_zero_rate_update(self.polar_att, rest_rate, self.zero_rate_params)
         att = self.core.polar_attitude_estimate(self.polar_att)
         tilt = self._heading_tilt(t, att, gyro_b)
+        mag_b_meas = mag_b                                # as measured: what D learns on and corrects
         mag_b_hi = self._mag_disturbance(mag_b, t, att)   # m - learnt hard iron, None when disturbed
         if not self._mag_usable(mag_b, t, tilt, gyro_b) or mag_b_hi is None:
             mag_b = mag_s = None
@@ -419,7 +423,7 @@ class Pipeline:
             mag_b, mag_s = mag_b_hi, C.T @ mag_b_hi
         mag_b_raw = mag_b
         if mag_b is not None:
-            mag_b = self._deviation_corrected(mag_b)
+            mag_b = self._deviation_corrected(mag_b_meas, mag_b)
         if tilt is not None:
             self.polar_hdg, hdiag = self.core.polar_heading_step(
                 self.polar_hdg, HeadingInputs(t, gyro_b, tilt[0], tilt[1], tilt[2],
@@ -441,8 +445,8 @@ class Pipeline:
                             else f"magnetometer heading unavailable: {hdiag.reason}")
         self._step_ahrs(ImuEvent(t, gyro_s, mag_s))
         sol = self._solution(s, gyro_s, att)
-        if self.deviation_calibrate and mag_b_raw is not None:
-            self._deviation_learn(sol, mag_b_raw, t)
+        if self.deviation_calibrate and mag_b_raw is not None:   # undisturbed, usable
+            self._deviation_learn(sol, mag_b_meas, t)
         has_q = att is not None and sol.q_nav_from_body is not None
         self._out = output_reset(sol.q_nav_from_body, t) if has_q else None
         self._out_sol, self._out_sample = (sol, s) if has_q else (None, None)
@@ -850,6 +854,7 @@ class Pipeline:
         if v.relearned:
             self._event("magnetic_disturbance", f"hard iron changed (a magnet attached?): re-learning it, "
                         f"the heading coasts on the gyros meanwhile")
+            self._deviation_hard_iron_changed = self.deviation is not None
         if v.changed:
             self._event("magnetic_disturbance", "undisturbed: used again, hard iron [" + ", ".join(
                 f"{x:+.3f}" for x in v.hard_iron_gauss) + f"] G +- {v.hard_iron_sigma_gauss:.3f} G"
@@ -907,34 +912,48 @@ class Pipeline:
                         f"rejected ({v.reason}): the heading coasts on the gyros, its sigma growing")
         return mag_body_gauss is not None and bool(self.mag_usability.usable)
 
-    def _deviation_corrected(self, mag_body_gauss: np.ndarray) -> np.ndarray:
-        """Method D's correction of the magnetometer (body axes) for C, once it covers enough
-        headings, rolls and pitches; the raw field otherwise."""
+    def _deviation_corrected(self, mag_measured_body_gauss: np.ndarray, mag_hard_iron_corrected_body_gauss:
+                             np.ndarray) -> np.ndarray:
+        """The magnetometer (body axes) for C: method D's correction of the MEASURED field once it
+        covers enough headings, rolls and pitches (its constant terms A_i are the hard iron: it
+        replaces estimators/mag_disturbance's estimate, which moves as it learns); else the field
+        less that hard-iron estimate. Not after a re-learnt hard iron (D's A_i are the old one)."""
         if self.deviation is None or not self.deviation_apply:
-            return mag_body_gauss
-        use = deviation_coverage(self.deviation, self.deviation_params).overall >= self.deviation_min_coverage
+            return mag_hard_iron_corrected_body_gauss
+        use = (deviation_coverage(self.deviation, self.deviation_params).overall >= self.deviation_min_coverage
+               and not self._deviation_hard_iron_changed)
         if use != self._deviation_in_use:
             self._deviation_in_use = use
             cov = deviation_coverage(self.deviation, self.deviation_params)
-            self._event("deviation", f"compensation {'applied' if use else 'not applied'}: coverage "
-                        f"{cov.overall:.2f} (headings {cov.heading_fraction:.2f}, rolls {cov.roll_fraction:.2f}, "
-                        f"pitches {cov.pitch_fraction:.2f})"
-                        f", needed {self.deviation_min_coverage:.2f}")
+            self._event("deviation", f"compensation {'applied' if use else 'not applied'}: " + (
+                        "the hard iron was re-learnt (a magnet attached?) since its calibration"
+                        if self._deviation_hard_iron_changed else
+                        f"coverage {cov.overall:.2f} (headings {cov.heading_fraction:.2f}, rolls "
+                        f"{cov.roll_fraction:.2f}, pitches {cov.pitch_fraction:.2f}), needed "
+                        f"{self.deviation_min_coverage:.2f}"))
         if not use:
-            return mag_body_gauss
+            return mag_hard_iron_corrected_body_gauss
         h = self.core.polar_heading_estimate(self.polar_hdg)
         if not (h.initialised and math.isfinite(h.heading_rad)):
-            return mag_body_gauss
+            return mag_hard_iron_corrected_body_gauss
         att = self.core.polar_attitude_estimate(self.polar_att)
         if att is None:
-            return mag_body_gauss
-        return corrected_mag(self.deviation, mag_body_gauss, h.heading_rad, att.roll_rad, att.pitch_rad)
+            return mag_hard_iron_corrected_body_gauss
+        return corrected_mag(self.deviation, mag_measured_body_gauss, h.heading_rad, att.roll_rad, att.pitch_rad)
 
     def _deviation_learn(self, sol: NavSolution, mag_body_gauss: np.ndarray, t: float) -> None:
         """Calibration manoeuvre (METHODS.md D): one RLS update at DEVIATION_PERIOD_S against a
-        heading that does not come from the magnetometer alone (A's solution or the trusted FC)."""
+        heading that does not come from the magnetometer alone (A's solution or the trusted FC), on
+        the MEASURED field: D's model holds the hard iron (A_i), so it must not learn on the field
+        less mag_disturbance's hard-iron estimate, which moves while it learns (on the deviation
+        bench's flights from 0 to ~30 mG mid-manoeuvre: the fit then mixed two offsets). After a
+        re-learnt hard iron the calibration starts again (its data hold the old one)."""
         if t - self._deviation_last_s < DEVIATION_PERIOD_S or not sol.heading_valid:
             return
+        if self._deviation_hard_iron_changed:
+            self.deviation, self._deviation_hard_iron_changed = deviation_init(self.deviation_params), False
+            self._deviation_coverage_reported = 0.0
+            self._event("deviation", "calibration restarted: the hard iron was re-learnt (a magnet attached?)")
         sources = set(sol.heading_source.split("+"))
         if not sources & {"azimuth", "fc"} or sol.heading_sigma_rad is None \
                 or sol.heading_sigma_rad > DEVIATION_MAX_REF_SIGMA_RAD:
@@ -1003,8 +1022,11 @@ class Pipeline:
         prev = self.aiding.get("deviation")
         cov = (deviation_coverage(self.deviation, self.deviation_params).overall
                if self.deviation is not None and self._deviation_in_use is False else None)
-        return deviation_record(t, self.deviation, self.deviation_apply, self._deviation_in_use, cov,
-                                self.deviation_min_coverage, prev.time_last_fused_s if prev else math.nan)
+        rec = deviation_record(t, self.deviation, self.deviation_apply, self._deviation_in_use, cov,
+                               self.deviation_min_coverage, prev.time_last_fused_s if prev else math.nan)
+        if self._deviation_hard_iron_changed and rec.why_not == "not_applied":
+            rec = rec._replace(detail="the hard iron was re-learnt (a magnet attached?) since its calibration")
+        return rec
 
     def _feed_b1_heading(self, readings: list[SourceReading], t: float) -> None:
         """Variant B1 takes its heading from another source (METHODS.md B1): the most certain
