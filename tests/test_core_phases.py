@@ -18,6 +18,8 @@ GIVEN the same IMU samples and FlightEvidence
   inclined rail launcher, a start in flight 60 s after launch) and the real logs in ../shared/data
   replayed as ``azimuthd replay`` runs them,
 WHEN the reference and the core (the state held in C++) take them,
+(and, through the Pipeline, non-finite samples and a time going back: its input checks reject them
+before the phases, so the core's phases never see them)
 THEN after every sample the events are identical strings and the state (to_state()) agrees to 1e-9
 relative (tests/parity_compare.py), and a Pipeline on the core backend gives the same solutions and
 events as with the phases in the reference. A deliberately wrong port fails (the last test)."""
@@ -485,6 +487,31 @@ def test_pipeline_runs_the_phases_in_the_core(recorded, monkeypatch):
     if name not in NOT_REPRODUCIBLE:
         bad += _solutions_differences(rec["out"], out, name)
     assert not bad, bad[:5]
+
+
+def test_non_finite_samples_never_reach_the_phases_in_the_pipeline():
+    # GIVEN a flight with NaN / inf IMU values and a time going back WHEN the Pipeline takes it THEN its
+    # input checks reject them before the phases: every phase_step call has finite values and increasing
+    # times (the core's phases are never asked about a NaN the daemon meets), and the rejects are counted
+    from mavlink_io.samples import ImuSample
+    from service import core_backend
+    cfg, items = SIMS["multicopter"]()
+    bad = {100: ("accel_m_s2", [math.nan, 0.0, -9.8]), 200: ("gyro_rad_s", [0.0, math.inf, 0.0]),
+           300: ("accel_m_s2", [0.0, -math.inf, -9.8])}
+    imu = [i for i, it in enumerate(items) if isinstance(it, ImuSample)]
+    items = list(items)
+    for k, (field, v) in bad.items():
+        items[imu[k]] = dataclasses.replace(items[imu[k]], **{field: np.array(v)})
+    back = items[imu[399]]
+    items.insert(imu[400] + 1, dataclasses.replace(back, time_fc_s=back.time_fc_s - 0.5))
+    calls: list = []
+    sims = {"with_bad_samples": lambda: (cfg, items)}
+    _out, p = run_with_backend(lambda n: fly_recorded(n, sims, {}, DATA), "with_bad_samples",
+                               _reference_phases(core_backend.select(), calls))
+    assert all(np.all(np.isfinite(g)) and np.all(np.isfinite(a)) and math.isfinite(t) for g, a, t, _p, _e in calls)
+    times = [t for _g, _a, t, _p, _e in calls]
+    assert all(b > a for a, b in zip(times, times[1:]))
+    assert len(calls) == len(imu) - 3, (len(calls), len(imu))
 
 
 def test_the_backend_selects_the_phases(monkeypatch, caplog):
