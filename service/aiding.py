@@ -33,11 +33,11 @@ SOURCES = ("azimuth", "synthetic_ahrs", "heading_filter", "fc", "deviation")
 WHY_NOT = {
     "": "fused",
     "no_estimate": "the source has no heading (yet): waiting, not initialised, no input",
-    "superseded": "a magnetometer source is not offered while method A has a solution",
+    "superseded": "a magnetometer source is not offered while method A has a solution that agrees with it",
     "excluded": "switched off by configuration, or the FC's yaw is excluded",
     "no_reference": "the reference the source is built on is lost (no trusted FC, no air data)",
     "not_valid": "the source says its reading is not valid",
-    "inconsistent": "the source's own measurements keep failing its own gate",
+    "inconsistent": "the source's own measurements keep failing its own gate (method A: it keeps disagreeing with the sources it supersedes)",
     "non_finite": "heading, sigma or time not finite",
     "sigma_out_of_range": "sigma not in (0, max_sigma]",
     "stale": "older than the arbitration's max_age_s",

@@ -41,7 +41,11 @@ The rule
    ``blend_rate_rad_s``. The published sigma is sqrt(var + offset^2) while blending.
 7. If candidates exist but none passes the gate, the output coasts on the reference (source
    "coast") for up to ``reinit_after_s``; then it re-anchors on the best candidate: a 'reset'
-   event with the jump, blended like any other change.
+   event with the jump, blended like any other change. It re-anchors at once, without coasting,
+   when every source of the previous fusion is now offered as inconsistent (``consistent``
+   False): the reference is their propagated heading, and a gate against it would hold the output
+   on what their inconsistency discredits (method A dropped for disagreeing with B: coasting on A's
+   heading published A's error at A's sigma for 2 s more).
 8. No candidates: the output is invalid (heading None), event 'lost'.
 
 Why this cannot lock onto a wrong source (issue 18: the output followed a diverged B, and the
@@ -337,7 +341,9 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
             f"({'+'.join(sorted(r.name for r in majority))}): re-acquired from it"))
     elif not passing:
         gated_since = state.gated_since_s if state.gated_since_s is not None else time_s
-        if time_s - gated_since < params.reinit_after_s:
+        inconsistent = {r.name for r in readings if r.valid and not r.consistent}
+        discredited = bool(state.sources) and set(state.sources) <= inconsistent
+        if time_s - gated_since < params.reinit_after_s and not discredited:
             # coast on the propagated reference
             for r in cands:
                 per[r.name]["used"] = False

@@ -15,16 +15,24 @@ No estimator math here: each function only reads the estimators' outputs. Pure (
 SyntheticAhrsHealth holds the window of B's magnetometer counters.
 
 Correlation groups: the magnetometer sources (B, C and the FC's compass yaw) share MAG_GROUP; B
-and the FC share FC_REF_GROUP while B learns against the FC's yaw. While method A has a solution,
-B and C are not offered ('superseded'): A solves the magnetometer distortions with psi_s, they do
-not, and a biased magnetometer heading would drag the fusion.
+and the FC share FC_REF_GROUP while B learns against the FC's yaw. While method A has a solution
+that agrees with them, B and C are not offered ('superseded'): A solves the magnetometer
+distortions with psi_s, they do not, and a biased magnetometer heading would drag the fusion.
+
+Superseding is not blind (issue 18 item 3, ``AzimuthCheck``): A's heading is checked against the
+sources it supersedes, and a persistent disagreement makes A inconsistent (not a candidate) and
+B and C are offered again. Why: after its fit A's heading is carried by the gyros alone, and its
+sigma does not grow with a gyro bias that walks in flight (a model deficit of A, AzimuthParams:
+one constant bias change); synthetic_ahrs_accuracy's flight 0 published A for 500 s after the
+GNSS loss, drifting to 13.6 deg at a 1.3-1.6 deg sigma (published NEES 19), while B, which kept
+measuring the magnetometer, was 0.7 deg off at an honest sigma.
 """
 from __future__ import annotations
 
 import math
 from collections import deque
 
-from estimators.rotations import wrap_2pi
+from estimators.rotations import wrap_2pi, wrap_pi
 from service.aiding import AidingRecord, NotOffered
 from service.heading_arbitration import SourceReading
 
@@ -41,12 +49,80 @@ SOURCE_INCONSISTENT_AFTER_S = 2.0
 SUPERSEDED = "method A has a solution (it solves the magnetometer distortions; this source does not)"
 
 
-def azimuth_source(az, status: str, t: float) -> SourceReading | NotOffered:
+def azimuth_source(az, status: str, t: float, check: "AzimuthCheck | None" = None, checked_against: tuple = (),
+                   gate_chi2: float = 9.0) -> SourceReading | NotOffered:
     """Method A: its heading while its solution is valid; else why not (``status``: the
-    Pipeline's one-line state of method A)."""
-    if az is not None and az.valid:
+    Pipeline's one-line state of method A). With ``check`` (AzimuthCheck), A is compared with
+    ``checked_against`` (the readings of the sources it supersedes, B and C, as they would be
+    offered): inconsistent while it persistently disagrees with them; the comparison is its
+    record's source-level innovation, variance and test ratio."""
+    if az is None or not az.valid:
+        return NotOffered("azimuth", "no_estimate", status)
+    if check is None:
         return SourceReading("azimuth", az.heading_rad, az.heading_sigma_rad, True, t)
-    return NotOffered("azimuth", "no_estimate", status)
+    consistent, why, own = check.check(az.heading_rad, az.heading_sigma_rad, checked_against, t, gate_chi2)
+    return SourceReading("azimuth", az.heading_rad, az.heading_sigma_rad, True, t, "", consistent, why,
+                         "" if consistent else "inconsistent", **own)
+
+
+def superseded(r: SourceReading | NotOffered) -> NotOffered:
+    """What a magnetometer source (B, C) is while method A supersedes it."""
+    return NotOffered(r.source if isinstance(r, NotOffered) else r.name, "superseded", SUPERSEDED)
+
+
+class AzimuthCheck:
+    """Method A against the magnetometer sources it supersedes (module docstring): (consistent,
+    why, the comparison's innovation / variance / test ratio).
+
+    The check source is the most certain of ``checked_against`` that is itself a candidate (valid,
+    consistent, finite, sigma > 0); it counts as evidence only when the other check sources agree
+    with it (pairwise NIS <= gate: a check source contradicted by another says nothing about A).
+    A's NIS against it, wrap(h_A - h_k)^2 / (s_A^2 + s_k^2), above ``gate_chi2`` for
+    ``SOURCE_INCONSISTENT_AFTER_S`` makes A inconsistent; within the gate as long gives it back
+    (a threshold crossed back and forth changes nothing before that). The variance of the
+    difference is taken as the sum: A and the magnetometer sources share the field model's
+    declination error, a positive correlation, so the true variance of the difference is smaller
+    and the test errs towards keeping A. No check source at all: A stands (nothing contradicts it).
+    Reads the sources' outputs only (never truth)."""
+
+    def __init__(self) -> None:
+        self.inconsistent, self.bad_since_s, self.good_since_s = False, None, None
+
+    def check(self, heading_rad: float, sigma_rad: float, checked_against, t: float,
+              gate_chi2: float) -> tuple[bool, str, dict]:
+        cands = [r for r in checked_against if isinstance(r, SourceReading) and r.valid and r.consistent
+                 and math.isfinite(r.heading_rad) and math.isfinite(r.sigma_rad) and r.sigma_rad > 0.0]
+        if not cands or not (math.isfinite(heading_rad) and math.isfinite(sigma_rad)):
+            self.inconsistent, self.bad_since_s, self.good_since_s = False, None, None
+            return True, "", {}
+        k = min(cands, key=lambda r: (r.sigma_rad, r.name))
+        corroborated = all(_nis(k.heading_rad, k.sigma_rad, r.heading_rad, r.sigma_rad) <= gate_chi2
+                           for r in cands if r is not k)
+        nu = wrap_pi(heading_rad - k.heading_rad)
+        var = sigma_rad * sigma_rad + k.sigma_rad * k.sigma_rad
+        nis = nu * nu / var
+        own = dict(source_innovation_rad=nu, source_innovation_variance_rad2=var, source_test_ratio=nis / gate_chi2)
+        if nis > gate_chi2 and corroborated:
+            self.good_since_s = None
+            self.bad_since_s = t if self.bad_since_s is None else self.bad_since_s
+            if t - self.bad_since_s >= SOURCE_INCONSISTENT_AFTER_S:
+                self.inconsistent = True
+        elif nis <= gate_chi2:
+            self.bad_since_s = None
+            self.good_since_s = t if self.good_since_s is None else self.good_since_s
+            if t - self.good_since_s >= SOURCE_INCONSISTENT_AFTER_S:
+                self.inconsistent = False
+        else:   # disagrees with a check source that others contradict: no evidence either way
+            self.bad_since_s = self.good_since_s = None
+        if not self.inconsistent:
+            return True, "", own
+        return False, (f"disagrees with {k.name}: {math.degrees(nu):+.1f} deg, NIS {nis:.1f} > {gate_chi2:g}"
+                       if nis > gate_chi2 else f"disagreed with {k.name} (now NIS {nis:.1f}, within "
+                       f"{gate_chi2:g} for {t - self.good_since_s:.1f} of {SOURCE_INCONSISTENT_AFTER_S:.0f} s)"), own
+
+
+def _nis(h1: float, s1: float, h2: float, s2: float) -> float:
+    return wrap_pi(h1 - h2) ** 2 / (s1 * s1 + s2 * s2)
 
 
 class SyntheticAhrsHealth:

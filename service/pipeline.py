@@ -58,8 +58,8 @@ from service.core_backend import select as select_core
 from service.input_checks import InputCheckParams
 from service.heading_arbitration import (ArbitrationParams, ArbitrationState, SourceReading,
                                          arbitrate)
-from service.heading_sources import (SyntheticAhrsHealth, azimuth_source, deviation_record, fc_source,
-                                     heading_filter_source, synthetic_ahrs_source)
+from service.heading_sources import (AzimuthCheck, SyntheticAhrsHealth, azimuth_source, deviation_record, fc_source,
+                                     heading_filter_source, superseded, synthetic_ahrs_source)
 from service.phases import (IN_FLIGHT, LAUNCH, PRE_LAUNCH, FlightEvidence, InFlightParams, PhaseParams,
                             PhaseState)
 from mavlink_io.navsolution import NavSolution
@@ -274,6 +274,8 @@ class Pipeline:
         """(time, yaw of the attitude filter's platform attitude) at the last solution: the heading rate."""
         self.b_health = SyntheticAhrsHealth()
         """Method B's reference and consistency as a heading source (service/heading_sources.py)."""
+        self.a_check = AzimuthCheck()
+        """Method A against the sources it supersedes (service/heading_sources.py)."""
         self._hdg_measurement = None
         """(time, HeadingDiag) of C's last magnetometer heading measurement: its aiding record."""
         self.aiding: dict = {}
@@ -1007,12 +1009,13 @@ class Pipeline:
     def _readings(self, t: float) -> tuple[list[SourceReading], list]:
         """Every heading source offered to the arbitration (service/heading_sources.py), and the
         ones not offered with why (NotOffered): (readings, not_offered)."""
-        az = self.azimuth_out
-        superseded = az is not None and az.valid  # A's solution: B and C are not offered
-        out = [azimuth_source(az, self.azimuth_status(), t),
-               synthetic_ahrs_source(self.ahrs_out, self.b_health, t, superseded, self.use_fc_yaw),
-               heading_filter_source(self.core.polar_heading_estimate(self.polar_hdg), self.polar_hdg,
-                                     self._hdg_measurement, t, superseded, self.polar_hdg_params.mag_update_period_s),
+        b = synthetic_ahrs_source(self.ahrs_out, self.b_health, t, False, self.use_fc_yaw)
+        c = heading_filter_source(self.core.polar_heading_estimate(self.polar_hdg), self.polar_hdg,
+                                  self._hdg_measurement, t, False, self.polar_hdg_params.mag_update_period_s)
+        a = azimuth_source(self.azimuth_out, self.azimuth_status(), t, self.a_check, (b, c), self.arb_params.gate_chi2)
+        if isinstance(a, SourceReading) and a.consistent:   # A's solution agrees with B and C: they are not offered
+            b, c = superseded(b), superseded(c)
+        out = [a, b, c,
                fc_source(self.fc_attitude, self.ahrs_out, t, self.use_fc_heading, self.use_fc_yaw,
                          self.ahrs_params.fc_sigma_yaw_rad, self.arb_params.max_age_s)]
         return [r for r in out if isinstance(r, SourceReading)], [r for r in out if not isinstance(r, SourceReading)]
