@@ -476,6 +476,9 @@ def test_pipeline_runs_the_phases_in_the_core(recorded, monkeypatch):
     from service import core_backend
     from test_core_polar_heading import _solutions_differences
     name, rec = recorded
+    if name == "arducopter-flight.tlog":
+        pytest.skip("RAW_IMU at ~2 Hz: no block ever levels (2-4 of 20 samples), the take-off is unlevelled; its "
+                    "phase calls are compared in the test above")
     monkeypatch.delenv("AZIMUTHD_CORE", raising=False)
     backend = core_backend.select()
     assert backend.name == "core" and backend.phase_step is core.phase_step
