@@ -163,6 +163,52 @@ case_pipeline = _pipeline_case("core")
 case_pipeline_python = _pipeline_case("python")
 
 
+def case_pipeline_batch(run, items):
+    """The whole stack with the compiled core fed as the daemon's batch path feeds it
+    (Pipeline.on_imu_batch: the quiet samples in the core's hot path, service/hot_path.py): the IMU
+    samples between two other items as one batch (made once, untimed: the link decodes them)."""
+    from mavlink_io.samples import ImuSample
+    from service.hot_path import batch_of
+    from service.pipeline import Pipeline
+    cfg = site_config(run)
+    plan, imu = [], []
+    for it in items:
+        if type(it) is ImuSample:
+            imu.append(it)
+            continue
+        if imu:
+            plan.append(batch_of(imu))
+            imu = []
+        plan.append(it)
+    if imu:
+        plan.append(batch_of(imu))
+
+    def one_pass():
+        before = os.environ.get("AZIMUTHD_CORE")
+        os.environ["AZIMUTHD_CORE"] = "core"
+        try:
+            p = Pipeline(cfg)
+        finally:
+            os.environ.pop("AZIMUTHD_CORE") if before is None else os.environ.update(AZIMUTHD_CORE=before)
+        if p.core.hot_run is None:
+            raise RuntimeError(f"no hot path in this core: {p.core.why}")
+        handlers = {}
+        for it in plan:
+            c = type(it)
+            if c.__name__ == "ImuBatch":
+                p.on_imu_batch(it)
+                p.drain_events()
+                p.propagated_solution()
+            else:
+                fn = handlers.get(c)
+                if fn is None:
+                    fn = handlers[c] = {"PressureSample": p.on_pressure, "FcAttitude": p.on_fc_attitude,
+                                        "FcHeartbeat": p.on_fc_heartbeat, "FcFlightState": p.on_fc_flight_state,
+                                        "FcEkfStatus": p.on_fc_ekf_status}[c.__name__]
+                fn(it)
+    return one_pass
+
+
 def case_phases(run, items):
     from service.phases import PhaseParams, PhaseState, phase_step
     t, g, a = run.time_s.tolist(), list(run.gyro_rad_s), list(run.accel_m_s2)
@@ -471,6 +517,7 @@ def case_ahrs_ekf(run, items):
 CASES = [
     ("azimuthd whole stack (service.pipeline.Pipeline)", "ours", case_pipeline),
     ("whole stack, Python reference (AZIMUTHD_CORE=python)", "ours", case_pipeline_python),
+    ("whole stack, core, batch path (on_imu_batch, hot path)", "ours", case_pipeline_batch),
     ("phases: levelling + launch detection", "ours", case_phases),
     ("phases, core, per sample (held state)", "ours", case_phases_core),
     ("strapdown (estimators.strapdown)", "ours", case_strapdown),
@@ -702,6 +749,9 @@ def ported_figures(rows: list[dict]) -> dict:
     out["stack_core_us_per_imu_sample"] = stack_core
     out["stack_python_reference_us_per_imu_sample"] = stack_py
     out["stack_core_speedup_x"] = stack_py / stack_core if stack_core > 0 else math.nan
+    stack_batch = us.get("whole stack, core, batch path (on_imu_batch, hot path)", math.nan)
+    out["stack_core_batch_us_per_imu_sample"] = stack_batch
+    out["stack_core_batch_speedup_x"] = stack_py / stack_batch if stack_batch > 0 else math.nan
     return {"ported": out, "stack_python_reference_us_per_imu_sample": stack_py}
 
 

@@ -113,6 +113,7 @@ void bind_checks(py::module_& m);          // core/bindings_checks.cpp: the per-
 void bind_azimuth(py::module_& m);         // core/bindings_azimuth.cpp: method A's propagation
 void bind_polar(py::module_& m);           // core/bindings_polar.cpp: method C's attitude filter
 void bind_polar_heading(py::module_& m);   // core/bindings_polar_heading.cpp: method C's heading filter
+void bind_hot_path(py::module_& m);        // core/bindings_hot_path.cpp: the Pipeline's per-sample hot path
 void bind_phases(py::module_& m);          // core/bindings_phases.cpp: the flight phases
 
 PYBIND11_MODULE(_core, m) {
@@ -122,6 +123,7 @@ PYBIND11_MODULE(_core, m) {
     bind_azimuth(m);
     bind_polar(m);
     bind_polar_heading(m);
+    bind_hot_path(m);
     bind_phases(m);
 
     m.def("strapdown_step",

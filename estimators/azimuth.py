@@ -490,6 +490,24 @@ def azimuth_step(state: AzimuthState, gyro_rad_s: np.ndarray, accel_m_s2: np.nda
     return st, _output(st, C_isf_sf, time_s)
 
 
+def azimuth_status(st: AzimuthState) -> str:
+    """The status ``azimuth_step`` gives for ``st`` (in flight or failed): it changes only when a
+    solve or a solve's result changes the state, never by a sample's propagation or storage."""
+    if st.phase == "failed":
+        return "failed"
+    if st.solution is None:
+        return "collecting" if st.last_fit is None else "withheld"
+    return "solved" if st.last_gate_reason == "" else "holding"
+
+
+def azimuth_output(st: AzimuthState, time_s: float) -> AzimuthOutput:
+    """The output ``azimuth_step`` returned with ``st`` at its last sample ``time_s`` (computed
+    when asked: the Pipeline's hot path steps A without building an output per sample)."""
+    if st.phase == "failed":
+        return AzimuthOutput(time_s, "failed", st.reason, False)
+    return _output(st, st.C_isf_sf, time_s)
+
+
 def _output(st: AzimuthState, C_isf_sf: np.ndarray, time_s: float) -> AzimuthOutput:
     p = st.params
     sol = st.solution
@@ -514,12 +532,11 @@ def _output(st: AzimuthState, C_isf_sf: np.ndarray, time_s: float) -> AzimuthOut
         C_nf_sf = st.C_isf_af.T @ C_isf_sf
     C_nf_body = C_nf_sf @ C_sf_body
     roll, pitch, yaw = euler_from_dcm(C_nf_body)
+    status = azimuth_status(st)
     if sol is None:
-        status = "collecting" if fit_last is None else "withheld"
         reason = "; ".join([st.last_gate_reason or "no magnetometer samples yet"] + flags)
         return AzimuthOutput(time_s, status, reason, False, roll_rad=roll, pitch_rad=pitch,
                              q_nav_from_body=quat_from_dcm(C_nf_body), **diag)
-    status = "solved" if st.last_gate_reason == "" else "holding"
     if status == "holding":
         flags.insert(0, "holding last solution: " + st.last_gate_reason)
     arw_var = p.gyro_arw_rad_sqrt_s ** 2 * max(time_s - st.launch_time_s, 0.0)

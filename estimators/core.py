@@ -1056,3 +1056,14 @@ def phase_step(state, gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray, time_s: fl
         return held, events
     held._sync()
     return held, r
+
+
+# --- the Pipeline's per-sample hot path (service/hot_path.py, core/hot_path.hpp) -------------------
+# SampleState: the Pipeline's per-sample fields (its attributes of those names are properties over
+# it); AzimuthRun: method A's per-sample state for one run; hot_run: a batch's quiet samples.
+
+HOT_PATH_AVAILABLE = AVAILABLE and hasattr(_core, "hot_run")
+if HOT_PATH_AVAILABLE:
+    SampleState = _core.SampleState
+    AzimuthRun = _core.AzimuthRun
+    hot_run = _core.hot_run

@@ -24,6 +24,7 @@ from estimators import zero_rate as _zr_reference
 from estimators.strapdown import strapdown_step as _strapdown_step_reference
 from service.input_checks import CoreImuInputChecks, ImuInputChecks
 from service.phases import phase_step as _phase_step_reference
+from service.hot_path import SampleState as _SampleStateReference
 
 log = logging.getLogger("azimuthd.core")
 
@@ -83,6 +84,11 @@ class Backend:
     phase_step: Callable = _phase_step_reference
     """The flight phases, one IMU sample (service.phases.phase_step's signature; takes and gives the
     reference's PhaseState or the core's held one)."""
+    sample_state: Callable = _SampleStateReference
+    """The Pipeline's per-sample fields (service/hot_path.py SampleState, or the core's twin)."""
+    hot_run: Callable | None = None
+    """The per-sample hot path behind Pipeline.on_imu_batch (estimators._core.hot_run; None: on_imu
+    takes every sample)."""
 
 
 def _say(level: int, text: str) -> None:
@@ -155,4 +161,5 @@ def select(environ=os.environ) -> Backend:
                    polar_heading_attitude=core.polar_heading_attitude,
                    polar_heading_unseen=core.polar_heading_unseen,
                    heading_zero_rate_update=core.heading_zero_rate_update,
-                   **(dict(phase_step=core.phase_step) if _phases_ported() else {}))
+                   **(dict(phase_step=core.phase_step) if _phases_ported() else {}),
+                   **(dict(sample_state=core.SampleState, hot_run=core.hot_run) if core.HOT_PATH_AVAILABLE else {}))

@@ -31,6 +31,7 @@ import numpy as np
 
 from dataclasses import replace as dc_replace
 
+from estimators.azimuth import azimuth_output
 from estimators.azimuth import (AzimuthOutput, AzimuthParams, azimuth_apply_solve, azimuth_init,
                                 azimuth_launch, azimuth_prelaunch_step, azimuth_step)
 from estimators.declination import (DeclinationParams, RestState, estimate_declination,
@@ -55,6 +56,7 @@ from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent,
                                        synthetic_ahrs_unseen)
 from mavlink_io.samples import FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, ImuSample, PressureSample
 from service.core_backend import select as select_core
+from service.hot_path import batch_steps, sample_field
 from service.input_checks import InputCheckParams
 from service.heading_arbitration import (ArbitrationParams, ArbitrationState, SourceReading,
                                          arbitrate)
@@ -127,6 +129,20 @@ class PipelineCounters:
 class Pipeline:
     """Holds the estimator states; every update is a pure step on them."""
 
+    # the per-sample fields: ONE object (``_hs``) that on_imu and the core's hot path
+    # (service/hot_path.py, on_imu_batch) both read and write
+    last_time_fc_s = sample_field("last_time_fc_s", "The last used IMU sample's FC time (None before one).")
+    _last_rx_s = sample_field("last_rx_s")
+    _filter_due_s = sample_field("filter_due_s")
+    _acc_gyro = sample_field("acc_gyro")
+    _acc_accel = sample_field("acc_accel")
+    _acc_n = sample_field("acc_n")
+    _acc_mag = sample_field("acc_mag")
+    _out = sample_field("out")
+    _out_bias_body_rad_s = sample_field("out_bias_body_rad_s")
+    _out_rx_s = sample_field("out_rx_s")
+    _out_gyro_s = sample_field("out_gyro_s")
+
     def __init__(self, cfg: dict, kf1_learn: Kf1State | None = None, kf1_applied: Kf1State | None = None,
                  solver=None, deviation: DeviationState | None = None):
         """``solver``: where method A's re-solves run (service/solver.py); None = inline, inside
@@ -153,6 +169,8 @@ class Pipeline:
         self.strapdown_params = StrapdownParams(max_dt_s=cfg["mavlink"]["imu_gap_s"])
         self.core = select_core()
         """The compiled core or the Python reference for the ported parts (service/core_backend.py)."""
+        self._hs = self.core.sample_state()
+        """The per-sample fields (service/hot_path.py): the core's object, or the reference's."""
         # q_body_from_sensor: the sensor axes' attitude in the body frame (configured mount)
         self.q_body_from_sensor = quat_from_euler(math.radians(imu["mount_roll_deg"]),
                                                   math.radians(imu["mount_pitch_deg"]),
@@ -206,7 +224,9 @@ class Pipeline:
         self.solver = solver if solver is not None else InlineSolver()
         self._next_solve_s = -math.inf
         self.azimuth = azimuth_init(self.azimuth_params)
-        self.azimuth_out: AzimuthOutput | None = None
+        self._azimuth_out: AzimuthOutput | None = None
+        self._azimuth_out_due: tuple | None = None
+        """(AzimuthState, time) of A's last step by the hot path: its output, built when read."""
         self._azimuth_status = ""
 
         # method B
@@ -288,7 +308,7 @@ class Pipeline:
         self._out: OutputState | None = None
         self._out_sol: NavSolution | None = None
         self._out_bias_body_rad_s = np.zeros(3)
-        self._out_sample: ImuSample | None = None
+        self._out_rx_s, self._out_gyro_s = None, None   # the sample _out was last turned to
 
         self.phase = PhaseState()
         self.strapdown: StrapdownState | None = None
@@ -318,11 +338,26 @@ class Pipeline:
 
     # --- inputs -------------------------------------------------------------------------------
 
-    def on_imu(self, s: ImuSample) -> NavSolution | None:
+    @property
+    def azimuth_out(self) -> AzimuthOutput | None:
+        """Method A's output at its last step (None: not run, or disabled)."""
+        due = self._azimuth_out_due
+        if due is not None:
+            self._azimuth_out, self._azimuth_out_due = azimuth_output(*due), None
+        return self._azimuth_out
+
+    @azimuth_out.setter
+    def azimuth_out(self, out: AzimuthOutput | None) -> None:
+        self._azimuth_out, self._azimuth_out_due = out, None
+
+    def on_imu(self, s: ImuSample, verdict=None) -> NavSolution | None:
+        """One IMU sample. ``verdict``: the input checks' verdict on it when they already ran (the
+        hot path of ``on_imu_batch``: each sample is checked once)."""
         gyro_s, accel_s, t = s.gyro_rad_s, s.accel_m_s2, s.time_fc_s
         if self.vehicle.pending:  # a fixed wing's take-off parameters never answered: decide without them
             self._vehicle_chosen(self.vehicle.poll(s.time_rx_s))
-        verdict = self.input_checks.check(s)  # service/input_checks.py: bad values never reach the estimators
+        if verdict is None:  # service/input_checks.py: bad values never reach the estimators
+            verdict = self.input_checks.check(s)
         for ev in verdict.events:
             self._event(*ev)
         if verdict.reset:
@@ -385,7 +420,7 @@ class Pipeline:
             if self._out is not None:
                 self._out = output_step(self._out, t, self.C_body_from_sensor @ gyro_s, self._out_bias_body_rad_s,
                                         self.polar_att_params.max_dt_s)
-                self._out_sample = s
+                self._out_rx_s, self._out_gyro_s = s.time_rx_s, s.gyro_rad_s
             return None
         # slots advance by one period, so the mean rate is exact under timestamp jitter
         self._filter_due_s += self.filter_period_s
@@ -451,7 +486,8 @@ class Pipeline:
             self._deviation_learn(sol, mag_b_meas, t)
         has_q = att is not None and sol.q_nav_from_body is not None
         self._out = output_reset(sol.q_nav_from_body, t) if has_q else None
-        self._out_sol, self._out_sample = (sol, s) if has_q else (None, None)
+        self._out_sol = sol if has_q else None
+        self._out_rx_s, self._out_gyro_s = (s.time_rx_s, s.gyro_rad_s) if has_q else (None, None)
         if has_q:
             self._out_bias_body_rad_s = att.gyro_bias_rad_s
         return sol
@@ -460,14 +496,17 @@ class Pipeline:
         """The IMU samples of one read (mavlink_io.imu_batch: IMU_RECORD rows in FC time order) ->
         the filter-rate solutions they produced, in order; what on_imu does to each sample, events
         included (drain_events after the batch); propagated_solution() then brings the last one to
-        the batch's newest sample. Today a loop over on_imu; the compiled core's batch API takes
-        the rows as they are (issue 19 item 3) behind this signature."""
-        out = []
-        for s in batch.samples():
-            sol = self.on_imu(s)
-            if sol is not None:
-                out.append(sol)
-        return out
+        the batch's newest sample. With the compiled core, the quiet samples (no filter step, no
+        event, nothing decided: service/hot_path.py) are taken in C++ (core/hot_path.hpp) and
+        on_imu handles the others; with the reference, on_imu handles every sample."""
+        return [sol for _, sol in batch_steps(self, batch) if sol is not None]
+
+    def imu_batch_steps(self, batch: ImuBatch, samples: list[ImuSample] | None = None):
+        """``on_imu_batch`` one handled sample at a time: yields (row, solution or None) for each row
+        on_imu handled (a caller that drains the events per sample, as a replay does: the rows the
+        core took give no solution and no event). ``samples``: the rows as ImuSample objects, when
+        the caller has them."""
+        return batch_steps(self, batch, samples)
 
     def propagated_solution(self) -> NavSolution | None:
         """The last filter step's solution brought to the newest IMU sample (what the daemon sends
@@ -476,17 +515,17 @@ class Pipeline:
         the newest body rates; sigmas, sources and flags as of the filter step (they change by far
         less than they state over one filter period). The solution itself right after a filter step;
         None before C's attitude filter has levelled or after a sample interval it cannot integrate."""
-        o, sol, s = self._out, self._out_sol, self._out_sample
+        o, sol = self._out, self._out_sol
         if o is None or sol is None:
             return None
         if o.time_s == sol.time_fc_s:
             return sol
         q = np.array(o.q_nav_from_body)
         roll, pitch, yaw = euler_from_quat(q)
-        return dc_replace(sol, time_fc_s=o.time_s, time_rx_s=s.time_rx_s, phase=self.phase.phase,
+        return dc_replace(sol, time_fc_s=o.time_s, time_rx_s=self._out_rx_s, phase=self.phase.phase,
                           q_nav_from_body=q, roll_rad=roll, pitch_rad=pitch,
                           heading_rad=wrap_2pi(yaw) if sol.heading_rad is not None else None,
-                          rates_body_rad_s=self.C_body_from_sensor @ (s.gyro_rad_s - self.gyro_bias_rad_s))
+                          rates_body_rad_s=self.C_body_from_sensor @ (self._out_gyro_s - self.gyro_bias_rad_s))
 
     def on_pressure(self, s: PressureSample) -> None:
         self.pressure = s

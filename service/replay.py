@@ -262,6 +262,11 @@ def _guarded(reader):
         yield item
 
 
+IMU_BATCH_MAX = 512
+"""The most IMU samples a replay hands the Pipeline at once (a log's run of IMU records between two
+other items is usually far shorter)."""
+
+
 def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = REF_MAX_AGE_S,
                out_period_s: float = 0.0, progress: bool | None = False) -> ReplayResult:
     """Feed every item of ``reader`` to a fresh Pipeline; write the CSV; return the rows."""
@@ -299,6 +304,74 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
     cols = res.cols
     ident = getattr(reader.summary, "fc_identity", None)
     identity_due = ident is not None and pipe.vehicle.pending   # a log without HEARTBEAT: its own word
+    from service.hot_path import batch_of
+
+    def row(sol) -> None:
+        """One filter-rate solution into the rows (and the CSV)."""
+        nonlocal last_phase, next_out_s
+        if sol.phase != last_phase:
+            res.phases.append((sol.phase, sol.time_fc_s))
+            last_phase = sol.phase
+        if sol.time_fc_s < next_out_s:
+            return
+        next_out_s = sol.time_fc_s + out_period_s if out_period_s > 0 else -math.inf
+        row_ref = ref if (ref is not None and abs(sol.time_fc_s - ref.time_fc_s) <= ref_max_age_s) else None
+        hdg = sol.heading_rad if (sol.heading_valid and sol.heading_rad is not None) else None
+        vals = {
+            "roll_deg": _deg(sol.roll_rad), "pitch_deg": _deg(sol.pitch_rad),
+            "heading_deg": _deg(hdg) % 360.0 if hdg is not None else math.nan,
+            "heading_sigma_deg": _deg(sol.heading_sigma_rad) if hdg is not None else math.nan,
+            "azimuth_deg": _deg(sol.azimuth_rad) % 360.0 if sol.azimuth_rad is not None else math.nan,
+            "azimuth_sigma_deg": _deg(sol.azimuth_sigma_rad),
+            "ref_roll_deg": _deg(row_ref.roll_rad) if row_ref else math.nan,
+            "ref_pitch_deg": _deg(row_ref.pitch_rad) if row_ref else math.nan,
+            "ref_heading_deg": (_deg(row_ref.yaw_rad) % 360.0) if row_ref else math.nan,
+        }
+        res.time_s.append(sol.time_fc_s)
+        res.phase.append(sol.phase)
+        src = sol.heading_source if hdg is not None else "none"
+        res.heading_source.append(src)
+        res.roll_sigma_deg.append(_deg(sol.roll_sigma_rad))
+        res.pitch_sigma_deg.append(_deg(sol.pitch_sigma_rad))
+        for k, v in vals.items():
+            cols[k].append(v)
+        if writer is not None:
+            writer.writerow([f"{sol.time_fc_s:.6f}", sol.phase, _fmt(vals["roll_deg"]),
+                             _fmt(vals["pitch_deg"]), _fmt(vals["heading_deg"]),
+                             _fmt(vals["heading_sigma_deg"]), src, _fmt(vals["azimuth_deg"]),
+                             _fmt(vals["azimuth_sigma_deg"]), _fmt(vals["ref_roll_deg"]),
+                             _fmt(vals["ref_pitch_deg"]), _fmt(vals["ref_heading_deg"]),
+                             *aiding.csv_row(pipe.aiding)])
+
+    pending: list = []
+    """Consecutive IMU samples of one source not fed yet: one Pipeline.on_imu_batch (the daemon's
+    batch path; the compiled core takes the quiet ones in C++), cut at every other item."""
+
+    def feed_imu() -> None:
+        nonlocal t_pipe
+        run = pending[:]
+        pending.clear()
+        # events the other items raised since the last sample: on_imu's drain gave them the next
+        # sample's time, this batch's first
+        before = pipe.drain_events()
+        t0 = perf()
+        for i, sol in pipe.imu_batch_steps(batch_of(run), run):
+            t_pipe += perf() - t0
+            if before:
+                res.events += [(run[0].time_fc_s, *ev) for ev in before]
+                before = []
+            t = run[i].time_fc_s
+            for ev in pipe.drain_events():
+                res.events.append((t, *ev))
+            if sol is not None:
+                row(sol)
+            t0 = perf()
+        t_pipe += perf() - t0
+        res.events += [(run[0].time_fc_s, *ev) for ev in before]
+        n = cnt["imu"]
+        if n // 256 != (n - len(run)) // 256:
+            prog.update(reader.progress(), run[-1].time_fc_s, n)
+
     try:
         for item in _guarded(reader):
             cls = type(item)
@@ -306,55 +379,19 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
                 identity_due = False
                 pipe.on_fc_identity(ident.mav_type, ident.autopilot, ident.params, item.time_rx_s, ident.source)
             if cls is ImuSample:
+                if pending and (item.source != pending[0].source or len(pending) >= IMU_BATCH_MAX):
+                    feed_imu()
                 cnt["imu"] += 1
                 cnt["imu_with_mag"] += item.mag_gauss is not None
                 imu_sources[item.source] = imu_sources.get(item.source, 0) + 1
                 span = cnt["imu_time_span_s"]
                 span[0] = min(span[0], item.time_fc_s)
                 span[1] = max(span[1], item.time_fc_s)
-                t0 = perf()
-                sol = pipe.on_imu(item)
-                t_pipe += perf() - t0
-                for ev in pipe.drain_events():
-                    res.events.append((item.time_fc_s, *ev))
-                if cnt["imu"] % 256 == 0:
-                    prog.update(reader.progress(), item.time_fc_s, cnt["imu"])
-                if sol is None:
-                    continue
-                if sol.phase != last_phase:
-                    res.phases.append((sol.phase, sol.time_fc_s))
-                    last_phase = sol.phase
-                if sol.time_fc_s < next_out_s:
-                    continue
-                next_out_s = sol.time_fc_s + out_period_s if out_period_s > 0 else -math.inf
-                row_ref = ref if (ref is not None and abs(sol.time_fc_s - ref.time_fc_s) <= ref_max_age_s) else None
-                hdg = sol.heading_rad if (sol.heading_valid and sol.heading_rad is not None) else None
-                vals = {
-                    "roll_deg": _deg(sol.roll_rad), "pitch_deg": _deg(sol.pitch_rad),
-                    "heading_deg": _deg(hdg) % 360.0 if hdg is not None else math.nan,
-                    "heading_sigma_deg": _deg(sol.heading_sigma_rad) if hdg is not None else math.nan,
-                    "azimuth_deg": _deg(sol.azimuth_rad) % 360.0 if sol.azimuth_rad is not None else math.nan,
-                    "azimuth_sigma_deg": _deg(sol.azimuth_sigma_rad),
-                    "ref_roll_deg": _deg(row_ref.roll_rad) if row_ref else math.nan,
-                    "ref_pitch_deg": _deg(row_ref.pitch_rad) if row_ref else math.nan,
-                    "ref_heading_deg": (_deg(row_ref.yaw_rad) % 360.0) if row_ref else math.nan,
-                }
-                res.time_s.append(sol.time_fc_s)
-                res.phase.append(sol.phase)
-                src = sol.heading_source if hdg is not None else "none"
-                res.heading_source.append(src)
-                res.roll_sigma_deg.append(_deg(sol.roll_sigma_rad))
-                res.pitch_sigma_deg.append(_deg(sol.pitch_sigma_rad))
-                for k, v in vals.items():
-                    cols[k].append(v)
-                if writer is not None:
-                    writer.writerow([f"{sol.time_fc_s:.6f}", sol.phase, _fmt(vals["roll_deg"]),
-                                     _fmt(vals["pitch_deg"]), _fmt(vals["heading_deg"]),
-                                     _fmt(vals["heading_sigma_deg"]), src, _fmt(vals["azimuth_deg"]),
-                                     _fmt(vals["azimuth_sigma_deg"]), _fmt(vals["ref_roll_deg"]),
-                                     _fmt(vals["ref_pitch_deg"]), _fmt(vals["ref_heading_deg"]),
-                                     *aiding.csv_row(pipe.aiding)])
-            elif cls is FcAttitude:
+                pending.append(item)
+                continue
+            if pending:
+                feed_imu()
+            if cls is FcAttitude:
                 cnt["attitude"] += 1
                 ref = item
                 pipe.on_fc_attitude(item)
@@ -374,6 +411,8 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
                 fn = handlers.get(cls)
                 if fn is not None:
                     fn(item)
+        if pending:
+            feed_imu()
     except BaseException:
         if fh is not None:
             fh.close()

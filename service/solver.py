@@ -77,6 +77,10 @@ class InlineSolver:
         r, self._result = self._result, None
         return r
 
+    def ready(self) -> bool:
+        """``poll`` would return a result now (the Pipeline's hot path leaves such a sample to Python)."""
+        return self._result is not None
+
     def close(self) -> None:
         pass
 
@@ -121,6 +125,12 @@ class BackgroundSolver:
             self.failures += 1
             log.error("azimuth solve failed", extra={"fields": {"error": repr(exc)}})
         return None
+
+    def ready(self) -> bool:
+        """``poll`` would return a result (or a failure to report) now."""
+        if self._pool is None:
+            return self._inline.ready()
+        return self._future is not None and self._future.done()
 
     def _restart(self, exc: BaseException) -> None:
         self.failures += 1

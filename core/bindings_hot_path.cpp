@@ -1,0 +1,213 @@
+// estimators._core: the Pipeline's per-sample hot path (core/hot_path.hpp).
+// - SampleState: the Pipeline's per-sample fields (service/pipeline.py reads and writes them as
+//   attributes: last_time_fc_s, _acc_gyro, _out ...), the one state Python's on_imu and hot_run share;
+// - AzimuthRun: method A's per-sample state for one run, from and back to the AzimuthState;
+// - hot_run: the quiet samples of a batch. The Python face is estimators/core.py (hot-path section).
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+
+#include <stdexcept>
+#include <string>
+
+#include "hot_path.hpp"
+
+namespace py = pybind11;
+using namespace azimuthd;
+using ArrayC = py::array_t<double, py::array::c_style | py::array::forcecast>;
+
+namespace {
+
+void take(const py::handle& obj, double* out, py::ssize_t n, const char* name) {
+    ArrayC a = ArrayC::ensure(obj);
+    if (!a || a.size() != n)
+        throw std::invalid_argument(std::string(name) + ": " + std::to_string(n) + " numbers expected");
+    const double* d = a.data();
+    for (py::ssize_t i = 0; i < n; ++i) out[i] = d[i];
+}
+
+ArrayC give(const double* x, py::ssize_t n) {
+    ArrayC a(n);
+    for (py::ssize_t i = 0; i < n; ++i) a.mutable_data()[i] = x[i];
+    return a;
+}
+
+py::object opt_float(bool has, double v) { return has ? py::object(py::float_(v)) : py::object(py::none()); }
+
+py::object output_state_class() {
+    return py::module_::import("estimators.output_propagation").attr("OutputState");
+}
+
+py::object out_get(const SampleState& h) {
+    if (!h.out.has) return py::none();
+    const OutputProp& o = h.out;
+    py::object inc = o.has_inc ? py::object(py::make_tuple(o.inc[0], o.inc[1], o.inc[2])) : py::object(py::none());
+    return output_state_class()(py::make_tuple(o.q[0], o.q[1], o.q[2], o.q[3]), o.time_s, inc);
+}
+
+void out_set(SampleState& h, const py::object& v) {
+    if (v.is_none()) {
+        h.out.has = false;
+        return;
+    }
+    OutputProp o;
+    o.has = true;
+    take(v.attr("q_nav_from_body"), o.q, 4, "OutputState.q_nav_from_body");
+    o.time_s = v.attr("time_s").cast<double>();
+    py::object inc = v.attr("increment_prev");
+    o.has_inc = !inc.is_none();
+    if (o.has_inc) take(inc, o.inc, 3, "OutputState.increment_prev");
+    h.out = o;
+}
+
+py::tuple sample_state_get(const SampleState& h) {
+    return py::make_tuple(opt_float(h.has_last_time, h.last_time_fc_s), opt_float(h.has_last_rx, h.last_rx_s),
+                          h.filter_due_s, give(h.acc_gyro, 3), give(h.acc_accel, 3), h.acc_n,
+                          h.has_acc_mag ? py::object(give(h.acc_mag, 3)) : py::object(py::none()), out_get(h),
+                          give(h.out_bias_body, 3), opt_float(h.has_out_sample, h.out_rx_s),
+                          h.has_out_sample ? py::object(give(h.out_gyro, 3)) : py::object(py::none()));
+}
+
+}  // namespace
+
+void bind_hot_path(py::module_& m) {
+    py::class_<SampleState>(m, "SampleState")
+        .def(py::init<>())
+        .def_property("last_time_fc_s", [](const SampleState& h) { return opt_float(h.has_last_time, h.last_time_fc_s); },
+                      [](SampleState& h, const py::object& v) {
+                          h.has_last_time = !v.is_none();
+                          h.last_time_fc_s = h.has_last_time ? v.cast<double>() : 0.0;
+                      })
+        .def_property("last_rx_s", [](const SampleState& h) { return opt_float(h.has_last_rx, h.last_rx_s); },
+                      [](SampleState& h, const py::object& v) {
+                          h.has_last_rx = !v.is_none();
+                          h.last_rx_s = h.has_last_rx ? v.cast<double>() : 0.0;
+                      })
+        .def_readwrite("filter_due_s", &SampleState::filter_due_s)
+        .def_property("acc_gyro", [](const SampleState& h) { return give(h.acc_gyro, 3); },
+                      [](SampleState& h, const py::object& v) { take(v, h.acc_gyro, 3, "acc_gyro"); })
+        .def_property("acc_accel", [](const SampleState& h) { return give(h.acc_accel, 3); },
+                      [](SampleState& h, const py::object& v) { take(v, h.acc_accel, 3, "acc_accel"); })
+        .def_readwrite("acc_n", &SampleState::acc_n)
+        .def_property("acc_mag",
+                      [](const SampleState& h) {
+                          return h.has_acc_mag ? py::object(give(h.acc_mag, 3)) : py::object(py::none());
+                      },
+                      [](SampleState& h, const py::object& v) {
+                          h.has_acc_mag = !v.is_none();
+                          if (h.has_acc_mag) take(v, h.acc_mag, 3, "acc_mag");
+                      })
+        .def_property("out", &out_get, &out_set)
+        .def_property("out_bias_body_rad_s", [](const SampleState& h) { return give(h.out_bias_body, 3); },
+                      [](SampleState& h, const py::object& v) { take(v, h.out_bias_body, 3, "out_bias_body_rad_s"); })
+        .def_property("out_rx_s", [](const SampleState& h) { return opt_float(h.has_out_sample, h.out_rx_s); },
+                      [](SampleState& h, const py::object& v) {
+                          h.has_out_sample = !v.is_none();
+                          h.out_rx_s = h.has_out_sample ? v.cast<double>() : 0.0;
+                      })
+        .def_property("out_gyro_s",
+                      [](const SampleState& h) {
+                          return h.has_out_sample ? py::object(give(h.out_gyro, 3)) : py::object(py::none());
+                      },
+                      [](SampleState& h, const py::object& v) {
+                          if (!v.is_none()) take(v, h.out_gyro, 3, "out_gyro_s");
+                      })
+        .def("get_state", &sample_state_get, "Every field, as a tuple (the pickle form).")
+        .def(py::pickle(&sample_state_get, [](const py::tuple& s) {
+            if (s.size() != 11) throw std::invalid_argument("SampleState: 11 fields expected");
+            SampleState h;
+            py::object self = py::cast(SampleState());  // setters through a temporary Python object
+            self.attr("last_time_fc_s") = s[0];
+            self.attr("last_rx_s") = s[1];
+            self.attr("filter_due_s") = s[2];
+            self.attr("acc_gyro") = s[3];
+            self.attr("acc_accel") = s[4];
+            self.attr("acc_n") = s[5];
+            self.attr("acc_mag") = s[6];
+            self.attr("out") = s[7];
+            self.attr("out_bias_body_rad_s") = s[8];
+            self.attr("out_rx_s") = s[9];
+            self.attr("out_gyro_s") = s[10];
+            h = self.cast<SampleState>();
+            return h;
+        }));
+
+    py::class_<AzimuthRun>(m, "AzimuthRun")
+        .def(py::init<>(), "Method A not stepped by the run.")
+        .def(py::init([](const py::object& q, bool has_prev, double time_prev_s, const py::object& gyro_prev,
+                         const py::object& G, const py::object& C, const py::object& bias, double max_dt_s,
+                         double launch_time_s, double mag_skip_after_launch_s, double mag_decimation_s,
+                         long long max_fit_samples, long long n_samples, double last_mag_s, double last_solve_s,
+                         double solve_period_s, double next_solve_s, bool submit_phase) {
+                 AzimuthRun a;
+                 a.active = true;
+                 take(q, a.sd.q_ref_from_sensor, 4, "q_ref_from_sensor");
+                 a.sd.has_prev = has_prev;
+                 a.sd.time_prev_s = time_prev_s;
+                 if (has_prev) take(gyro_prev, a.sd.gyro_prev_rad_s, 3, "gyro_prev_rad_s");
+                 take(G, a.G, 36, "G_gyro");
+                 take(C, a.C, 9, "C_isf_sf");
+                 take(bias, a.bias, 3, "gyro_bias_rad_s");
+                 a.max_dt_s = max_dt_s;
+                 a.launch_time_s = launch_time_s;
+                 a.mag_skip_after_launch_s = mag_skip_after_launch_s;
+                 a.mag_decimation_s = mag_decimation_s;
+                 a.max_fit_samples = max_fit_samples;
+                 a.n_samples = n_samples;
+                 a.last_mag_s = last_mag_s;
+                 a.last_solve_s = last_solve_s;
+                 a.solve_period_s = solve_period_s;
+                 a.next_solve_s = next_solve_s;
+                 a.submit_phase = submit_phase;
+                 return a;
+             }),
+             py::arg("q_ref_from_sensor"), py::arg("has_prev"), py::arg("time_prev_s"), py::arg("gyro_prev_rad_s"),
+             py::arg("G_gyro"), py::arg("C_isf_sf"), py::arg("gyro_bias_rad_s"), py::arg("max_dt_s"),
+             py::arg("launch_time_s"), py::arg("mag_skip_after_launch_s"), py::arg("mag_decimation_s"),
+             py::arg("max_fit_samples"), py::arg("n_samples"), py::arg("last_mag_s"), py::arg("last_solve_s"),
+             py::arg("solve_period_s"), py::arg("next_solve_s"), py::arg("submit_phase"))
+        .def_readonly("active", &AzimuthRun::active)
+        .def("result",
+             [](AzimuthRun& a) {
+                 ArrayC G({py::ssize_t(3), py::ssize_t(12)}), C({py::ssize_t(3), py::ssize_t(3)});
+                 for (int k = 0; k < 36; ++k) G.mutable_data()[k] = a.G[k];
+                 for (int k = 0; k < 9; ++k) C.mutable_data()[k] = a.C[k];
+                 const py::ssize_t nr = static_cast<py::ssize_t>(a.rec.size() / AzimuthRun::REC);
+                 ArrayC rec({nr, py::ssize_t(AzimuthRun::REC)});
+                 for (size_t k = 0; k < a.rec.size(); ++k) rec.mutable_data()[k] = a.rec[k];
+                 a.rec.clear();
+                 return py::make_tuple(give(a.sd.q_ref_from_sensor, 4), a.sd.time_prev_s, give(a.sd.gyro_prev_rad_s, 3),
+                                       G, C, a.last_mag_s, rec);
+             },
+             "(q, time_prev_s, gyro_prev_rad_s, G (3, 12), C_isf_sf, last_mag_s, stored samples (k, 49): time, h "
+             "(3), C_sf_from_isf (9), G (36)); the stored samples are handed over (cleared here).");
+
+    m.attr("HOT_STOP_END") = static_cast<int>(HS_END);
+    m.def("hot_run",
+          [](SampleState& h, InputChecks& ic, py::object strapdown, AzimuthRun& a, const ArrayC& rows, long start,
+             const py::object& gyro_bias, const py::object& C_bs, double strapdown_max_dt_s, double out_max_dt_s,
+             double filter_period_s, bool int16_source) {
+              if (rows.ndim() != 2 || rows.shape(1) < 11)
+                  throw std::invalid_argument("rows: IMU_RECORD rows as an (N, >= 11) float64 block expected");
+              StrapdownState* sd = strapdown.is_none() ? nullptr : strapdown.cast<StrapdownState*>();
+              HotInputs in{};
+              take(gyro_bias, in.gyro_bias, 3, "gyro_bias_rad_s");
+              take(C_bs, in.C_bs, 9, "C_body_from_sensor");
+              in.strapdown_max_dt_s = strapdown_max_dt_s;
+              in.out_max_dt_s = out_max_dt_s;
+              in.filter_period_s = filter_period_s;
+              in.int16_source = int16_source;
+              const long n = static_cast<long>(rows.shape(0));
+              if (start < 0 || start > n) throw std::invalid_argument("start: outside the rows");
+              int verdict = 0;
+              bool checked = false;
+              long handled = 0;
+              const long stop = hot_run(h, ic, sd, a, in, rows.data(), n, static_cast<long>(rows.shape(1)), start,
+                                        verdict, checked, handled);
+              return py::make_tuple(stop, verdict, checked, handled);
+          },
+          py::arg("state"), py::arg("checks"), py::arg("strapdown"), py::arg("azimuth"), py::arg("rows"),
+          py::arg("start"), py::arg("gyro_bias_rad_s"), py::arg("C_body_from_sensor"), py::arg("strapdown_max_dt_s"),
+          py::arg("out_max_dt_s"), py::arg("filter_period_s"), py::arg("int16_source"),
+          "The quiet rows from `start`: (first row not handled (N: all), its input-check verdict, whether its "
+          "check ran, rows handled).");
+}
