@@ -120,6 +120,7 @@ py::dict state_dict(const State& s) {
     d["acc_n"] = s.acc_n;
     d["acc_dt_s"] = s.acc_dt_s;
     d["acc_f_sum_m_s2"] = np1(s.acc_f_sum_m_s2);
+    d["acc_f_sq_sum_m2_s4"] = np1(s.acc_f_sq_sum_m2_s4);
     d["acc_down_sum"] = np1(s.acc_down_sum);
     d["acc_q_b0_from_b"] = np1(s.acc_q_b0_from_b);
     d["acc_C_BP_start"] = np2(s.acc_C_BP_start.data(), 3, 3);
@@ -148,6 +149,8 @@ State state_from(const py::dict& d) {
     s.acc_n = d["acc_n"].cast<long>();
     s.acc_dt_s = d["acc_dt_s"].cast<double>();
     s.acc_f_sum_m_s2 = arr<3>(d["acc_f_sum_m_s2"], "acc_f_sum_m_s2");
+    if (d.contains("acc_f_sq_sum_m2_s4"))   // a record from before the field: zeros, as its default
+        s.acc_f_sq_sum_m2_s4 = arr<3>(d["acc_f_sq_sum_m2_s4"], "acc_f_sq_sum_m2_s4");
     s.acc_down_sum = arr<3>(d["acc_down_sum"], "acc_down_sum");
     s.acc_q_b0_from_b = arr<4>(d["acc_q_b0_from_b"], "acc_q_b0_from_b");
     s.acc_C_BP_start = arr<9>(d["acc_C_BP_start"], "acc_C_BP_start");

@@ -50,6 +50,7 @@ struct State {
     long acc_n = 0;
     double acc_dt_s = 0.0;
     V3 acc_f_sum_m_s2{};
+    V3 acc_f_sq_sum_m2_s4{};
     V3 acc_down_sum{};
     Q4 acc_q_b0_from_b{1.0, 0.0, 0.0, 0.0};
     M3 acc_C_BP_start{1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0};
@@ -552,11 +553,23 @@ inline Diag update(State& st, const Params& p) {
     return dg;
 }
 
+// _levelled_tilt_sigma_rad: init_tilt_sigma_rad, or the levelling window's scatter
+// sqrt(tr Cov(f)) / |fm| when larger (at most unseen_max_sigma_rad)
+inline double levelled_tilt_sigma(const State& s, const V3& fm, const Params& p) {
+    const double n = static_cast<double>(s.acc_n);
+    double var = 0.0;
+    for (int i = 0; i < 3; ++i) var += std::max(s.acc_f_sq_sum_m2_s4[i] / n - fm[i] * fm[i], 0.0);
+    const double g2 = fm[0] * fm[0] + fm[1] * fm[1] + fm[2] * fm[2];
+    if (var <= p.init_tilt_sigma_rad * p.init_tilt_sigma_rad * g2) return p.init_tilt_sigma_rad;
+    return std::min(std::sqrt(var / g2), p.unseen_max_sigma_rad);
+}
+
 // _init_step: the specific force averaged over init_period_s levels the filter
 inline Diag init_step(State& s, double time_s, const V3& w, const V3& f, const Params& p) {
     if (!s.has_time) { s.has_time = true; s.time_s = time_s; }
     s.acc_n += 1;
     s.acc_f_sum_m_s2 = add3(s.acc_f_sum_m_s2, f);
+    for (int i = 0; i < 3; ++i) s.acc_f_sq_sum_m2_s4[i] += f[i] * f[i];
     Diag d;
     if (time_s - s.time_s + 1e-9 < p.init_period_s) {
         d.code = LEVELLING;
@@ -573,7 +586,7 @@ inline Diag init_step(State& s, double time_s, const V3& w, const V3& f, const P
     n.time_s = time_s;
     n.q_P_from_body = q;
     n.x_hat = s.x_hat;
-    n.P = initial_covariance(C_BP, p, p.init_tilt_sigma_rad, s.has_bias_prior_sigma, s.bias_prior_sigma_rad_s);
+    n.P = initial_covariance(C_BP, p, levelled_tilt_sigma(s, fm, p), s.has_bias_prior_sigma, s.bias_prior_sigma_rad_s);
     n.has_gyro_prev = true;
     n.gyro_prev_rad_s = w;
     n.acc_C_BP_start = C_BP;

@@ -129,9 +129,16 @@ class PolarAttitudeParams:
     """Gyro angle random walk (rad/s/sqrt(Hz))."""
     gyro_bias_init_sigma_rad_s: float = math.radians(0.5)
     """Prior sigma of the gyro bias at start (turn-on bias, rad/s) unless given at init."""
-    gyro_bias_sigma_rad_s: float = math.radians(0.05)
-    """Steady-state sigma of the gyro bias GM process (in-run instability, rad/s)."""
-    gyro_bias_tau_s: float = 1800.0
+    gyro_bias_sigma_rad_s: float = math.radians(0.2)
+    """Steady-state sigma of the gyro bias GM process (rad/s): how far the bias moves in flight from
+    what was measured at rest (the zero-rate updates pin it to ~0.005 deg/s before the launch). A
+    MEMS gyro's bias follows its temperature (motors, airflow), which moves it over minutes;
+    ArduPlane SITL's gyro drifts 0.05 deg/s per minute from boot (0.13 deg/s two minutes after
+    the launch). With 0.05 deg/s over 1800 s the bias could move 0.02 deg/s (1 sigma) in 150 s,
+    the tilt residual went into the accelerometer bias and roll lagged 1.5-2.3 deg on straight
+    legs. The intensity 2 sigma^2 / tau = 1.3e-4 (deg/s)^2/s is VQF's default (its bias
+    forgetting time: 0.1 deg/s per 100 s, 1e-4)."""
+    gyro_bias_tau_s: float = 600.0
     accel_noise_m_s2: float = 0.05
     """Per-sample white noise of the specific force (m/s^2); divided by the samples averaged."""
     accel_meas_floor_m_s2: float = 0.02
@@ -270,6 +277,8 @@ class PolarAttitudeState:
     acc_n: int = 0
     acc_dt_s: float = 0.0
     acc_f_sum_m_s2: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    acc_f_sq_sum_m2_s4: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    """Sum of the squared specific force per axis over the levelling window (``_init_step``)."""
     acc_down_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
     """Sum of the predicted down direction in B, C_BP_hat[:, 2], over the interval."""
     acc_q_b0_from_b: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0, 0.0]))
@@ -303,7 +312,7 @@ class PolarAttitudeState:
 
     @classmethod
     def from_dict(cls, d: dict) -> "PolarAttitudeState":
-        arrays = {"q_P_from_body", "x_hat", "P", "gyro_prev_rad_s", "acc_f_sum_m_s2",
+        arrays = {"q_P_from_body", "x_hat", "P", "gyro_prev_rad_s", "acc_f_sum_m_s2", "acc_f_sq_sum_m2_s4",
                   "acc_down_sum", "acc_q_b0_from_b", "acc_C_BP_start", "z_prev_m_s2",
                   "rest_f_sum_m_s2"}
         kw = {k: (np.array(v, dtype=float) if (k in arrays and v is not None) else v)
@@ -561,7 +570,8 @@ def _down_mean_over_sample(q0: np.ndarray, q1: np.ndarray, W_hat: np.ndarray, dt
 
 def _init_step(state, time_s, w, f, params):
     st = replace(state, time_s=time_s if state.time_s is None else state.time_s,
-                 acc_n=state.acc_n + 1, acc_f_sum_m_s2=state.acc_f_sum_m_s2 + f)
+                 acc_n=state.acc_n + 1, acc_f_sum_m_s2=state.acc_f_sum_m_s2 + f,
+                 acc_f_sq_sum_m2_s4=state.acc_f_sq_sum_m2_s4 + f * f)
     if time_s - st.time_s + 1e-9 < params.init_period_s:
         return st, PolarAttitudeDiag(reason="levelling")
     fm = st.acc_f_sum_m_s2 / st.acc_n
@@ -569,12 +579,31 @@ def _init_step(state, time_s, w, f, params):
     pitch = math.atan2(fm[0], math.hypot(fm[1], fm[2]))
     q = quat_from_euler(roll, pitch, 0.0)
     C_BP = dcm_from_quat(q).T
+    sigma = _levelled_tilt_sigma_rad(st, fm, params)
     return PolarAttitudeState(initialised=True, time_s=time_s, q_P_from_body=q,
                               x_hat=state.x_hat.copy(),
-                              P=_initial_covariance(C_BP, params, state.bias_prior_sigma_rad_s),
+                              P=_initial_covariance(C_BP, replace(params, init_tilt_sigma_rad=sigma)
+                                                    if sigma != params.init_tilt_sigma_rad else params,
+                                                    state.bias_prior_sigma_rad_s),
                               gyro_prev_rad_s=w, acc_C_BP_start=C_BP,
                               bias_prior_sigma_rad_s=state.bias_prior_sigma_rad_s), PolarAttitudeDiag(
         reason="levelled")
+
+
+def _levelled_tilt_sigma_rad(st: PolarAttitudeState, fm: np.ndarray, p: PolarAttitudeParams) -> float:
+    """1-sigma of the tilt levelled on the mean specific force ``fm`` of the levelling window:
+    ``init_tilt_sigma_rad``, or the window's scatter when larger, sqrt(tr Cov(f)) / |fm| (at most
+    ``unseen_max_sigma_rad``). The mean is gravity only if the vehicle was still; a motion in
+    the window (ArduPlane SITL's first 0.1 s after boot reads -9.5 m/s^2 along x: the mean
+    levels the pitch 5.6 deg off) shows as scatter, and a prior that says so lets the first
+    updates move the tilt instead of splitting that error into the accelerometer bias, which a
+    still vehicle cannot tell from tilt (the pitch then stayed 1.2 deg off for the flight)."""
+    n = st.acc_n
+    var = float(np.sum(np.maximum(st.acc_f_sq_sum_m2_s4 / n - fm * fm, 0.0)))
+    g2 = float(fm @ fm)
+    if var <= p.init_tilt_sigma_rad ** 2 * g2:
+        return p.init_tilt_sigma_rad
+    return min(math.sqrt(var / g2), p.unseen_max_sigma_rad)
 
 
 def _gm(dt: float, tau: float, sigma: float) -> tuple[float, float]:

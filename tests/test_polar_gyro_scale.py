@@ -42,18 +42,27 @@ def _fly(params: PolarAttitudeParams, loops: int = 3, seed: int = 7):
 
 def test_given_a_gyro_scale_error_when_the_body_loops_then_the_scale_is_learnt_and_the_pitch_stays_within_sigma():
     rows, st = _fly(PolarAttitudeParams())
-    # THEN after every loop and its rest the pitch error is within 3 of its sigma (measured 0.51,
-    # 0.38, 0.23 deg against sigmas of 0.66, 0.65, 0.62), and the learnt scale of the looped axis is
-    # the gyro's to 0.1 % (measured 0.55 % of 0.6 %)
+    # THEN after every loop and its rest the pitch error is within 3 of its sigma (measured 0.46,
+    # 0.25, 0.04 deg against sigmas of 0.69, 0.70, 0.71), and the learnt scale of the looped axis is
+    # the gyro's to 0.15 % (measured 0.485 % of 0.6 %). With the in-run bias process of before
+    # 2026-12-02 (0.05 deg/s, 1800 s: it could not follow a gyro's drift in flight, see
+    # test_polar_gyro_drift) the scale came to 0.55 % and the pitch to 0.51, 0.38, 0.23 deg: the
+    # wider bias process takes part of each loop's tilt as a bias change
     assert all(abs(e) <= 3.0 * s for e, s in rows), rows
-    assert abs(st.x_hat[17] - SCALE_Y) < 0.001, st.x_hat[16:19]
+    assert abs(st.x_hat[17] - SCALE_Y) < 0.0015, st.x_hat[16:19]
     # the axes that did not turn learnt nothing (their scale stays at its prior mean)
     assert abs(st.x_hat[16]) < 1e-4 and abs(st.x_hat[18]) < 1e-4
 
 
-def test_without_the_scale_states_the_same_loops_leave_the_pitch_off_by_more_than_its_sigma():
+def test_without_the_scale_states_the_same_loops_leave_the_pitch_off_by_more():
     # the same flight with the scale prior ~0 (the filter before the states): each loop's 2.2 deg
-    # goes partly into the accelerometer bias, and the pitch error grows loop by loop beyond its
-    # sigma (measured 1.37, 2.58, 3.49 deg against sigmas of 0.50, 0.45, 0.43)
+    # goes into the gyro and accelerometer biases. With the in-run bias process of before
+    # 2026-12-02 (0.05 deg/s, 1800 s) the pitch error grew loop by loop beyond 3 sigma (1.37, 2.58,
+    # 3.49 deg against 0.50, 0.45, 0.43); the wider process (0.2 deg/s, 600 s) lets the bias states
+    # take more of it: 1.19, 1.14, 0.24 deg against 0.59, 0.68, 0.72, still over 2x the error
+    # with the scale states (RMS 0.95 vs 0.30 deg)
     rows, _ = _fly(PolarAttitudeParams(gyro_scale_sigma=1e-9))
-    assert any(abs(e) > 3.0 * s for e, s in rows), rows
+    with_scale, _ = _fly(PolarAttitudeParams())
+    rms = lambda r: math.sqrt(sum(e * e for e, _ in r) / len(r))
+    assert rms(rows) > 2.0 * rms(with_scale), (rows, with_scale)
+    assert any(abs(e) > s for e, s in rows), rows
