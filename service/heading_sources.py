@@ -47,6 +47,12 @@ B_CONSISTENCY_WINDOW_S = 5.0
 SOURCE_INCONSISTENT_AFTER_S = 2.0
 """Method C's magnetometer innovations gated out this long (s): not a heading candidate."""
 SUPERSEDED = "method A has a solution (it solves the magnetometer distortions; this source does not)"
+AZIMUTH_AGREES_CHI2 = 1.0
+"""Method A, once inconsistent, is given back only when its NIS against the check source is within
+this (1 sigma of the difference) for SOURCE_INCONSISTENT_AFTER_S, not merely within the gate: its
+disagreement seen while the check source was sharp stays evidence when that source's sigma grows
+again (synthetic_ahrs_accuracy flight 1: A dropped at 560 s 8 deg off B, back at ~600 s still
+6.7 deg off when B's heading-dependent sigma went 1.6 -> 2.4 deg)."""
 
 
 def azimuth_source(az, status: str, t: float, check: "AzimuthCheck | None" = None, checked_against: tuple = (),
@@ -78,8 +84,8 @@ class AzimuthCheck:
     consistent, finite, sigma > 0); it counts as evidence only when the other check sources agree
     with it (pairwise NIS <= gate: a check source contradicted by another says nothing about A).
     A's NIS against it, wrap(h_A - h_k)^2 / (s_A^2 + s_k^2), above ``gate_chi2`` for
-    ``SOURCE_INCONSISTENT_AFTER_S`` makes A inconsistent; within the gate as long gives it back
-    (a threshold crossed back and forth changes nothing before that). The variance of the
+    ``SOURCE_INCONSISTENT_AFTER_S`` makes A inconsistent; within ``AZIMUTH_AGREES_CHI2`` (1 sigma)
+    as long gives it back (a threshold crossed back and forth changes nothing before that). The variance of the
     difference is taken as the sum: A and the magnetometer sources share the field model's
     declination error, a positive correlation, so the true variance of the difference is smaller
     and the test errs towards keeping A. No check source at all: A stands (nothing contradicts it).
@@ -109,16 +115,21 @@ class AzimuthCheck:
                 self.inconsistent = True
         elif nis <= gate_chi2:
             self.bad_since_s = None
-            self.good_since_s = t if self.good_since_s is None else self.good_since_s
-            if t - self.good_since_s >= SOURCE_INCONSISTENT_AFTER_S:
-                self.inconsistent = False
+            if nis <= AZIMUTH_AGREES_CHI2 or not self.inconsistent:
+                self.good_since_s = t if self.good_since_s is None else self.good_since_s
+                if t - self.good_since_s >= SOURCE_INCONSISTENT_AFTER_S:
+                    self.inconsistent = False
+            else:
+                self.good_since_s = None
         else:   # disagrees with a check source that others contradict: no evidence either way
             self.bad_since_s = self.good_since_s = None
         if not self.inconsistent:
             return True, "", own
-        return False, (f"disagrees with {k.name}: {math.degrees(nu):+.1f} deg, NIS {nis:.1f} > {gate_chi2:g}"
-                       if nis > gate_chi2 else f"disagreed with {k.name} (now NIS {nis:.1f}, within "
-                       f"{gate_chi2:g} for {t - self.good_since_s:.1f} of {SOURCE_INCONSISTENT_AFTER_S:.0f} s)"), own
+        if nis > gate_chi2:
+            return False, f"disagrees with {k.name}: {math.degrees(nu):+.1f} deg, NIS {nis:.1f} > {gate_chi2:g}", own
+        return False, (f"disagreed with {k.name} (now {math.degrees(nu):+.1f} deg, NIS {nis:.1f}; back within "
+                       f"{AZIMUTH_AGREES_CHI2:g} for {SOURCE_INCONSISTENT_AFTER_S:.0f} s"
+                       + (f": {t - self.good_since_s:.1f} s so far)" if self.good_since_s is not None else ")")), own
 
 
 def _nis(h1: float, s1: float, h2: float, s2: float) -> float:

@@ -99,6 +99,23 @@ def test_a_comes_back_once_it_agrees_again_for_as_long():
     assert any(r[3] == "synthetic_ahrs" for r in rows if 5.0 < r[0] < 20.0)
 
 
+def test_a_stays_out_while_the_check_source_only_grew_less_certain():
+    """GIVEN A dropped 7 deg off B while B was sharp (1.5 deg: NIS 12.4), WHEN B's sigma grows to
+    3 deg (NIS 4.6: within the gate, not within 1 sigma), A's heading still 7 deg off, THEN A stays
+    out (before: it came back 2 s later with the same error, and went again when B sharpened)."""
+    rows = _fly(lambda t: 93.0, b_sig=1.5, duration_s=10.0)
+    assert rows[-1][3] == "synthetic_ahrs"
+    p = _pipeline()
+    for k in range(300):
+        t = 0.1 * k
+        p.azimuth_out, p.ahrs_out = _a(t, 93.0, 1.3), _b(t, 100.0, 1.5 if t < 10.0 else 3.0, air_fused=k + 1)
+        readings, not_offered = p._readings(t)
+        p.arb, out = arbitrate(p.arb, readings, t, p.arb_params, 0.0, not_offered)
+        if t >= 12.0:
+            assert out.source == "synthetic_ahrs", t
+            assert "disagreed with synthetic_ahrs (now -7.0 deg, NIS 4.6" in out.records["azimuth"].detail
+
+
 def R(name, hdg_deg, sig_deg, **kw):
     return SourceReading(name, D2R(hdg_deg), D2R(sig_deg), True, 0.0, **kw)
 
