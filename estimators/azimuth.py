@@ -175,6 +175,9 @@ class Solution:
     wander_var_rad2: float = 0.0
     """Heading variance the fit's own re-solves showed beyond its model (``_wander_var``),
     added to the output sigma."""
+    last_sample_s: float = math.nan
+    """Time of the last magnetometer sample the fit used: after it A's attitude is the gyros' alone
+    (``_output``: the in-run bias consider term)."""
 
 
 @dataclass(frozen=True)
@@ -377,7 +380,8 @@ def _solve(state: AzimuthState, time_s: float) -> AzimuthState:
         K = N_GYRO_CONSIDER
         beta = np.array([fit.c_hat[K], fit.c_hat[K + 1], 0.0])
         sol = Solution(time_s, fit, psi_sigma, diversity, af.r3(fit.psi_rad).T,
-                       (np.eye(3) - skew(beta)) @ state.C_isf_af.T, fit.c_hat[:K].copy())
+                       (np.eye(3) - skew(beta)) @ state.C_isf_af.T, fit.c_hat[:K].copy(),
+                       last_sample_s=recs[-1].time_s)
         if state.first_solution is not None:
             sol = replace(sol, wander_var_rad2=max(_wander_var(state, state.first_solution, sol),
                                                    state.solution.wander_var_rad2))
@@ -543,7 +547,13 @@ def _output(st: AzimuthState, C_isf_sf: np.ndarray, time_s: float) -> AzimuthOut
     hd, hs, _ = af.direction_azimuth_and_sigma(C_sf_body[:, 0], sol.C_nf_af, sol.C_af_isf, C_isf_sf, st.G_gyro,
                                                sol.fit.P_psi_c, arw_var)
     fm2 = p.field_model_sigma_rad ** 2 + sol.wander_var_rad2
-    hs = math.sqrt(hs ** 2 + fm2)
+    # in-run gyro bias (issue 18 item 3): the fit's c_gyro is one bias change over its samples; after
+    # its last sample (max_fit_samples reached, or the magnetometer withheld) nothing measures the
+    # heading and the bias is free to move again by its prior sigma: (sigma_b (t - t_last))^2 of the
+    # heading and azimuth variance (they turn with the gyros; psi_s, fixed at launch, does not)
+    gap = time_s - sol.last_sample_s if math.isfinite(sol.last_sample_s) else 0.0
+    run_var = (p.gyro_bias_sigma_rad_s * max(gap, 0.0)) ** 2
+    hs = math.sqrt(hs ** 2 + fm2 + run_var)
     out = dict(heading_rad=hd, heading_sigma_rad=hs, roll_rad=roll, pitch_rad=pitch,
                q_nav_from_body=quat_from_dcm(C_nf_body), psi_s_rad=psi,
                psi_s_sigma_rad=math.sqrt(sol.psi_sigma_rad ** 2 + fm2),
@@ -558,7 +568,7 @@ def _output(st: AzimuthState, C_isf_sf: np.ndarray, time_s: float) -> AzimuthOut
             u = u - st.du_dbeta_sf @ sol.fit.c_hat[N_GYRO_CONSIDER:N_GYRO_CONSIDER + 2]
         az, az_s, _ = af.direction_azimuth_and_sigma(u, sol.C_nf_af, sol.C_af_isf, C_isf_sf, st.G_gyro,
                                                      sol.fit.P_psi_c, arw_var, st.du_dbeta_sf)
-        az_s = math.sqrt(az_s ** 2 + fm2)
+        az_s = math.sqrt(az_s ** 2 + fm2 + run_var)
     az0 = af.azimuth_of(sol.C_nf_af @ sol.C_af_isf @ st.u_sf)   # C_ISF<-SF = I at launch
     return AzimuthOutput(time_s, status, "; ".join(flags), True, azimuth_rad=az,
                          azimuth_sigma_rad=az_s, launch_azimuth_rad=az0, **out, **diag)
