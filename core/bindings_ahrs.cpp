@@ -389,6 +389,7 @@ void bind_synthetic_ahrs(py::module_& m) {
              [](Held& h, const AhrsParams& p, double unseen_s) {
                  run(h, p, false, [&](Ahrs& s) { ahrs_unseen(s, unseen_s, p); });
              })
+        .def("takeoff", [](Held& h, const AhrsParams& p) { run(h, p, false, [&](Ahrs& s) { ahrs_takeoff(s, p); }); })
         .def("air_last",
              [](const Held& h) { return h.s.has_air_last ? py::object(air_out_dict(h.s.air_last)) : py::object(py::none()); })
         .def("kf1_learn", [](const Held& h) { return kf1_dict(h.s.kf1_learn); });

@@ -416,6 +416,21 @@ inline void ahrs_unseen(Ahrs& s, double unseen_s, const AhrsParams& p) {
     s.reacquire_heading = kf2_heading_var(s.kf2) > std::pow(p.init_sigma_heading_rad, 2);
 }
 
+// synthetic_ahrs_takeoff: the residual magnetometer biases learnt at rest (a body-fixed bias and the
+// launcher's or site's field look alike there) go back to 0 with their prior, their cross-covariances
+// and consider sensitivities zeroed; the bias snapshots (learnt on the ground) are dropped.
+inline void ahrs_takeoff(Ahrs& s, const AhrsParams& p) {
+    if (!s.has_kf2) return;
+    for (int i = 6; i < 9; ++i)
+        for (int j = 0; j < KN; ++j) s.kf2.P[i * KN + j] = s.kf2.P[j * KN + i] = 0.0;
+    for (int i = 6; i < 9; ++i) s.kf2.P[i * KN + i] = std::pow(p.kf2.sigma_mag_bias_init, 2);
+    if (s.kf2.has_S)
+        for (int i = 6; i < 9; ++i)
+            for (int j = 0; j < NC; ++j) s.kf2.S[i * NC + j] = 0.0;
+    s.kf2.mag_bias = V3{0, 0, 0};
+    s.snaps = std::make_shared<const std::vector<Snapshot>>();
+}
+
 struct AhrsOut {  // SyntheticAhrsOutput's numbers (the strings and flags from the state)
     bool valid;
     double roll, pitch, heading, roll_sigma, pitch_sigma, heading_sigma;

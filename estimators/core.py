@@ -406,6 +406,18 @@ def synthetic_ahrs_unseen(state: SyntheticAhrsState | HeldSyntheticAhrs, unseen_
     return state
 
 
+def synthetic_ahrs_takeoff(state: SyntheticAhrsState | HeldSyntheticAhrs,
+                           params: SyntheticAhrsParams) -> SyntheticAhrsState | HeldSyntheticAhrs:
+    """estimators.synthetic_ahrs.synthetic_ahrs_takeoff for either state (a held state from a build
+    without it goes through the reference's record, taken in again at its next step)."""
+    if not isinstance(state, HeldSyntheticAhrs):
+        return _sa.synthetic_ahrs_takeoff(state, params)
+    if not hasattr(state._c, "takeoff"):
+        return _sa.synthetic_ahrs_takeoff(state.to_state(), params)
+    state._c.takeoff(state._p(params))
+    return state
+
+
 # --- magnetometer usability (estimators/mag_usability.py) ----------------------------------------
 # The state is held in the core between filter steps (HeldMagUsability); the reference's
 # MagUsabilityState is built only when asked (to_state: a copy, a test).

@@ -639,6 +639,36 @@ def synthetic_ahrs_forget_fc_yaw(state: SyntheticAhrsState, params: SyntheticAhr
     return _upd(state, kf2=kf2, ref_heading_sens=0.0, reacquire_heading=True, bias_snapshots=())
 
 
+def synthetic_ahrs_takeoff(state: SyntheticAhrsState, params: SyntheticAhrsParams) -> SyntheticAhrsState:
+    """The vehicle has just left the ground (the caller's launch detection, e.g. the Pipeline's
+    phase LAUNCH): drop the residual magnetometer bias KF2 learnt at rest. At rest a body-fixed bias
+    and a field that is fixed to the place (the launcher's steel, a vehicle, rebar: the simulator's
+    ``site_distortion``) look alike, so KF2's bias states take the sum of both at a certainty the
+    rest gave them; the place's part is gone a few metres up, and carried into the air at that
+    certainty it turns the heading (measured, sim inclined_rail with the FC's yaw excluded: 20-26 deg
+    off at a ~2 deg sigma after the launch). ArduPilot's EKF3 answers the same ground problem by
+    re-learning yaw and field once clear of the ground. Here: the residual biases go back to 0 with
+    their prior (``kf2.sigma_mag_bias_init``), their cross-covariances and consider sensitivities
+    with the rest of KF2 zeroed (the attitude keeps its marginal variance, which at rest already
+    spans a bias of the prior's size: the rest could not tell the two apart), and the bias snapshots
+    (their magnetometer biases came from the ground) are dropped. The magnetometer then re-learns
+    the biases in the air, where turns separate them from the heading. Variant b1 and a KF2 not yet
+    started are left as they are."""
+    kf2 = state.kf2
+    if kf2 is None:
+        return state
+    P = kf2.P.copy()
+    P[6:9, :] = 0.0
+    P[:, 6:9] = 0.0
+    P[6:9, 6:9] = np.eye(3) * params.kf2.sigma_mag_bias_init ** 2
+    S = kf2.consider_sens
+    if S is not None:
+        S = S.copy()
+        S[6:9, :] = 0.0
+    kf2 = _upd(kf2, mag_bias=np.zeros(3), P=P, consider_sens=S)
+    return _upd(state, kf2=kf2, bias_snapshots=())
+
+
 def synthetic_ahrs_unseen(state: SyntheticAhrsState, unseen_s: float,
                           params: SyntheticAhrsParams) -> SyntheticAhrsState:
     """The FC clock restarted (the caller measured ``unseen_s`` seconds not seen, on its own

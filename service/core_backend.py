@@ -89,6 +89,9 @@ class Backend:
     hot_run: Callable | None = None
     """The per-sample hot path behind Pipeline.on_imu_batch (estimators._core.hot_run; None: on_imu
     takes every sample)."""
+    synthetic_ahrs_takeoff: Callable = core.synthetic_ahrs_takeoff
+    """Method B at the take-off (estimators.synthetic_ahrs.synthetic_ahrs_takeoff's signature):
+    estimators.core's, which takes either state (the reference's record: the reference itself)."""
 
 
 def _say(level: int, text: str) -> None:

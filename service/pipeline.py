@@ -50,6 +50,7 @@ from estimators.rotations import (dcm_from_quat, euler_from_quat, quat_conj, qua
 from estimators.output_propagation import OutputState, output_reset, output_step
 from estimators.zero_rate import ZeroRateParams, ZeroRateState, rest_step
 from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init
+from estimators import core as core_facade
 from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent, HeadingEvent, ImuEvent,
                                        SyntheticAhrsOutput, SyntheticAhrsParams, synthetic_ahrs_forget_fc_yaw,
                                        synthetic_ahrs_init, synthetic_ahrs_output, synthetic_ahrs_step,
@@ -1026,6 +1027,11 @@ class Pipeline:
             self.declination_sigma_rad = res.sigma_rad
 
     def _start_flight(self, s: ImuSample) -> None:
+        # method B drops the magnetometer bias it learnt at rest: the launcher's or the site's field
+        # is gone a few metres up (synthetic_ahrs_takeoff)
+        self.ahrs = self.core.synthetic_ahrs_takeoff(self.ahrs, self.ahrs_params)
+        if self.ahrs_out is not None:
+            self.ahrs_out = core_facade.synthetic_ahrs_output(self.ahrs, self.ahrs_params)  # either state
         level = self.phase.level
         if level is None:  # launched unlevelled: roll/pitch come from the attitude filter alone
             return

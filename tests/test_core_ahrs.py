@@ -8,7 +8,7 @@
   checked once, not in the suite for its time: px4-vtol-airspeed-small.ulg, equal).
 
 GIVEN the events a Pipeline handed B (recorded at Pipeline._step_ahrs, with the FC-clock restarts
-it reported), WHEN the reference (estimators.synthetic_ahrs) and the core (estimators.core, the
+it reported and the take-off), WHEN the reference (estimators.synthetic_ahrs) and the core (estimators.core, the
 state held in C++) step through them, THEN every output agrees (strings, flags and counters
 identical; numbers to 1e-9 relative), and so does the whole state at the end, KF2's and KF1's
 covariances included. Relative means: per scalar |a - b| <= 1e-9 max(|a|, |b|); per vector
@@ -71,7 +71,12 @@ def _record(cfg, items) -> dict:
         calls.append(("unseen", unseen_s, params, False, None))
         return unseen(state, unseen_s, params)
 
-    p.core = dataclasses.replace(p.core, synthetic_ahrs_step=rec_step, synthetic_ahrs_unseen=rec_unseen)
+    def rec_takeoff(state, params):
+        calls.append(("takeoff", None, params, False, None))
+        return ref.synthetic_ahrs_takeoff(state, params)
+
+    p.core = dataclasses.replace(p.core, synthetic_ahrs_step=rec_step, synthetic_ahrs_unseen=rec_unseen,
+                                 synthetic_ahrs_takeoff=rec_takeoff)
     events: list = []
     sols = list(feed_pipeline(p, items, events))
     return {"calls": calls, "start": start, "end": p.ahrs, "pipeline": p, "solutions": sols, "events": events,
@@ -129,6 +134,9 @@ def _run(calls, start, impl=core):
         if kind == "unseen":
             st = impl.synthetic_ahrs_unseen(st, arg, params)
             continue
+        if kind == "takeoff":
+            st = impl.synthetic_ahrs_takeoff(st, params)
+            continue
         try:
             st, out = impl.synthetic_ahrs_step(st, arg, params, output)
         except ValueError as exc:
@@ -154,6 +162,7 @@ def test_b_core_equals_reference_on_what_the_pipeline_feeds(recorded):
     last = next(o for o in reversed(out_ref) if o is not None and not isinstance(o, str))
     assert last.valid and last.ref_fused > 0 and last.mag_fused > 0
     if name == "sim":   # GNSS lost at 35 s: trust lost, the air data fused after it, KF1 learnt before
+        assert sum(1 for c in calls if c[0] == "takeoff") == 1     # the launch at 10 s (synthetic_ahrs_takeoff)
         assert not last.reference_trusted and last.air_fused > 0 and rec["end"].kf1_learn.n_updates > 10
 
 
