@@ -93,15 +93,20 @@ class AzimuthCheck:
 
     def __init__(self) -> None:
         self.inconsistent, self.bad_since_s, self.good_since_s = False, None, None
+        self.more_certain = True
+        """A's sigma <= the check source's at the last check (True without one): A supersedes the
+        magnetometer sources only then; less certain, it is offered beside them (its sigma grows
+        after its fit window, estimators/azimuth._output, while B's and C's keep measuring)."""
 
     def check(self, heading_rad: float, sigma_rad: float, checked_against, t: float,
               gate_chi2: float) -> tuple[bool, str, dict]:
         cands = [r for r in checked_against if isinstance(r, SourceReading) and r.valid and r.consistent
                  and math.isfinite(r.heading_rad) and math.isfinite(r.sigma_rad) and r.sigma_rad > 0.0]
         if not cands or not (math.isfinite(heading_rad) and math.isfinite(sigma_rad)):
-            self.inconsistent, self.bad_since_s, self.good_since_s = False, None, None
+            self.inconsistent, self.bad_since_s, self.good_since_s, self.more_certain = False, None, None, True
             return True, "", {}
         k = min(cands, key=lambda r: (r.sigma_rad, r.name))
+        self.more_certain = sigma_rad <= k.sigma_rad
         corroborated = all(_nis(k.heading_rad, k.sigma_rad, r.heading_rad, r.sigma_rad) <= gate_chi2
                            for r in cands if r is not k)
         nu = wrap_pi(heading_rad - k.heading_rad)

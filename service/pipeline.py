@@ -1058,7 +1058,8 @@ class Pipeline:
         c = heading_filter_source(self.core.polar_heading_estimate(self.polar_hdg), self.polar_hdg,
                                   self._hdg_measurement, t, False, self.polar_hdg_params.mag_update_period_s)
         a = azimuth_source(self.azimuth_out, self.azimuth_status(), t, self.a_check, (b, c), self.arb_params.gate_chi2)
-        if isinstance(a, SourceReading) and a.consistent:   # A's solution agrees with B and C: they are not offered
+        if isinstance(a, SourceReading) and a.consistent and self.a_check.more_certain:
+            # A's solution agrees with B and C and is the more certain: they are not offered
             b, c = superseded(b), superseded(c)
         out = [a, b, c,
                fc_source(self.fc_attitude, self.ahrs_out, t, self.use_fc_heading, self.use_fc_yaw,

@@ -116,6 +116,16 @@ def test_a_stays_out_while_the_check_source_only_grew_less_certain():
             assert "disagreed with synthetic_ahrs (now -7.0 deg, NIS 4.6" in out.records["azimuth"].detail
 
 
+def test_a_less_certain_than_b_does_not_supersede_it():
+    """GIVEN A consistent with B (1 deg apart) but less certain (its sigma grown to 4 deg after its fit
+    window; B 2 deg), THEN B is offered beside A and both are fused: the published sigma is below
+    both and the published heading between them, nearer B (before: A alone at 4 deg)."""
+    rows = _fly(lambda t: 101.0, a_sig=4.0, b_sig=2.0, duration_s=5.0)
+    t, h, s, src, a = rows[-1]
+    assert src == "azimuth+synthetic_ahrs" and a.fused
+    assert s < 2.0 and 100.0 < h < 100.5
+
+
 def R(name, hdg_deg, sig_deg, **kw):
     return SourceReading(name, D2R(hdg_deg), D2R(sig_deg), True, 0.0, **kw)
 
