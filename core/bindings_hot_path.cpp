@@ -33,8 +33,22 @@ ArrayC give(const double* x, py::ssize_t n) {
 
 py::object opt_float(bool has, double v) { return has ? py::object(py::float_(v)) : py::object(py::none()); }
 
-py::object output_state_class() {
-    return py::module_::import("estimators.output_propagation").attr("OutputState");
+py::object output_state_class() {  // looked up once (an import per call cost ~2 us a sample)
+    static py::object* cls =
+        new py::object(py::module_::import("estimators.output_propagation").attr("OutputState"));
+    return *cls;
+}
+
+// n floats from a tuple, list or array (a tuple element by element: no numpy array built)
+void take_seq(const py::handle& obj, double* out, py::ssize_t n, const char* name) {
+    if (py::isinstance<py::tuple>(obj)) {
+        py::tuple t = py::reinterpret_borrow<py::tuple>(obj);
+        if (static_cast<py::ssize_t>(t.size()) != n)
+            throw std::invalid_argument(std::string(name) + ": " + std::to_string(n) + " numbers expected");
+        for (py::ssize_t i = 0; i < n; ++i) out[i] = t[static_cast<size_t>(i)].cast<double>();
+        return;
+    }
+    take(obj, out, n, name);
 }
 
 py::object out_get(const SampleState& h) {
@@ -51,11 +65,11 @@ void out_set(SampleState& h, const py::object& v) {
     }
     OutputProp o;
     o.has = true;
-    take(v.attr("q_nav_from_body"), o.q, 4, "OutputState.q_nav_from_body");
+    take_seq(v.attr("q_nav_from_body"), o.q, 4, "OutputState.q_nav_from_body");
     o.time_s = v.attr("time_s").cast<double>();
     py::object inc = v.attr("increment_prev");
     o.has_inc = !inc.is_none();
-    if (o.has_inc) take(inc, o.inc, 3, "OutputState.increment_prev");
+    if (o.has_inc) take_seq(inc, o.inc, 3, "OutputState.increment_prev");
     h.out = o;
 }
 
@@ -111,6 +125,27 @@ void bind_hot_path(py::module_& m) {
                       [](SampleState& h, const py::object& v) {
                           if (!v.is_none()) take(v, h.out_gyro, 3, "out_gyro_s");
                       })
+        .def("accumulate",
+             [](SampleState& h, const py::object& g, const py::object& a, const py::object& m, double t,
+                double filter_period_s) {
+                 double gv[3], av[3], mv[3];
+                 take(g, gv, 3, "gyro_rad_s");
+                 take(a, av, 3, "accel_m_s2");
+                 if (!m.is_none()) take(m, mv, 3, "mag_gauss");
+                 return accumulate(h, gv, av, m.is_none() ? nullptr : mv, t, filter_period_s);
+             },
+             py::arg("gyro_rad_s"), py::arg("accel_m_s2"), py::arg("mag_gauss"), py::arg("time_s"),
+             py::arg("filter_period_s"), "service/hot_path.SampleState.accumulate's twin.")
+        .def("turn_output",
+             [](SampleState& h, double t, const py::object& gb, double max_dt_s, double rx, const py::object& g) {
+                 if (!h.out.has) return;
+                 double gbv[3], gv[3];
+                 take(gb, gbv, 3, "gyro_body_rad_s");
+                 take(g, gv, 3, "gyro_rad_s");
+                 turn_output(h, t, gbv, max_dt_s, rx, gv);
+             },
+             py::arg("time_s"), py::arg("gyro_body_rad_s"), py::arg("max_dt_s"), py::arg("time_rx_s"),
+             py::arg("gyro_rad_s"), "service/hot_path.SampleState.turn_output's twin.")
         .def("get_state", &sample_state_get, "Every field, as a tuple (the pickle form).")
         .def(py::pickle(&sample_state_get, [](const py::tuple& s) {
             if (s.size() != 11) throw std::invalid_argument("SampleState: 11 fields expected");

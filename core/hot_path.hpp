@@ -88,6 +88,29 @@ struct SampleState {
     double out_gyro[3] = {0, 0, 0};
 };
 
+// The filter accumulators take one sample (Pipeline.on_imu's per-sample tail, SampleState.accumulate):
+// true when no filter step is due at time t.
+inline bool accumulate(SampleState& h, const double g[3], const double a[3], const double* m, double t,
+                       double filter_period_s) {
+    for (int k = 0; k < 3; ++k) h.acc_gyro[k] = h.acc_gyro[k] + g[k];
+    for (int k = 0; k < 3; ++k) h.acc_accel[k] = h.acc_accel[k] + a[k];
+    h.acc_n += 1;
+    if (m != nullptr) {
+        h.has_acc_mag = true;
+        for (int k = 0; k < 3; ++k) h.acc_mag[k] = m[k];
+    }
+    return t < h.filter_due_s - 0.05 * filter_period_s;
+}
+
+// The output attitude turned by one sample (SampleState.turn_output): gb the body-axes rate.
+inline void turn_output(SampleState& h, double t, const double gb[3], double max_dt_s, double rx, const double g[3]) {
+    if (!h.out.has) return;
+    if (!output_step(h.out, t, gb, h.out_bias_body, max_dt_s)) h.out.has = false;
+    h.has_out_sample = true;
+    h.out_rx_s = rx;
+    for (int k = 0; k < 3; ++k) h.out_gyro[k] = g[k];
+}
+
 // Method A in flight (estimators/azimuth.py azimuth_step with the core's azimuth_propagate), the
 // per-sample part: taken from the AzimuthState for one run and handed back as a new one.
 struct AzimuthRun {
@@ -197,21 +220,12 @@ inline long hot_run(SampleState& h, InputChecks& ic, StrapdownState* sd, Azimuth
             }
         }
         if (sd != nullptr) *sd = p_sd;
-        for (int k = 0; k < 3; ++k) h.acc_gyro[k] = h.acc_gyro[k] + g[k];
-        for (int k = 0; k < 3; ++k) h.acc_accel[k] = h.acc_accel[k] + acc[k];
-        h.acc_n += 1;
-        if (has_mag) {
-            h.has_acc_mag = true;
-            for (int k = 0; k < 3; ++k) h.acc_mag[k] = m[k];
-        }
+        accumulate(h, g, acc, has_mag ? m : nullptr, t, in.filter_period_s);
         if (h.out.has) {
             const double* C = in.C_bs;
             const double gb[3] = {C[0] * g[0] + C[1] * g[1] + C[2] * g[2], C[3] * g[0] + C[4] * g[1] + C[5] * g[2],
                                   C[6] * g[0] + C[7] * g[1] + C[8] * g[2]};
-            if (!output_step(h.out, t, gb, h.out_bias_body, in.out_max_dt_s)) h.out.has = false;
-            h.has_out_sample = true;
-            h.out_rx_s = rx;
-            for (int k = 0; k < 3; ++k) h.out_gyro[k] = g[k];
+            turn_output(h, t, gb, in.out_max_dt_s, rx, g);
         }
     }
     checked = false;

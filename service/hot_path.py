@@ -33,6 +33,7 @@ import numpy as np
 
 from estimators import core as _ec
 from estimators.azimuth import MagRecord, azimuth_status
+from estimators.output_propagation import output_step
 from estimators.records import fast_replace
 from estimators.strapdown import StrapdownState
 
@@ -53,6 +54,22 @@ class SampleState:
         self.out_rx_s: float | None = None
         """The sample ``out`` was last turned to: its receive time and gyro (sensor axes)."""
         self.out_gyro_s: np.ndarray | None = None
+
+    def accumulate(self, gyro_rad_s, accel_m_s2, mag_gauss, time_s: float, filter_period_s: float) -> bool:
+        """The filters' accumulators take one sample; True when no filter step is due at time_s (its
+        tolerance: timestamp jitter)."""
+        self.acc_gyro += gyro_rad_s
+        self.acc_accel += accel_m_s2
+        self.acc_n += 1
+        if mag_gauss is not None:
+            self.acc_mag = mag_gauss
+        return time_s < self.filter_due_s - 0.05 * filter_period_s
+
+    def turn_output(self, time_s: float, gyro_body_rad_s, max_dt_s: float, time_rx_s: float, gyro_rad_s) -> None:
+        """The output attitude turned by one sample between filter steps (estimators/output_propagation)."""
+        if self.out is not None:
+            self.out = output_step(self.out, time_s, gyro_body_rad_s, self.out_bias_body_rad_s, max_dt_s)
+            self.out_rx_s, self.out_gyro_s = time_rx_s, gyro_rad_s
 
 
 def sample_field(name: str, doc: str = "") -> property:
@@ -129,9 +146,13 @@ def batch_steps(p, batch, samples=None):
     from service.input_checks import _OK, CoreImuInputChecks
     from service.phases import IN_FLIGHT
     from estimators.core import HeldStrapdown
+    if not hot_path_ready(p):   # the reference (or a core without the hot path): on_imu for every sample
+        for i, s in enumerate(samples if samples is not None else batch.samples()):
+            yield i, p.on_imu(s)
+        return
     rec = batch.records
     n = len(rec)
-    run = p.core.hot_run if hot_path_ready(p) else None
+    run = p.core.hot_run
     int16 = batch.source in _INT16_SOURCES
     rows = None
     i = 0
@@ -139,7 +160,7 @@ def batch_steps(p, batch, samples=None):
     while i < n:
         verdict = None
         s = None
-        if run is not None and not (p.vehicle.pending or p._unseen_pending or p._fc_status_pending is not None) \
+        if not (p.vehicle.pending or p._unseen_pending or p._fc_status_pending is not None) \
                 and p.phase.phase == IN_FLIGHT \
                 and not (p.phase.started_in_flight and p.polar_att_params.relevel_allowed) \
                 and isinstance(p.input_checks, CoreImuInputChecks) \

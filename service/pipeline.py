@@ -47,7 +47,7 @@ from estimators.polar_attitude import PolarAttitudeParams
 from estimators.polar_heading import HeadingInputs, PolarHeadingParams, vertical_rate_sigma_for_site
 from estimators.rotations import (dcm_from_quat, euler_from_quat, quat_conj, quat_from_euler,
                                   quat_mul, wrap_2pi, wrap_pi)
-from estimators.output_propagation import OutputState, output_reset, output_step
+from estimators.output_propagation import OutputState, output_reset
 from estimators.zero_rate import ZeroRateParams, ZeroRateState, rest_step
 from estimators.strapdown import StrapdownParams, StrapdownState, strapdown_init
 from estimators import core as core_facade
@@ -412,16 +412,10 @@ class Pipeline:
         # exact angle increment (only the coning within the interval is lost, well below the
         # gyro noise at 50 Hz for an airframe's motion). Method A and the phases above keep the
         # full IMU rate.
-        self._acc_gyro += gyro_s
-        self._acc_accel += accel_s
-        self._acc_n += 1
-        if mag_s is not None:
-            self._acc_mag = mag_s
-        if t < self._filter_due_s - 0.05 * self.filter_period_s:  # tolerance: timestamp jitter
-            if self._out is not None:
-                self._out = output_step(self._out, t, self.C_body_from_sensor @ gyro_s, self._out_bias_body_rad_s,
-                                        self.polar_att_params.max_dt_s)
-                self._out_rx_s, self._out_gyro_s = s.time_rx_s, s.gyro_rad_s
+        hs = self._hs   # the accumulators and the output attitude (service/hot_path.SampleState, or the core's)
+        if hs.accumulate(gyro_s, accel_s, mag_s, t, self.filter_period_s):  # no filter step due (tolerance: jitter)
+            hs.turn_output(t, self.C_body_from_sensor @ gyro_s, self.polar_att_params.max_dt_s, s.time_rx_s,
+                           s.gyro_rad_s)
             return None
         # slots advance by one period, so the mean rate is exact under timestamp jitter
         self._filter_due_s += self.filter_period_s
