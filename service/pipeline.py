@@ -97,11 +97,17 @@ MAV_STATE_STANDBY, MAV_STATE_ACTIVE = 3, 4
 
 
 def decimal_year_now() -> float:
+    """Today (00:00 UTC) as a decimal year: the date for the geomagnetic model when neither the
+    config nor the log gives one. A day, not the second: the field's secular change in a day is
+    ~0.1 nT (1e-6 of it), and two Pipelines built on one day (a replay run twice, the parity
+    tests' reference and core runs) then see the same Earth; with the second they differed by
+    1e-9..1e-8 relative and a replay of a log without a date did not reproduce itself."""
     import datetime as dt
     now = dt.datetime.now(dt.timezone.utc)
     start = dt.datetime(now.year, 1, 1, tzinfo=dt.timezone.utc)
     end = dt.datetime(now.year + 1, 1, 1, tzinfo=dt.timezone.utc)
-    return now.year + (now - start) / (end - start)
+    today = dt.datetime(now.year, now.month, now.day, tzinfo=dt.timezone.utc)
+    return now.year + (today - start) / (end - start)
 
 
 def site_field(cfg: dict) -> EarthField:
