@@ -512,13 +512,6 @@ def test_phases_core_equals_reference_on_what_the_pipeline_feeds(recorded):
     assert EXPECT.get(name, set()) <= set(tw.kinds()), (name, tw.kinds())
 
 
-NOT_REPRODUCIBLE = ("px4-quad-no-gnss.ulg",)
-"""Logs whose replay is not reproducible to 1e-9 from one run to the next with every part in the
-reference (AZIMUTHD_CORE=python, the same process; measured 2026-12-02: heading_deg 28.2809080287 vs
-28.2809081175 at row 972, 3e-9 relative, with one BLAS thread too): their rows are not compared, their
-events and phase state are."""
-
-
 def test_pipeline_runs_the_phases_in_the_core(recorded, monkeypatch):
     # GIVEN the flight recorded above (the phases in the reference, everything else as selected), WHEN it
     # runs on the default core backend, THEN the phases are held in the core and the solutions (or the
@@ -537,8 +530,7 @@ def test_pipeline_runs_the_phases_in_the_core(recorded, monkeypatch):
     assert isinstance(p.phase, core.HeldPhaseState) and isinstance(q.phase, PhaseState)
     assert out.get("events") == rec["out"].get("events")
     bad = differences(q.phase, p.phase.to_state(), "phase state")
-    if name not in NOT_REPRODUCIBLE:
-        bad += _solutions_differences(rec["out"], out, name)
+    bad += _solutions_differences(rec["out"], out, name)
     assert not bad, bad[:5]
 
 
