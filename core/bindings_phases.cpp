@@ -22,62 +22,18 @@ using namespace azimuthd::phases;
 
 namespace {
 
-constexpr py::ssize_t PACKED = 38;  // core/bindings.cpp LEVELLING_PACKED: the same layout
-
-void pack_acc(const LevellingAcc& s, double* o) {
-    int j = 0;
-    o[j++] = s.n;
-    for (double v : s.accel_mean_m_s2) o[j++] = v;
-    for (double v : s.accel_m2) o[j++] = v;
-    for (double v : s.gyro_mean_rad_s) o[j++] = v;
-    for (double v : s.gyro_m2) o[j++] = v;
-    o[j++] = s.timed ? s.t_first_s : NAN;
-    o[j++] = s.timed ? s.t_last_s : NAN;
-    o[j++] = s.batch_open ? 1.0 : 0.0;
-    o[j++] = s.batch_t0_s;
-    o[j++] = s.batch_k;
-    for (double v : s.batch_accel_sum) o[j++] = v;
-    for (double v : s.batch_gyro_sum) o[j++] = v;
-    o[j++] = s.nb;
-    o[j++] = s.has_stats ? 1.0 : 0.0;
-    for (double v : s.batch_accel_mean) o[j++] = v;
-    for (double v : s.batch_accel_m2) o[j++] = v;
-    for (double v : s.batch_gyro_mean) o[j++] = v;
-    for (double v : s.batch_gyro_m2) o[j++] = v;
-}
+constexpr py::ssize_t PACKED = LEVELLING_PACKED_SIZE;  // core/levelling.hpp levelling_pack
 
 LevellingAcc unpack_acc(const py::handle& h) {
     auto arr = py::array_t<double, py::array::c_style | py::array::forcecast>::ensure(h);
     if (!arr || arr.ndim() != 1 || arr.shape(0) != PACKED)
         throw std::invalid_argument("a packed levelling accumulator must be 38 floats");
-    const double* p = arr.data();
-    LevellingAcc s;
-    int j = 0;
-    s.n = p[j++];
-    for (double& v : s.accel_mean_m_s2) v = p[j++];
-    for (double& v : s.accel_m2) v = p[j++];
-    for (double& v : s.gyro_mean_rad_s) v = p[j++];
-    for (double& v : s.gyro_m2) v = p[j++];
-    s.t_first_s = p[j++];
-    s.t_last_s = p[j++];
-    s.timed = std::isfinite(s.t_first_s);
-    s.batch_open = p[j++] != 0.0;
-    s.batch_t0_s = p[j++];
-    s.batch_k = p[j++];
-    for (double& v : s.batch_accel_sum) v = p[j++];
-    for (double& v : s.batch_gyro_sum) v = p[j++];
-    s.nb = p[j++];
-    s.has_stats = p[j++] != 0.0;
-    for (double& v : s.batch_accel_mean) v = p[j++];
-    for (double& v : s.batch_accel_m2) v = p[j++];
-    for (double& v : s.batch_gyro_mean) v = p[j++];
-    for (double& v : s.batch_gyro_m2) v = p[j++];
-    return s;
+    return levelling_unpack(arr.data());
 }
 
 py::array_t<double> packed(const LevellingAcc& s) {
     py::array_t<double> out(PACKED);
-    pack_acc(s, out.mutable_data());
+    levelling_pack(s, out.mutable_data());
     return out;
 }
 

@@ -80,4 +80,56 @@ inline bool levelling_step(LevellingAcc& s, const double g[3], const double a[3]
     return true;
 }
 
+// The accumulator as a flat float64 vector (what estimators/core.py packs from and unpacks into
+// estimators.levelling.LevellingState; core/bindings.cpp LEVELLING_FIELDS names the order): one
+// layout for every binding that hands an accumulator across.
+constexpr int LEVELLING_PACKED_SIZE = 38;
+
+inline void levelling_pack(const LevellingAcc& s, double* o) {
+    int j = 0;
+    o[j++] = s.n;
+    for (double v : s.accel_mean_m_s2) o[j++] = v;
+    for (double v : s.accel_m2) o[j++] = v;
+    for (double v : s.gyro_mean_rad_s) o[j++] = v;
+    for (double v : s.gyro_m2) o[j++] = v;
+    o[j++] = s.timed ? s.t_first_s : NAN;
+    o[j++] = s.timed ? s.t_last_s : NAN;
+    o[j++] = s.batch_open ? 1.0 : 0.0;
+    o[j++] = s.batch_t0_s;
+    o[j++] = s.batch_k;
+    for (double v : s.batch_accel_sum) o[j++] = v;
+    for (double v : s.batch_gyro_sum) o[j++] = v;
+    o[j++] = s.nb;
+    o[j++] = s.has_stats ? 1.0 : 0.0;
+    for (double v : s.batch_accel_mean) o[j++] = v;
+    for (double v : s.batch_accel_m2) o[j++] = v;
+    for (double v : s.batch_gyro_mean) o[j++] = v;
+    for (double v : s.batch_gyro_m2) o[j++] = v;
+}
+
+inline LevellingAcc levelling_unpack(const double* p) {
+    LevellingAcc s;
+    int j = 0;
+    s.n = p[j++];
+    for (double& v : s.accel_mean_m_s2) v = p[j++];
+    for (double& v : s.accel_m2) v = p[j++];
+    for (double& v : s.gyro_mean_rad_s) v = p[j++];
+    for (double& v : s.gyro_m2) v = p[j++];
+    s.t_first_s = p[j++];
+    s.t_last_s = p[j++];
+    s.timed = std::isfinite(s.t_first_s);
+    s.batch_open = p[j++] != 0.0;
+    s.batch_t0_s = p[j++];
+    s.batch_k = p[j++];
+    for (double& v : s.batch_accel_sum) v = p[j++];
+    for (double& v : s.batch_gyro_sum) v = p[j++];
+    s.nb = p[j++];
+    s.has_stats = p[j++] != 0.0;
+    for (double& v : s.batch_accel_mean) v = p[j++];
+    for (double& v : s.batch_accel_m2) v = p[j++];
+    for (double& v : s.batch_gyro_mean) v = p[j++];
+    for (double& v : s.batch_gyro_m2) v = p[j++];
+    return s;
+}
+
 }  // namespace azimuthd
