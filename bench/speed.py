@@ -222,8 +222,8 @@ def case_phases(run, items):
 
 
 def case_phases_core(run, items):
-    """The flight phases held in the core (estimators.core.phase_step), the same samples and params."""
-    from estimators import core
+    """The flight phases held in the core (service.phases_core.phase_step), the same samples and params."""
+    from service import phases_core
     from service.phases import PhaseParams, PhaseState
     t, g, a = run.time_s.tolist(), list(run.gyro_rad_s), list(run.accel_m_s2)
     params = PhaseParams()
@@ -231,7 +231,7 @@ def case_phases_core(run, items):
     def one_pass():
         st = PhaseState()
         for k in range(len(t)):
-            st, _ = core.phase_step(st, g[k], a[k], t[k], params)
+            st, _ = phases_core.phase_step(st, g[k], a[k], t[k], params)
     return one_pass
 
 

@@ -1,5 +1,5 @@
 // estimators._core.Phases: the flight phases (core/phases.hpp, service/phases.py phase_step) held
-// in the core between IMU samples. The Python face (estimators/core.py, HeldPhaseState) keeps the
+// in the core between IMU samples. The Python face (service/phases_core.py, HeldPhaseState) keeps the
 // reference's signature, converts the reference's PhaseParams once per params object (PhaseParams
 // here, with Python's own texts of the thresholds its events print with :g) and the reference's
 // PhaseState to and from this object (get_state / set_state: dicts of the reference's field names,

@@ -23,6 +23,7 @@ from estimators import synthetic_ahrs as _b_reference
 from estimators import zero_rate as _zr_reference
 from estimators.strapdown import strapdown_step as _strapdown_step_reference
 from service.input_checks import CoreImuInputChecks, ImuInputChecks
+from service import phases_core
 from service.phases import phase_step as _phase_step_reference
 from service.hot_path import SampleState as _SampleStateReference
 
@@ -103,10 +104,10 @@ def _say(level: int, text: str) -> None:
 
 def _phases_ported() -> bool:
     """The flight phases are in the core; one log line when the build predates them."""
-    if not core.PHASES_AVAILABLE:
+    if not phases_core.PHASES_AVAILABLE:
         _say(logging.WARNING, "compiled core without the flight phases (an older build): they run the Python "
                               "reference")
-    return core.PHASES_AVAILABLE
+    return phases_core.PHASES_AVAILABLE
 
 
 def select(environ=os.environ) -> Backend:
@@ -164,5 +165,5 @@ def select(environ=os.environ) -> Backend:
                    polar_heading_attitude=core.polar_heading_attitude,
                    polar_heading_unseen=core.polar_heading_unseen,
                    heading_zero_rate_update=core.heading_zero_rate_update,
-                   **(dict(phase_step=core.phase_step) if _phases_ported() else {}),
+                   **(dict(phase_step=phases_core.phase_step) if _phases_ported() else {}),
                    **(dict(sample_state=core.SampleState, hot_run=core.hot_run) if core.HOT_PATH_AVAILABLE else {}))

@@ -1,7 +1,7 @@
 """The flight phases in the compiled core equal their Python reference (issue 19 item 1):
 service/phases.py phase_step (boot -> pre-launch -> launch -> in-flight, the still blocks and their
 levelling verdicts, noisy-run merging, the started-in-flight rule, impulse / sustained take-off,
-runway, disarmed refusal) against core/phases.hpp through estimators/core.py (HeldPhaseState).
+runway, disarmed refusal) against core/phases.hpp through service/phases_core.py (HeldPhaseState).
 
 GIVEN the same IMU samples and FlightEvidence
 - driven directly, one flight per rule: a launcher boost (armed: the block held pending until the
@@ -44,13 +44,14 @@ from pipeline_recording import fly as fly_recorded, run_with_backend  # noqa: E4
 from estimators import core  # noqa: E402
 from estimators.levelling import LevellingParams  # noqa: E402
 from service import phases as ref  # noqa: E402
+from service import phases_core  # noqa: E402
 from service.phases import FlightEvidence, InFlightParams, PhaseParams, PhaseState  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 if not DATA.is_dir():
     DATA = Path("/work/shared/data")
 
-pytestmark = pytest.mark.skipif(not core.PHASES_AVAILABLE,
+pytestmark = pytest.mark.skipif(not phases_core.PHASES_AVAILABLE,
                                 reason=f"compiled core without the flight phases: {core.IMPORT_ERROR or 'old build'}")
 
 F_REST = np.array([0.35, -0.25, -9.79])   # a launcher inclined ~2 deg
@@ -73,8 +74,8 @@ class Twin:
 
     def step(self, g, a, t, params, evidence=None, check_state=True):
         self.r, er = ref.phase_step(self.r, g, a, t, params, evidence)
-        self.c, ec = core.phase_step(self.c, g, a, t, params, evidence)
-        assert isinstance(self.c, core.HeldPhaseState)
+        self.c, ec = phases_core.phase_step(self.c, g, a, t, params, evidence)
+        assert isinstance(self.c, phases_core.HeldPhaseState)
         assert er == ec, f"{self.name} sample {self.k} (t {t}): events {er} vs {ec}"
         if check_state or er:
             self.check(t)
@@ -308,7 +309,7 @@ def test_inputs_the_core_does_not_take_are_answered_by_the_reference():
         ref.phase_step(tw.r, list(BIAS), F_REST, 3.1, p)
     before = tw.c.to_state()
     with pytest.raises(AttributeError):
-        core.phase_step(tw.c, list(BIAS), F_REST, 3.1, p)
+        phases_core.phase_step(tw.c, list(BIAS), F_REST, 3.1, p)
     assert not differences(before, tw.c.to_state())
     tw.check()
 
@@ -329,7 +330,7 @@ def test_params_changed_mid_run_and_a_copy_goes_on_as_the_unbroken_run():
         st = r_at
         for t, g, a, ev in seq[301:]:
             st, er = ref.phase_step(st, g, a, t, p2, ev)
-            other, ec = core.phase_step(other, g, a, t, p2, ev)
+            other, ec = phases_core.phase_step(other, g, a, t, p2, ev)
             assert er == ec
         assert not differences(st, other.to_state())
 
@@ -342,7 +343,7 @@ def test_a_state_given_by_the_reference_mid_flight_is_taken_in_exactly():
     for t, g, a, ev in seq[:60]:  # mid-block, a noisy run held
         st, _ = ref.phase_step(st, g, a, t, p, ev)
     assert st.noisy_run.n > 0
-    held = core.HeldPhaseState(st)
+    held = phases_core.HeldPhaseState(st)
     assert not differences(st, held.to_state())
     tw = Twin("taken in", st).run(seq[60:], p)
     assert "levelled" in tw.kinds() and "takeoff" in tw.kinds()
@@ -350,9 +351,9 @@ def test_a_state_given_by_the_reference_mid_flight_is_taken_in_exactly():
 
 def test_bad_states_are_refused_with_a_clear_error():
     with pytest.raises(ValueError, match="phase must be one of"):
-        core.HeldPhaseState(dataclasses.replace(PhaseState(), phase="landed"))
+        phases_core.HeldPhaseState(dataclasses.replace(PhaseState(), phase="landed"))
     with pytest.raises(ValueError, match="launch_time_s"):
-        core.HeldPhaseState(dataclasses.replace(PhaseState(), phase="launch"))
+        phases_core.HeldPhaseState(dataclasses.replace(PhaseState(), phase="launch"))
 
 
 def _random_flight(seed: int):
@@ -524,10 +525,10 @@ def test_pipeline_runs_the_phases_in_the_core(recorded, monkeypatch):
                     "phase calls are compared in the test above")
     monkeypatch.delenv("AZIMUTHD_CORE", raising=False)
     backend = core_backend.select()
-    assert backend.name == "core" and backend.phase_step is core.phase_step
+    assert backend.name == "core" and backend.phase_step is phases_core.phase_step
     out, p = run_with_backend(_fly, name, backend)
     q = rec["pipeline"]
-    assert isinstance(p.phase, core.HeldPhaseState) and isinstance(q.phase, PhaseState)
+    assert isinstance(p.phase, phases_core.HeldPhaseState) and isinstance(q.phase, PhaseState)
     assert out.get("events") == rec["out"].get("events")
     bad = differences(q.phase, p.phase.to_state(), "phase state")
     bad += _solutions_differences(rec["out"], out, name)
@@ -567,9 +568,9 @@ def test_the_backend_selects_the_phases(monkeypatch, caplog):
 
     from service import core_backend
     monkeypatch.setattr(core_backend, "_said", set())
-    assert core_backend.select({}).phase_step is core.phase_step
+    assert core_backend.select({}).phase_step is phases_core.phase_step
     assert core_backend.select({"AZIMUTHD_CORE": "python"}).phase_step is ref.phase_step
-    monkeypatch.setattr(core, "PHASES_AVAILABLE", False)
+    monkeypatch.setattr(phases_core, "PHASES_AVAILABLE", False)
     with caplog.at_level(logging.WARNING, logger="azimuthd.core"):
         old = core_backend.select({})
         core_backend.select({})
@@ -590,5 +591,5 @@ def test_the_twin_fails_on_a_small_difference():
     with pytest.raises(AssertionError, match="f_lp_m_s2"):
         for t, g, a, ev in seq:
             tw.r, er = ref.phase_step(tw.r, g, a, t, p, ev)
-            tw.c, ec = core.phase_step(tw.c, g, a, t, off, ev)
+            tw.c, ec = phases_core.phase_step(tw.c, g, a, t, off, ev)
             tw.check(t)
