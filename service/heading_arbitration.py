@@ -36,7 +36,8 @@ The rule
 5. Fusion: inverse-variance weighting in the circular domain about the reference,
        h = ref + sum(w_i wrap(h_i - ref)) / sum(w_i),  w_i = 1/sigma_i^2,  var = 1/sum(w_i).
 6. No silent jumps: when the set of fused sources changes, the jump between the new fusion and
-   the old set (evaluated now) is reported as an event and absorbed into an offset; the
+   the old set evaluated now (its readings when every one of them is still offered, else the
+   old fusion propagated: the reference) is reported as an event and absorbed into an offset; the
    published heading is fused + offset, and the offset decays to zero at no more than
    ``blend_rate_rad_s``. The published sigma is sqrt(var + offset^2) while blending.
 7. If candidates exist but none passes the gate, the output coasts on the reference (source
@@ -385,10 +386,15 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
         events.append(ArbitrationEvent(time_s, "acquired", (), names, 0.0,
                                        f"heading from {'+'.join(names)}"))
     elif names != state.sources or kind == "reset":
-        # the old set evaluated now: its readings if still finite and fresh, else the reference
+        # the old set evaluated now: its readings if every one of them is still finite and fresh,
+        # else the reference (the old fusion propagated). A subset of the old set is not the old
+        # set: taking it made a round trip A+B -> A+fc (B withdrawn) -> A+B leave A - fused(A+B)
+        # in the offset, and a set that alternated every step ratcheted the offset up (make run,
+        # 2026-12-02: +14 deg in 1 s while A's and B's sigmas crossed)
         old = [r for r in readings if r.name in state.sources and math.isfinite(r.heading_rad)
                and math.isfinite(r.sigma_rad) and r.sigma_rad > 0 and time_s - r.time_s <= params.max_age_s]
-        old_now = _fuse(_decorrelate(old, params), ref)[0] if old and kind != "reset" else ref
+        whole = len(old) == len(state.sources)
+        old_now = _fuse(_decorrelate(old, params), ref)[0] if whole and kind != "reset" else ref
         jump = _wrap_pi(fused - old_now)
         offset = _wrap_pi(offset - jump)
         events.append(ArbitrationEvent(
