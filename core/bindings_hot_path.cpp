@@ -146,6 +146,18 @@ void bind_hot_path(py::module_& m) {
              },
              py::arg("time_s"), py::arg("gyro_body_rad_s"), py::arg("max_dt_s"), py::arg("time_rx_s"),
              py::arg("gyro_rad_s"), "service/hot_path.SampleState.turn_output's twin.")
+        .def("out_snapshot",
+             [](const SampleState& h) -> py::object {
+                 if (!h.out.has) return py::none();
+                 const OutputProp& o = h.out;
+                 return py::make_tuple(py::make_tuple(o.q[0], o.q[1], o.q[2], o.q[3]), o.time_s,
+                                       opt_float(h.has_out_sample, h.out_rx_s),
+                                       h.has_out_sample ? py::object(py::make_tuple(h.out_gyro[0], h.out_gyro[1],
+                                                                                    h.out_gyro[2]))
+                                                        : py::object(py::none()));
+             },
+             "service/hot_path.SampleState.out_snapshot's twin: (q_nav_from_body, time_s, out_rx_s, out_gyro_s "
+             "as a tuple) of the output attitude, None without one; no numpy array built.")
         .def("get_state", &sample_state_get, "Every field, as a tuple (the pickle form).")
         .def(py::pickle(&sample_state_get, [](const py::tuple& s) {
             if (s.size() != 11) throw std::invalid_argument("SampleState: 11 fields expected");

@@ -188,6 +188,12 @@ class Daemon:
         """The solution last sent (the same one may fill a later slot with its own stamp)."""
         self._offered_sol = None
         """The solution last offered to the scheduler's FC-time slots (``_publish_due``)."""
+        self._pending_prop = None
+        """Pipeline.propagated_snapshot of the newest IMU sample, not built into a NavSolution yet:
+        ``last_solution`` builds it when read (an output slot, a reader), most samples reach neither."""
+        self._offered_snap = None
+        """The pending snapshot last offered to the slots (``_publish_due``)."""
+        self._last_solution: NavSolution | None = None
         self.output_limits = OutputLimits(math.radians(out["max_tilt_sigma_deg"]),
                                           math.radians(out["max_heading_sigma_deg"]), out["max_extrapolation_s"])
         self.attitude_to_fc = out["attitude_to_fc"]
@@ -455,7 +461,8 @@ class Daemon:
         time not past the last sent; a command: no target yet) and waits for input: never a busy loop."""
         now = self.clock()
         due = now + LOOP_MAX_WAIT_S
-        if self.last_solution is not None:  # a slot between two sparse samples (OutputScheduler.fill)
+        # a slot between two sparse samples (OutputScheduler.fill); a pending solution is one (not built here)
+        if self._last_solution is not None or self._pending_prop is not None:
             out_due = self.scheduler.next_fill_s()
             if out_due is not None and now < out_due < due \
                     and out_due - self._last_solution_s <= self.output_limits.max_extrapolation_s:
@@ -465,6 +472,32 @@ class Daemon:
             if cmd_due is not None and now < cmd_due < due:
                 due = cmd_due
         return max(0.0, due - now)
+
+    @property
+    def last_solution(self) -> NavSolution | None:
+        """The newest solution: the last filter step's, or it turned to the newest IMU sample (built
+        here from ``_pending_prop`` when first read: the same NavSolution the sample made)."""
+        if self._pending_prop is not None:
+            snap, self._pending_prop = self._pending_prop, None
+            self._last_solution = self.pipeline.solution_from_snapshot(snap)
+            if snap is self._offered_snap:   # the one the slots were offered
+                self._offered_sol = self._last_solution
+        return self._last_solution
+
+    @last_solution.setter
+    def last_solution(self, sol: NavSolution | None) -> None:
+        self._pending_prop = None
+        self._last_solution = sol
+
+    def _propagated(self, snap) -> None:
+        """The newest IMU sample between filter steps: its propagated solution (a snapshot built when
+        read, ``last_solution``) is the newest solution, its slots due (``_publish_due``)."""
+        if type(snap) is NavSolution:   # the filter step's own solution (the sample turned nothing)
+            self.last_solution = snap
+        else:
+            self._pending_prop = snap
+        self._last_solution_s = self.clock()
+        self._publish_due(self._last_solution_s)
 
     def _due(self, name: str, now: float, period_s: float) -> bool:
         if now < self._next[name]:
@@ -585,11 +618,9 @@ class Daemon:
             else:
                 # between filter steps: the last solution turned by the gyros to this sample, so the
                 # MAVLink outputs carry the newest attitude (Zenoh and the geofence keep the filter rate)
-                prop = self.pipeline.propagated_solution()
+                prop = self.pipeline.propagated_snapshot()
                 if prop is not None:
-                    self.last_solution = prop
-                    self._last_solution_s = self.clock()
-                    self._publish_due(self._last_solution_s)
+                    self._propagated(prop)
             self._pipeline_events()
         elif isinstance(item, PressureSample):
             self.pipeline.on_pressure(item)
@@ -658,11 +689,9 @@ class Daemon:
             self.publish(sol)
             if self.geofence is not None:
                 self._geofence_step(sol)
-        prop = self.pipeline.propagated_solution()
+        prop = self.pipeline.propagated_snapshot()
         if prop is not None:
-            self.last_solution = prop
-            self._last_solution_s = self.clock()
-            self._publish_due(self._last_solution_s)
+            self._propagated(prop)
         self._pipeline_events()
 
     def _pipeline_events(self) -> None:
@@ -792,21 +821,31 @@ class Daemon:
         counted (ODOMETRY never sent; the others at most at their rate of the local clock). When the FC's samples are sparser than the slots, the slots between two
         samples are filled on the local clock with the newest solution while it is fresher than
         max_extrapolation_s (a slow IMU's outputs repeat it; nothing once it is older)."""
-        sol = self.last_solution
-        if sol is None or self.link is None:
-            return
         sched = self.scheduler
-        if sol is not self._offered_sol:
-            self._offered_sol = sol
-            if not sched.reaches_slot(sol.time_fc_s):
-                sched.note(sol.time_fc_s, now)  # most samples: no slot, nothing to build
+        snap = self._pending_prop
+        if snap is not None and snap is not self._offered_snap and self.link is not None:
+            # a new propagated solution (not built yet): offered by its FC time, built if it takes a slot
+            self._offered_snap = snap
+            if not sched.reaches_slot(snap[1][1]):
+                sched.note(snap[1][1], now)  # most samples: no slot, nothing to build
                 return
+            sol = self.last_solution  # built now: the offered one (_offered_sol)
             fill = False
         else:
-            due_s = sched.next_fill_s()
-            if due_s is None or now < due_s or now - self._last_solution_s > self.output_limits.max_extrapolation_s:
+            sol = self.last_solution  # an offered snapshot built now is the offered solution
+            if sol is None or self.link is None:
                 return
-            fill = True
+            if sol is not self._offered_sol:
+                self._offered_sol = sol
+                if not sched.reaches_slot(sol.time_fc_s):
+                    sched.note(sol.time_fc_s, now)  # most samples: no slot, nothing to build
+                    return
+                fill = False
+            else:
+                due_s = sched.next_fill_s()
+                if due_s is None or now < due_s or now - self._last_solution_s > self.output_limits.max_extrapolation_s:
+                    return
+                fill = True
         # Not brought forward by its local age (output_gate.extrapolate_solution): when the daemon works off
         # a backlog that age is queueing delay, and a stamp pushed ahead of the FC stream held back every
         # real solution (e2e: 6 ATTITUDE in 5 s and 2-3 deg errors after a stall). Receivers never see time

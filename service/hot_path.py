@@ -71,6 +71,14 @@ class SampleState:
             self.out = output_step(self.out, time_s, gyro_body_rad_s, self.out_bias_body_rad_s, max_dt_s)
             self.out_rx_s, self.out_gyro_s = time_rx_s, gyro_rad_s
 
+    def out_snapshot(self):
+        """(q_nav_from_body, time_s, out_rx_s, out_gyro_s) of the output attitude as it is now (what
+        Pipeline.propagated_solution reads), None without one: nothing here changes in place later."""
+        o = self.out
+        if o is None:
+            return None
+        return o.q_nav_from_body, o.time_s, self.out_rx_s, self.out_gyro_s
+
 
 def sample_field(name: str, doc: str = "") -> property:
     """A Pipeline attribute that is ``Pipeline._hs.<name>``."""

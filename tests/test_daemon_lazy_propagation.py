@@ -1,0 +1,139 @@
+"""The daemon builds the solution propagated to an IMU sample between filter steps only when it is
+read (issue 19: no per-sample NavSolution on the hot path).
+
+GIVEN the recorded stream of tests/test_mavlink_imu_batch_daemon.py (RAW_IMU at 200 Hz, ATTITUDE
+out at 50 Hz: most samples reach no output slot; a launch, an FC reboot, bad frames), fed in memory
+to daemons on the message path (one datagram per frame) and on the batch path,
+WHEN the daemon keeps each sample's propagated solution as a snapshot (Pipeline.propagated_snapshot)
+and builds it only for an output slot or a reader (Daemon.last_solution), read after every read of
+the link or never,
+THEN every MAVLink message it sends and every solution it reads are those of the daemon that builds
+the propagated solution for every sample (the former code, Daemon and Pipeline, patched in here),
+field for field; and a
+snapshot built wrongly (its time off by 1 us) fails the same comparison.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from estimators.rotations import euler_from_quat, wrap_2pi
+from mavlink_io.link import MavlinkLink
+from mem_transport import MemTransport
+from test_mavlink_imu_batch_daemon import SCENARIO, _reads, _record, scenario_site
+
+
+def _former_propagated_solution(p):
+    """Pipeline.propagated_solution as it was (dataclasses.replace), for the comparison."""
+    o, sol = p._out, p._out_sol
+    if o is None or sol is None:
+        return None
+    if o.time_s == sol.time_fc_s:
+        return sol
+    q = np.array(o.q_nav_from_body)
+    roll, pitch, yaw = euler_from_quat(q)
+    return dataclasses.replace(sol, time_fc_s=o.time_s, time_rx_s=p._out_rx_s, phase=p.phase.phase,
+                               q_nav_from_body=q, roll_rad=roll, pitch_rad=pitch,
+                               heading_rad=wrap_2pi(yaw) if sol.heading_rad is not None else None,
+                               rates_body_rad_s=p.C_body_from_sensor @ (p._out_gyro_s - p.gyro_bias_rad_s))
+
+
+def _eager(self, snap) -> None:
+    """The former Daemon code: the propagated solution built for every sample."""
+    self.last_solution = _former_propagated_solution(self.pipeline)
+    self._last_solution_s = self.clock()
+    self._publish_due(self._last_solution_s)
+
+
+def _fields(msg) -> tuple:
+    return (msg.get_type(),) + tuple(
+        tuple(v) if isinstance(v, (list, tuple)) else v for v in (getattr(msg, f) for f in msg.get_fieldnames()))
+
+
+def _run(tmp_path, name: str, reads, batch: bool, mode: str, monkeypatch) -> dict:
+    from service.config import validate
+    from service.daemon import Daemon
+    over = {k: dict(v) for k, v in scenario_site(SCENARIO).items()}
+    over.update({"zenoh": {"enabled": False}, "service": {"state_dir": str(tmp_path / name)},
+                 "azimuth": {"solve_in_background": False}})
+    clock = [0.0]
+    with monkeypatch.context() as mp:
+        if mode == "eager":
+            mp.setattr(Daemon, "_propagated", _eager)
+        d = Daemon(validate(over), clock=lambda: clock[0])
+        if mode == "wrong":
+            real = d.pipeline.solution_from_snapshot
+
+            def wrong(snap):
+                sol = real(snap)
+                if sol is not None and type(snap) is not type(sol):   # a built snapshot, not the solution
+                    sol = dataclasses.replace(sol, time_fc_s=sol.time_fc_s + 1e-6)
+                return sol
+            d.pipeline.solution_from_snapshot = wrong
+        tr = MemTransport(datagram=True)
+        d.link = MavlinkLink(dataclasses.replace(d.link_cfg, imu_batch=batch), clock=lambda: clock[0], transport=tr)
+        d._event = lambda kind, detail: None
+        sent, read = [], []
+        send = d._send
+        d._send = lambda msg, to_fc=False: (sent.append(_fields(msg)), send(msg, to_fc))
+        for t, datagrams in reads:
+            clock[0] = t
+            for dg in (datagrams if not batch else [None]):
+                tr.inbox.extend([dg] if dg is not None else datagrams)
+                for item in d.link.poll(0.0):
+                    d.dispatch(item)
+            d._publish_due(t)
+            if mode in ("eager", "read", "wrong"):
+                read.append(d.last_solution)
+        d.pipeline.solver.close()
+    return {"sent": sent, "read": read}
+
+
+def _same(a, b) -> bool:
+    if a is None or b is None:
+        return a is b
+    for f in dataclasses.fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, np.ndarray) or isinstance(y, np.ndarray):
+            if not np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True):
+                return False
+        elif isinstance(x, float) and isinstance(y, float) and math.isnan(x) and math.isnan(y):
+            continue
+        elif x != y:
+            return False
+    return True
+
+
+def _same_sent(a: list, b: list) -> bool:
+    def norm(v):
+        return "nan" if isinstance(v, float) and math.isnan(v) else v
+    return len(a) == len(b) and all(tuple(map(norm, x)) == tuple(map(norm, y)) for x, y in zip(a, b))
+
+
+@pytest.fixture(scope="module")
+def reads():
+    return _reads(_record(), packed=False)
+
+
+@pytest.mark.parametrize("batch", [False, True], ids=["message path", "batch path"])
+def test_lazy_propagated_solution_sends_and_reads_what_the_eager_one_did(reads, tmp_path, monkeypatch, batch):
+    eager = _run(tmp_path, "eager", reads, batch, "eager", monkeypatch)
+    read = _run(tmp_path, "read", reads, batch, "read", monkeypatch)
+    unread = _run(tmp_path, "unread", reads, batch, "unread", monkeypatch)
+    n_att = sum(m[0] == "ATTITUDE" for m in eager["sent"])
+    assert n_att > 100, n_att   # the flight sent its outputs
+    assert _same_sent(read["sent"], eager["sent"])
+    assert _same_sent(unread["sent"], eager["sent"])
+    assert sum(s is not None for s in eager["read"]) > 100
+    assert len(read["read"]) == len(eager["read"])
+    assert all(_same(a, b) for a, b in zip(read["read"], eager["read"]))
+
+
+def test_a_wrongly_built_snapshot_fails_the_comparison(reads, tmp_path, monkeypatch):
+    eager = _run(tmp_path, "eager", reads, False, "eager", monkeypatch)
+    wrong = _run(tmp_path, "wrong", reads, False, "wrong", monkeypatch)
+    assert not (_same_sent(wrong["sent"], eager["sent"])
+                and all(_same(a, b) for a, b in zip(wrong["read"], eager["read"])))
