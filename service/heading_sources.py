@@ -94,9 +94,15 @@ class AzimuthCheck:
     def __init__(self) -> None:
         self.inconsistent, self.bad_since_s, self.good_since_s = False, None, None
         self.more_certain = True
-        """A's sigma <= the check source's at the last check (True without one): A supersedes the
-        magnetometer sources only then; less certain, it is offered beside them (its sigma grows
-        after its fit window, estimators/azimuth._output, while B's and C's keep measuring)."""
+        """A's sigma <= the check source's (True without one): A supersedes the magnetometer sources
+        only then; less certain, it is offered beside them (its sigma grows after its fit window,
+        estimators/azimuth._output, while B's and C's keep measuring). Decided at the first
+        comparison, then changed only when the other answer has held for
+        ``SOURCE_INCONSISTENT_AFTER_S``: sigmas within a few percent of each other cross back and
+        forth between output cycles, and a verdict taken per cycle withdrew B on every other one
+        (make run, 2026-12-02: 11 changes of the fused set in 1 s)."""
+        self.certain_flip_since_s = None
+        self.compared = False
 
     def check(self, heading_rad: float, sigma_rad: float, checked_against, t: float,
               gate_chi2: float) -> tuple[bool, str, dict]:
@@ -104,9 +110,10 @@ class AzimuthCheck:
                  and math.isfinite(r.heading_rad) and math.isfinite(r.sigma_rad) and r.sigma_rad > 0.0]
         if not cands or not (math.isfinite(heading_rad) and math.isfinite(sigma_rad)):
             self.inconsistent, self.bad_since_s, self.good_since_s, self.more_certain = False, None, None, True
+            self.certain_flip_since_s, self.compared = None, False
             return True, "", {}
         k = min(cands, key=lambda r: (r.sigma_rad, r.name))
-        self.more_certain = sigma_rad <= k.sigma_rad
+        self._certainty(sigma_rad <= k.sigma_rad, t)
         corroborated = all(_nis(k.heading_rad, k.sigma_rad, r.heading_rad, r.sigma_rad) <= gate_chi2
                            for r in cands if r is not k)
         nu = wrap_pi(heading_rad - k.heading_rad)
@@ -135,6 +142,19 @@ class AzimuthCheck:
         return False, (f"disagreed with {k.name} (now {math.degrees(nu):+.1f} deg, NIS {nis:.1f}; back within "
                        f"{AZIMUTH_AGREES_CHI2:g} for {SOURCE_INCONSISTENT_AFTER_S:.0f} s"
                        + (f": {t - self.good_since_s:.1f} s so far)" if self.good_since_s is not None else ")")), own
+
+
+    def _certainty(self, more_certain_now: bool, t: float) -> None:
+        """``more_certain`` with its hold (its docstring)."""
+        if not self.compared:
+            self.more_certain, self.compared, self.certain_flip_since_s = more_certain_now, True, None
+        elif more_certain_now == self.more_certain:
+            self.certain_flip_since_s = None
+        else:
+            if self.certain_flip_since_s is None:
+                self.certain_flip_since_s = t
+            if t - self.certain_flip_since_s >= SOURCE_INCONSISTENT_AFTER_S:
+                self.more_certain, self.certain_flip_since_s = more_certain_now, None
 
 
 def _nis(h1: float, s1: float, h2: float, s2: float) -> float:

@@ -155,3 +155,38 @@ def test_no_check_source_leaves_a_standing():
     assert not ok
     ok, why, own = chk.check(D2R(120.0), D2R(1.3), (R("synthetic_ahrs", 100.0, 1.5, consistent=False),), 3.1, 9.0)
     assert ok and why == "" and own == {}
+
+
+def test_sigmas_that_cross_every_cycle_do_not_flip_the_selection():
+    """GIVEN A consistent with B and its sigma 1.31 / 1.33 deg on alternate 20 ms cycles about B's
+    1.32 (make run, 2026-12-02: A's and B's sigmas equal to 0.01 deg at 183 s), THEN whether A
+    supersedes B is decided at the first comparison (A more certain: A alone) and kept: A's record
+    says fused on every cycle and the published source never changes. Before: the verdict was taken
+    per cycle, B withdrawn on every other one (250 changes of the fused set in 5 s)."""
+    p = _pipeline()
+    srcs = []
+    for k in range(250):
+        t = 0.02 * k
+        p.azimuth_out, p.ahrs_out = _a(t, 100.5, 1.31 if k % 2 == 0 else 1.33), _b(t, 100.0, 1.32, air_fused=k)
+        readings, not_offered = p._readings(t)
+        p.arb, out = arbitrate(p.arb, readings, t, p.arb_params, 0.0, not_offered)
+        srcs.append(out.source)
+    assert set(srcs) == {"azimuth"}
+
+
+def test_a_that_stays_less_certain_is_fused_after_the_hold():
+    """GIVEN A superseding B (A 1.2 deg, B 1.5), WHEN A's sigma grows to 1.8 deg and stays there
+    (its fit window over), THEN B is offered beside A once that has held for
+    SOURCE_INCONSISTENT_AFTER_S, and A and B are fused from then on."""
+    p = _pipeline()
+    srcs = []
+    for k in range(300):
+        t = 0.02 * k
+        p.azimuth_out, p.ahrs_out = _a(t, 100.5, 1.2 if t < 2.0 else 1.8), _b(t, 100.0, 1.5, air_fused=k)
+        readings, not_offered = p._readings(t)
+        p.arb, out = arbitrate(p.arb, readings, t, p.arb_params, 0.0, not_offered)
+        srcs.append((t, out.source))
+    first_fused = next(t for t, s in srcs if s == "azimuth+synthetic_ahrs")
+    assert all(s == "azimuth" for t, s in srcs if t < first_fused)
+    assert first_fused == pytest.approx(2.0 + SOURCE_INCONSISTENT_AFTER_S, abs=0.03)
+    assert all(s == "azimuth+synthetic_ahrs" for t, s in srcs if t >= first_fused)
