@@ -18,9 +18,10 @@ One state: the Pipeline's per-sample fields (``last_time_fc_s``, ``_last_rx_s``,
 ``_core.SampleState`` with the core, this module's :class:`SampleState` with the reference. The
 strapdown and the input checks the core steps are the Pipeline's own held core objects
 (HeldStrapdown, CoreImuInputChecks), stepped in place. Method A's state is an immutable
-AzimuthState replaced per step (as ``azimuth_step`` does): a run takes it in and gives the next
-one back, a pure step over many samples; its per-sample output is built when read
-(``Pipeline.azimuth_out``, estimators.azimuth.azimuth_output). ``counters.imu_samples`` gets the
+AzimuthState replaced per step (as ``azimuth_step`` does): a run takes it in as a core AzimuthRun
+that the following runs go on with (``Pipeline._azimuth_held``) until Python reads or sets
+``Pipeline.azimuth``, which takes the next AzimuthState back (a pure step over many samples); its
+per-sample output is built when read (``Pipeline.azimuth_out``, estimators.azimuth.azimuth_output). ``counters.imu_samples`` gets the
 run's count of samples. What decides whether a run may start (the phase, pending events, A's
 phase, a solver result waiting) changes only on a sample Python handles, so it is judged before
 each run.
@@ -103,7 +104,14 @@ def _sample(records: np.ndarray, i: int, source: str):
 
 def _azimuth_run(p):
     """Method A's part of a run from the Pipeline's state: the core's AzimuthRun (inactive when A is
-    not stepped in flight), or None when A's next sample is not quiet."""
+    not stepped in flight), or None when A's next sample is not quiet. A run held since the last one
+    (``Pipeline._azimuth_held``: A's state lives in the core while Python does not look at it) goes on."""
+    held = p._azimuth_held
+    if held is not None:
+        ready = getattr(p.solver, "ready", None)
+        if ready is None or ready():   # a solver result to apply: Python takes the sample
+            return None, False
+        return held, True
     if p.phase.started_in_flight or p._azimuth_off is not None or p.azimuth.phase == "prelaunch":
         return _ec.AzimuthRun(), False
     st = p.azimuth
@@ -129,17 +137,25 @@ def _azimuth_run(p):
 _ZERO3 = np.zeros(3)
 
 
+def azimuth_take_back(p) -> None:
+    """Method A's state back from the core into ``Pipeline.azimuth`` (the AzimuthState of the held
+    run's start, with the run's strapdown, G, C and stored samples): what reading or setting
+    ``Pipeline.azimuth`` does first."""
+    run, p._azimuth_held = p._azimuth_held, None
+    _azimuth_back(p, run)
+
+
 def _azimuth_back(p, run) -> None:
     """The AzimuthState after a run that stepped A: its strapdown, G, C and stored samples."""
     q, t_prev, g_prev, G, C, last_mag_s, rec = run.result()
-    st = p.azimuth
+    st = p._azimuth
     upd = {"strapdown": StrapdownState(q, t_prev, g_prev), "G_gyro": G, "C_isf_sf": C}
     if len(rec):
         upd["samples"] = st.samples + tuple(
             MagRecord(float(r[0]), r[1:4].copy(), r[4:13].reshape(3, 3).copy(), r[13:49].reshape(3, 12).copy())
             for r in rec)
         upd["last_mag_s"] = last_mag_s
-    p.azimuth = fast_replace(st, **upd)
+    p._azimuth = fast_replace(st, **upd)
 
 
 def hot_path_ready(p) -> bool:
@@ -185,9 +201,11 @@ def batch_steps(p, batch, samples=None):
                 if handled:
                     p.counters.imu_samples += handled
                     if a_steps:
-                        if arun.active:
-                            _azimuth_back(p, arun)
-                        p._azimuth_out_due = (p.azimuth, float(rows[stop - 1, 0]))
+                        if arun.active:   # A's state stays in the core until Python reads it
+                            p._azimuth_held = arun
+                            p._azimuth_out_due = (None, float(rows[stop - 1, 0]))
+                        else:
+                            p._azimuth_out_due = (p.azimuth, float(rows[stop - 1, 0]))
                 i = stop
                 if i >= n:
                     break

@@ -32,7 +32,7 @@ import numpy as np
 from dataclasses import replace as dc_replace
 
 from estimators.azimuth import azimuth_output
-from estimators.azimuth import (AzimuthOutput, AzimuthParams, azimuth_apply_solve, azimuth_init,
+from estimators.azimuth import (AzimuthOutput, AzimuthParams, AzimuthState, azimuth_apply_solve, azimuth_init,
                                 azimuth_launch, azimuth_prelaunch_step, azimuth_step)
 from estimators.declination import (DeclinationParams, RestState, estimate_declination,
                                     rest_accumulate)
@@ -57,7 +57,7 @@ from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent,
                                        synthetic_ahrs_unseen)
 from mavlink_io.samples import FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, ImuSample, PressureSample
 from service.core_backend import select as select_core
-from service.hot_path import batch_steps, sample_field
+from service.hot_path import azimuth_take_back, batch_steps, sample_field
 from service.input_checks import InputCheckParams
 from service.heading_arbitration import (ArbitrationParams, ArbitrationState, SourceReading,
                                          arbitrate)
@@ -242,10 +242,14 @@ class Pipeline:
         from service.solver import InlineSolver
         self.solver = solver if solver is not None else InlineSolver()
         self._next_solve_s = -math.inf
+        self._azimuth_held = None
+        """Method A's core AzimuthRun while its state lives in the core (service/hot_path.py):
+        ``azimuth`` takes it back when read or set."""
         self.azimuth = azimuth_init(self.azimuth_params)
         self._azimuth_out: AzimuthOutput | None = None
         self._azimuth_out_due: tuple | None = None
-        """(AzimuthState, time) of A's last step by the hot path: its output, built when read."""
+        """(AzimuthState, time) of A's last step by the hot path: its output, built when read (None for
+        the state: the one held in the core, ``_azimuth_held``)."""
         self._azimuth_status = ""
 
         # method B
@@ -358,11 +362,24 @@ class Pipeline:
     # --- inputs -------------------------------------------------------------------------------
 
     @property
+    def azimuth(self) -> AzimuthState:
+        """Method A's state (estimators.azimuth.AzimuthState)."""
+        if self._azimuth_held is not None:
+            azimuth_take_back(self)
+        return self._azimuth
+
+    @azimuth.setter
+    def azimuth(self, st: AzimuthState) -> None:
+        self._azimuth_held = None   # a held run's state is replaced with the rest
+        self._azimuth = st
+
+    @property
     def azimuth_out(self) -> AzimuthOutput | None:
         """Method A's output at its last step (None: not run, or disabled)."""
         due = self._azimuth_out_due
         if due is not None:
-            self._azimuth_out, self._azimuth_out_due = azimuth_output(*due), None
+            st, t = due
+            self._azimuth_out, self._azimuth_out_due = azimuth_output(self.azimuth if st is None else st, t), None
         return self._azimuth_out
 
     @azimuth_out.setter
