@@ -17,7 +17,9 @@ separate processes at 400 Hz.
    The compiled core (issue 19): the whole stack runs twice, with the ported parts in the core (the
    default) and with the Python reference (AZIMUTHD_CORE=python); each ported part runs as the
    Python reference, through the core per sample, and through the core's batch API (the whole
-   stream's N x 3 arrays in one call). JSON ``ported``: per-sample costs and speed-ups
+   stream's N x 3 arrays in one call). The daemon's batch path (Pipeline.on_imu_batch) runs twice:
+   the IMU samples between two other items as one batch, and one row per batch (the daemon at
+   400 Hz reads one RAW_IMU per wake-up). JSON ``ported``: per-sample costs and speed-ups
    (``*_speedup_x`` = reference / core), all from the same run as imufusion and vqf.
 2. Latency. ``bench.sitl.Sitl`` (simulator and daemon as two processes over loopback UDP) with a
    tap between them that timestamps, on one monotonic clock in one thread, every RAW_IMU it
@@ -163,10 +165,17 @@ case_pipeline = _pipeline_case("core")
 case_pipeline_python = _pipeline_case("python")
 
 
-def case_pipeline_batch(run, items):
+def _pipeline_batch_case(max_rows: int | None):
     """The whole stack with the compiled core fed as the daemon's batch path feeds it
     (Pipeline.on_imu_batch: the quiet samples in the core's hot path, service/hot_path.py): the IMU
-    samples between two other items as one batch (made once, untimed: the link decodes them)."""
+    samples between two other items as one batch (made once, untimed: the link decodes them), cut
+    to ``max_rows`` rows (1: the daemon at 400 Hz, one RAW_IMU per datagram and per wake-up)."""
+    def factory(run, items):
+        return _pipeline_batch_pass(run, items, max_rows)
+    return factory
+
+
+def _pipeline_batch_pass(run, items, max_rows: int | None):
     from mavlink_io.samples import ImuSample
     from service.hot_path import batch_of
     from service.pipeline import Pipeline
@@ -175,6 +184,9 @@ def case_pipeline_batch(run, items):
     for it in items:
         if type(it) is ImuSample:
             imu.append(it)
+            if max_rows is not None and len(imu) >= max_rows:
+                plan.append(batch_of(imu))
+                imu = []
             continue
         if imu:
             plan.append(batch_of(imu))
@@ -198,7 +210,7 @@ def case_pipeline_batch(run, items):
             if c.__name__ == "ImuBatch":
                 p.on_imu_batch(it)
                 p.drain_events()
-                p.propagated_solution()
+                p.propagated_snapshot()   # what the daemon takes after a batch (built for an output slot)
             else:
                 fn = handlers.get(c)
                 if fn is None:
@@ -207,6 +219,10 @@ def case_pipeline_batch(run, items):
                                         "FcEkfStatus": p.on_fc_ekf_status}[c.__name__]
                 fn(it)
     return one_pass
+
+
+case_pipeline_batch = _pipeline_batch_case(None)
+case_pipeline_batch1 = _pipeline_batch_case(1)
 
 
 def case_phases(run, items):
@@ -518,6 +534,7 @@ CASES = [
     ("azimuthd whole stack (service.pipeline.Pipeline)", "ours", case_pipeline),
     ("whole stack, Python reference (AZIMUTHD_CORE=python)", "ours", case_pipeline_python),
     ("whole stack, core, batch path (on_imu_batch, hot path)", "ours", case_pipeline_batch),
+    ("whole stack, core, batch path, 1 row per batch (the daemon)", "ours", case_pipeline_batch1),
     ("phases: levelling + launch detection", "ours", case_phases),
     ("phases, core, per sample (held state)", "ours", case_phases_core),
     ("strapdown (estimators.strapdown)", "ours", case_strapdown),
@@ -752,6 +769,9 @@ def ported_figures(rows: list[dict]) -> dict:
     stack_batch = us.get("whole stack, core, batch path (on_imu_batch, hot path)", math.nan)
     out["stack_core_batch_us_per_imu_sample"] = stack_batch
     out["stack_core_batch_speedup_x"] = stack_py / stack_batch if stack_batch > 0 else math.nan
+    stack_batch1 = us.get("whole stack, core, batch path, 1 row per batch (the daemon)", math.nan)
+    out["stack_core_batch1_us_per_imu_sample"] = stack_batch1
+    out["stack_core_batch1_speedup_x"] = stack_py / stack_batch1 if stack_batch1 > 0 else math.nan
     return {"ported": out, "stack_python_reference_us_per_imu_sample": stack_py}
 
 
