@@ -33,7 +33,8 @@ SOURCES = ("azimuth", "synthetic_ahrs", "heading_filter", "fc", "deviation")
 WHY_NOT = {
     "": "fused",
     "no_estimate": "the source has no heading (yet): waiting, not initialised, no input",
-    "superseded": "a magnetometer source is not offered while method A has a solution that agrees with it and is as certain",
+    "superseded": "a magnetometer source is not offered while method A has a solution that agrees with it and is as "
+                  "certain (A's sigma widened by its disagreement)",
     "excluded": "switched off by configuration, or the FC's yaw is excluded",
     "no_reference": "the reference the source is built on is lost (no trusted FC, no air data)",
     "not_valid": "the source says its reading is not valid",

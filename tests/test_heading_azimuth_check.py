@@ -61,15 +61,23 @@ def _err(h, ref):
 
 def test_a_drifting_away_from_b_loses_the_arbitration_to_b():
     """GIVEN A solved and agreeing with B at 100 deg, WHEN A's heading drifts at -0.3 deg/s (its gyro
-    bias walked) at a steady 1.3 deg sigma while B holds 100 deg +- 1.5 deg, THEN once A is more
-    than 3 sigma of the difference away (|d| > 5.95 deg, at ~20 s) for 2 s, A is inconsistent (its
-    record says so, with the comparison as its source-level test ratio) and B is published: from 25 s
-    on the published heading is within 3 published sigma of B's, the published source B. Before: A
-    was published throughout, 12 deg off at 40 s with its 1.3 deg sigma."""
+    bias walked) at a steady 1.3 deg sigma while B holds 100 deg +- 1.5 deg, THEN A supersedes B
+    while it agrees within 1 sigma of the difference (NIS <= 1, to ~6.6 s); past that its offered
+    sigma grows with its demonstrated disagreement (x sqrt(mean NIS)), and once that is above B's
+    for 2 s B is fused beside it; once A is more than 3 sigma of the difference away (|d| > 5.95 deg,
+    at ~20 s) for 2 s, A is inconsistent (its record says so, with the comparison as its
+    source-level test ratio) and B is published: from 25 s on the published heading is within 3
+    published sigma of B's, the published source B. Before 5692267: A was published throughout,
+    12 deg off at 40 s with its 1.3 deg sigma; before the demonstrated-disagreement scale: A alone
+    until it was dropped at ~22 s."""
     rows = _fly(lambda t: 100.0 - 0.3 * t)
-    early = [r for r in rows if r[0] < 15.0]
+    early = [r for r in rows if r[0] < 6.5]
     assert all(r[3] == "azimuth" for r in early)                 # agreeing: A supersedes B
-    assert all(r[4].fused and r[4].source_test_ratio <= 1.0 for r in early)
+    assert all(r[4].fused and r[4].source_test_ratio <= 1.0 / 9.0 for r in early)
+    assert all(r[4].observation_sigma_rad == pytest.approx(D2R(1.3), rel=1e-12) for r in early)
+    middle = [r for r in rows if 11.0 <= r[0] < 21.5]
+    assert all(r[3] == "azimuth+synthetic_ahrs" for r in middle)   # A's scaled sigma above B's
+    assert all(r[4].observation_sigma_rad > D2R(1.5) for r in middle)
     late = [r for r in rows if r[0] >= 25.0]
     assert all(r[3] == "synthetic_ahrs" for r in late)
     assert all(abs(_err(r[1], 100.0)) <= 3.0 * r[2] for r in late)
@@ -83,19 +91,39 @@ def test_a_drifting_away_from_b_loses_the_arbitration_to_b():
 
 
 def test_a_that_agrees_with_b_keeps_superseding_it():
-    """GIVEN A and B within their combined sigma (A wanders +-2.5 deg about B, 3 sigma of the
-    difference is 5.95 deg), THEN A is published throughout and B stays superseded."""
-    rows = _fly(lambda t: 100.0 + 2.5 * math.sin(0.3 * t), duration_s=60.0)
+    """GIVEN A and B within 1 sigma of their difference (A wanders +-1.9 deg about B; the sigma of
+    the difference is 1.98 deg), THEN A is published throughout, at its own sigma, and B stays
+    superseded."""
+    rows = _fly(lambda t: 100.0 + 1.9 * math.sin(0.3 * t), duration_s=60.0)
     assert all(r[3] == "azimuth" for r in rows)
+    assert all(r[2] == pytest.approx(1.3, rel=1e-9) for r in rows)
+
+
+def test_a_wandering_beyond_one_sigma_of_the_difference_is_fused_while_it_does():
+    """GIVEN A wandering +-2.5 deg about B (within the gate: 3 sigma of the difference is 5.95 deg;
+    NIS up to 1.6), THEN A supersedes B while its 2 s mean NIS keeps its scaled sigma at or below
+    B's 1.5 deg, and is fused with B while it does not; the choice changes no more often than the
+    2 s hold allows, and every published heading is within 2 published sigma of B's. Before the
+    scale: A alone throughout, at its own 1.3 deg, while 2.5 deg off."""
+    rows = _fly(lambda t: 100.0 + 2.5 * math.sin(0.3 * t), duration_s=60.0)
+    srcs = {r[3] for r in rows}
+    assert srcs == {"azimuth", "azimuth+synthetic_ahrs"}
+    changes = [r[0] for i, r in enumerate(rows) if i and r[3] != rows[i - 1][3]]
+    assert all(b - a >= SOURCE_INCONSISTENT_AFTER_S for a, b in zip(changes, changes[1:]))
+    assert all(abs(_err(r[1], 100.0)) <= 2.0 * r[2] for r in rows)
 
 
 def test_a_comes_back_once_it_agrees_again_for_as_long():
     """GIVEN A dropped for a 10 deg disagreement, WHEN it agrees with B again (a new solution), THEN it
-    supersedes B again after SOURCE_INCONSISTENT_AFTER_S of agreement, not at the first agreeing step."""
+    is a candidate again after SOURCE_INCONSISTENT_AFTER_S of agreement, not at the first agreeing
+    step: fused beside B at first (its sigma scaled by the disagreement still in its 2 s window made
+    it less certain than B), superseding B once it has been the more certain for 2 s more."""
     rows = _fly(lambda t: 90.0 if t < 20.0 else 100.5, duration_s=40.0)
     assert rows[-1][3] == "azimuth"
-    back = next(r[0] for r in rows if r[0] > 20.0 and r[3] == "azimuth")
+    back = next(r[0] for r in rows if r[0] > 20.0 and r[4].fused)
     assert back == pytest.approx(20.0 + SOURCE_INCONSISTENT_AFTER_S, abs=0.15)
+    alone = next(r[0] for r in rows if r[0] > 20.0 and r[3] == "azimuth")
+    assert alone == pytest.approx(back + SOURCE_INCONSISTENT_AFTER_S, abs=0.15)
     assert any(r[3] == "synthetic_ahrs" for r in rows if 5.0 < r[0] < 20.0)
 
 
@@ -190,3 +218,48 @@ def test_a_that_stays_less_certain_is_fused_after_the_hold():
     assert all(s == "azimuth" for t, s in srcs if t < first_fused)
     assert first_fused == pytest.approx(2.0 + SOURCE_INCONSISTENT_AFTER_S, abs=0.03)
     assert all(s == "azimuth+synthetic_ahrs" for t, s in srcs if t >= first_fused)
+
+
+def test_a_drifting_inside_the_gate_is_weighted_by_its_demonstrated_disagreement():
+    """GIVEN B right at 100 deg with a conservative 3 deg sigma, and A drifting at -0.03 deg/s with
+    a sigma sqrt(1.3^2 + (0.01 t)^2) that grows slower than its error (synthetic_ahrs_accuracy's
+    flights: A's in-run bias walks ~3x its 0.01 deg/s prior), WHEN for 300 s A's NIS against B stays
+    inside the gate (3.8 at the end: A stays consistent), THEN A's sigma as offered is its own times
+    sqrt(mean NIS over 2 s) once that mean exceeds 1 (its own below), B is offered and fused with A
+    from ~174 s on, and every published heading is within 2.1 published sigma of 100 deg. Before: A
+    superseded B until its own sigma passed B's (272 s), 8.2 deg off at 3.0 deg (2.7 sigma)."""
+    p = _pipeline()
+    worst, rows = 0.0, []
+    for k in range(3000):
+        t = 0.1 * k
+        own = math.hypot(1.3, 0.01 * t)
+        p.azimuth_out, p.ahrs_out = _a(t, 100.0 - 0.03 * t, own), _b(t, 100.0, 3.0, air_fused=k)
+        readings, not_offered = p._readings(t)
+        p.arb, out = arbitrate(p.arb, readings, t, p.arb_params, 0.0, not_offered)
+        worst = max(worst, abs(_err(math.degrees(out.heading_rad), 100.0)) / math.degrees(out.sigma_rad))
+        a = out.records["azimuth"]
+        rows.append((t, out.source, math.degrees(a.observation_sigma_rad), own, a.source_test_ratio * 9.0))
+    assert worst <= 2.1
+    for t, src, offered, own, nis in rows:
+        if nis < 0.9:                       # agreeing within the sum of the sigmas: A's own sigma
+            assert offered == pytest.approx(own, rel=1e-12), t
+        if t >= 100.0 and nis > 1.2:        # the mean over 2 s of a slowly growing NIS ~ the NIS now
+            assert offered == pytest.approx(own * math.sqrt(nis), rel=0.02), t
+        if t < 170.0:
+            assert src == "azimuth", t
+        if t >= 176.0:
+            assert src == "azimuth+synthetic_ahrs", t
+
+
+def test_the_scale_is_the_mean_nis_over_the_window():
+    """AzimuthCheck.sigma_scale: sqrt(max(1, mean NIS against the check source over the last
+    SOURCE_INCONSISTENT_AFTER_S)); one disagreeing cycle among agreeing ones moves it by its share."""
+    chk = AzimuthCheck()
+    b = lambda t: R("synthetic_ahrs", 100.0, 1.5)
+    for k in range(20):                                   # 1.9 s agreeing: NIS 0
+        chk.check(D2R(100.0), D2R(1.5), (b(0.1 * k),), 0.1 * k, 9.0)
+    assert chk.sigma_scale == 1.0
+    chk.check(D2R(100.0 + 1.5 * math.sqrt(2.0) * math.sqrt(63.0)), D2R(1.5), (b(2.0),), 2.0, 9.0)  # NIS 63
+    assert chk.sigma_scale == pytest.approx(math.sqrt(63.0 / 21.0))       # 21 checks in the window
+    chk.check(D2R(100.0), D2R(1.5), (b(4.05),), 4.05, 9.0)                  # the window has moved on
+    assert chk.sigma_scale == 1.0
