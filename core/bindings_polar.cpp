@@ -29,6 +29,9 @@ Params params_from(const py::object& o) {
     p.gyro_bias_init_sigma_rad_s = num(o, "gyro_bias_init_sigma_rad_s");
     p.gyro_bias_sigma_rad_s = num(o, "gyro_bias_sigma_rad_s");
     p.gyro_bias_tau_s = num(o, "gyro_bias_tau_s");
+    p.gyro_bias_rate_sigma_rad_s2 = num(o, "gyro_bias_rate_sigma_rad_s2");
+    p.gyro_bias_rate_tau_s = num(o, "gyro_bias_rate_tau_s");
+    p.takeoff_bias_step_sigma_rad_s = num(o, "takeoff_bias_step_sigma_rad_s");
     p.accel_noise_m_s2 = num(o, "accel_noise_m_s2");
     p.accel_meas_floor_m_s2 = num(o, "accel_meas_floor_m_s2");
     p.vehicle_accel_sigma_m_s2 = num(o, "vehicle_accel_sigma_m_s2");
@@ -135,6 +138,7 @@ py::dict state_dict(const State& s) {
     d["rest_s"] = s.rest_s;
     d["n_relevels"] = s.n_relevels;
     d["sample_dt_s"] = opt(s.has_sample_dt, s.sample_dt_s);
+    d["bias_rate_opened"] = s.bias_rate_opened;
     return d;
 }
 
@@ -165,6 +169,8 @@ State state_from(const py::dict& d) {
     s.rest_s = d["rest_s"].cast<double>();
     s.n_relevels = d["n_relevels"].cast<long>();
     s.has_sample_dt = get_opt(d, "sample_dt_s", s.sample_dt_s);
+    if (d.contains("bias_rate_opened"))   // a record from before the field: False, as its default
+        s.bias_rate_opened = d["bias_rate_opened"].cast<bool>();
     return s;
 }
 

@@ -1,11 +1,11 @@
 // Method C's attitude filter (the polar-capable roll/pitch filter): the compiled twin of
-// estimators/polar_attitude.py, which stays the reference and holds the derivation (22 error states
-// x = [eps(3), db_g(3), da_v(3), dw_ie_P(3), dw_eP_P(3), db_a(3), dg(1), ds_g(3)], the nominal
+// estimators/polar_attitude.py, which stays the reference and holds the derivation (25 error states
+// x = [eps(3), db_g(3), da_v(3), dw_ie_P(3), dw_eP_P(3), db_a(3), dg(1), ds_g(3), dr_g(3)], the nominal
 // mechanisation per sample, the specific-force update every update_period_s with its gate, re-entry
 // test, covariance matching, platform-yaw cap and re-levelling at rest; holes bridged, gaps unseen).
-// Every scalar expression is the reference's, in its order. The 22 x 22 products skip the entries
-// that are zero by construction (F is the identity but for the attitude rows and the Gauss-Markov
-// diagonal; H has 10 non-zero columns; the Joseph form is written (I - K H) P (I - K H)^T as
+// Every scalar expression is the reference's, in its order. The 25 x 25 products skip the entries
+// that are zero by construction (F is the identity but for the attitude rows, the Gauss-Markov
+// diagonal and the bias rows' bias-rate column; H has 10 non-zero columns; the Joseph form is written (I - K H) P (I - K H)^T as
 // P - K (H P), then minus (.. H^T) K^T): the same sums without their exact zeros. numpy's BLAS sums
 // and fuses in its own order, so the two agree to rounding: tests/test_core_polar_attitude.py asserts
 // 1e-9 relative (covariances against sqrt(P_ii P_jj)).
@@ -18,15 +18,16 @@
 namespace azimuthd {
 namespace polar {
 
-constexpr int NS = 22;   // error states
-constexpr int NX = 19;   // x_hat: every state but the attitude error
+constexpr int NS = 25;   // error states
+constexpr int NX = 22;   // x_hat: every state but the attitude error
 using PMat = Mat<NS, NS>;
 using XVec = std::array<double, NX>;
 
 // estimators.polar_attitude.PolarAttitudeParams (the fields the filter reads)
 struct Params {
     double update_period_s, init_period_s, gyro_noise_rad_s_rt_hz, gyro_bias_init_sigma_rad_s,
-        gyro_bias_sigma_rad_s, gyro_bias_tau_s, accel_noise_m_s2, accel_meas_floor_m_s2, vehicle_accel_sigma_m_s2,
+        gyro_bias_sigma_rad_s, gyro_bias_tau_s, gyro_bias_rate_sigma_rad_s2, gyro_bias_rate_tau_s, takeoff_bias_step_sigma_rad_s,
+        accel_noise_m_s2, accel_meas_floor_m_s2, vehicle_accel_sigma_m_s2,
         vehicle_accel_tau_s, manoeuvre_speed_m_s, earth_rate_sigma_rad_s, earth_rate_tau_s,
         transport_rate_sigma_rad_s, transport_rate_tau_s, accel_bias_sigma_m_s2, accel_bias_tau_s, gyro_scale_sigma,
         gyro_scale_tau_s, gravity_variation_sigma_m_s2, gravity_variation_tau_s, gravity_m_s2, init_tilt_sigma_rad,
@@ -66,6 +67,7 @@ struct State {
     long n_relevels = 0;
     bool has_sample_dt = false;
     double sample_dt_s = 0.0;
+    bool bias_rate_opened = false;
 };
 
 // what a step did: the reference's PolarAttitudeDiag.reason, as a code (the Python face words it)
@@ -145,7 +147,8 @@ inline void gm_diagonals(double dt, const Params& p, double F[NS], double Q[NS])
         {12, 15, p.transport_rate_tau_s, p.transport_rate_sigma_rad_s},
         {15, 18, p.accel_bias_tau_s, p.accel_bias_sigma_m_s2},
         {18, 19, p.gravity_variation_tau_s, p.gravity_variation_sigma_m_s2},
-        {19, 22, p.gyro_scale_tau_s, p.gyro_scale_sigma}};
+        {19, 22, p.gyro_scale_tau_s, p.gyro_scale_sigma},
+        {22, 25, p.gyro_bias_rate_tau_s, p.gyro_bias_rate_sigma_rad_s2}};
     for (const auto& b : blocks) {
         const double phi = std::exp(-dt / b.tau);
         const double q = b.sig * b.sig * (1.0 - phi * phi);
@@ -175,9 +178,19 @@ inline PMat initial_covariance(const M3& C_BP, const Params& p, double tilt_sigm
                           std::pow(p.accel_bias_sigma_m_s2, 2),
                           std::pow(p.gravity_variation_sigma_m_s2, 2),
                           std::pow(p.gyro_scale_sigma, 2), std::pow(p.gyro_scale_sigma, 2),
-                          std::pow(p.gyro_scale_sigma, 2)};
+                          std::pow(p.gyro_scale_sigma, 2),
+                          std::pow(p.gyro_bias_rate_sigma_rad_s2, 2), std::pow(p.gyro_bias_rate_sigma_rad_s2, 2),
+                          std::pow(p.gyro_bias_rate_sigma_rad_s2, 2)};
     for (int i = 3; i < NS; ++i) P[i * NS + i] = d[i];
     return P;
+}
+
+// _ramp_bias: the nominal gyro bias and its rate over dt (b' = r, r' = -r / tau_r)
+inline void ramp_bias(XVec& x, double dt, const Params& p) {
+    const double phi = std::exp(-dt / p.gyro_bias_rate_tau_s);
+    const double c = p.gyro_bias_rate_tau_s * (1.0 - phi);
+    for (int i = 0; i < 3; ++i) x[i] += x[19 + i] * c;
+    for (int i = 19; i < 22; ++i) x[i] *= phi;
 }
 
 // --- init, init_at, unseen --------------------------------------------------------------------------
@@ -230,6 +243,7 @@ inline void unseen(State& s, double unseen_s, const Params& p) {
     for (int i = 0; i < 3; ++i) P[i * NS + i] += sg * sg;
     const double decay = std::exp(-unseen_s / p.vehicle_accel_tau_s);
     for (int i = 3; i < 6; ++i) s.x_hat[i] *= decay;
+    ramp_bias(s.x_hat, unseen_s, p);
     symmetrise_p(P);
     s.P = P;
     s.has_time = false;
@@ -377,8 +391,24 @@ inline double relevel(State& st, const Params& p) {
     return angle;
 }
 
+// _open_bias_rate: the bias rate's and the bias's priors for flight, once per take-off (relevel_allowed
+// going False)
+inline void open_bias_rate(State& st, const Params& p) {
+    if (p.relevel_allowed) {
+        st.bias_rate_opened = false;
+        return;
+    }
+    if (st.bias_rate_opened) return;
+    for (int i = 22; i < 25; ++i)
+        for (int j = 0; j < NS; ++j) { st.P[i * NS + j] = 0.0; st.P[j * NS + i] = 0.0; }
+    for (int i = 22; i < 25; ++i) st.P[i * NS + i] = 1.0 * std::pow(p.gyro_bias_rate_sigma_rad_s2, 2);
+    for (int i = 3; i < 6; ++i) st.P[i * NS + i] += 1.0 * std::pow(p.takeoff_bias_step_sigma_rad_s, 2);
+    st.bias_rate_opened = true;
+}
+
 // _update: covariance over the interval, then the specific-force update
 inline Diag update(State& st, const Params& p) {
+    open_bias_rate(st, p);
     Diag dg;
     dg.code = UPDATE;
     const double T = st.acc_dt_s;
@@ -390,9 +420,9 @@ inline Diag update(State& st, const Params& p) {
     const M3 Rt = tr<3, 3>(R_b0_b);
     const V3 theta = rotvec_from_quat(st.acc_q_b0_from_b);
     const M3 RtC0 = mm<3, 3, 3>(Rt, C_BP_0);
-    // F's attitude rows on their non-zero columns: att 0:3, bg 3:6, wie 9:12, wep 12:15, sg 19:22
-    constexpr int FC[15] = {0, 1, 2, 3, 4, 5, 9, 10, 11, 12, 13, 14, 19, 20, 21};
-    double Fa[3][15];
+    // F's attitude rows on their non-zero columns: att 0:3, bg 3:6, wie 9:12, wep 12:15, sg 19:22, br 22:25
+    constexpr int FC[18] = {0, 1, 2, 3, 4, 5, 9, 10, 11, 12, 13, 14, 19, 20, 21, 22, 23, 24};
+    double Fa[3][18];
     const double hT = -0.5 * T;
     for (int i = 0; i < 3; ++i)
         for (int j = 0; j < 3; ++j) {
@@ -403,7 +433,10 @@ inline Diag update(State& st, const Params& p) {
             Fa[i][6 + j] = coupling;
             Fa[i][9 + j] = coupling;
             Fa[i][12 + j] = -0.5 * I_Rt * theta[j];
+            Fa[i][15 + j] = (i == j ? -0.5 * T * T : 0.0);
         }
+    // the bias rows: phi_bg on the diagonal and tau_r (1 - phi_r) on the bias rate (F[I_BG, I_BR])
+    const double c_br = p.gyro_bias_rate_tau_s * (1.0 - std::exp(-T / p.gyro_bias_rate_tau_s));
     double phi[NS], Q[NS];
     gm_diagonals(T, p, phi, Q);
     Q[0] = Q[1] = Q[2] = std::pow(p.gyro_noise_rad_s_rt_hz, 2) * T;
@@ -412,19 +445,22 @@ inline Diag update(State& st, const Params& p) {
     for (int i = 0; i < 3; ++i)
         for (int j = 0; j < NS; ++j) {
             double a = Fa[i][0] * P0[FC[0] * NS + j];
-            for (int k = 1; k < 15; ++k) a = a + Fa[i][k] * P0[FC[k] * NS + j];
+            for (int k = 1; k < 18; ++k) a = a + Fa[i][k] * P0[FC[k] * NS + j];
             A[i * NS + j] = a;
         }
     for (int i = 3; i < NS; ++i)
         for (int j = 0; j < NS; ++j) A[i * NS + j] = phi[i] * P0[i * NS + j];
+    for (int i = 3; i < 6; ++i)
+        for (int j = 0; j < NS; ++j) A[i * NS + j] = A[i * NS + j] + c_br * P0[(i + 19) * NS + j];
     PMat P;  // (F P) F^T
     for (int i = 0; i < NS; ++i) {
         for (int j = 0; j < 3; ++j) {
             double a = A[i * NS + FC[0]] * Fa[j][0];
-            for (int k = 1; k < 15; ++k) a = a + A[i * NS + FC[k]] * Fa[j][k];
+            for (int k = 1; k < 18; ++k) a = a + A[i * NS + FC[k]] * Fa[j][k];
             P[i * NS + j] = a;
         }
         for (int j = 3; j < NS; ++j) P[i * NS + j] = A[i * NS + j] * phi[j];
+        for (int j = 3; j < 6; ++j) P[i * NS + j] = P[i * NS + j] + A[i * NS + j + 19] * c_br;
     }
     for (int i = 0; i < NS; ++i) P[i * NS + i] += Q[i];
     // manoeuvre-adaptive vehicle acceleration
@@ -675,6 +711,7 @@ inline Diag step(State& s, double time_s, const V3& w, const V3& f, const Params
         down_mean = down_mean_over_sample(s.q_P_from_body, q, W_hat, dt, dtheta);
     }
     for (int i = 3; i < 6; ++i) s.x_hat[i] *= decay;
+    ramp_bias(s.x_hat, dt, p);
     s.time_s = time_s;
     s.q_P_from_body = q;
     s.gyro_prev_rad_s = w;

@@ -18,19 +18,33 @@ so no Euler angle and no small-angle step anywhere: any attitude, rates up to th
     C_PB' = C_PB [w_hat x] - [W_hat x] C_PB,   w_hat = w_meas - b_g_hat,
     W_hat = w_ie_P_hat + w_eP_P_hat            (Earth rate + transport rate, both in P)
 
-Error states (22: METHODS.md C's 19 and, beyond the seed, the gyro scale factors), true =
-estimate + error, except the attitude error eps (body frame):  C_PB_true = C_PB_hat (I + [eps x]).
+Error states (25: METHODS.md C's 19 and, beyond the seed, the gyro scale factors and the gyro
+bias's rate of change), true = estimate + error, except the attitude error eps (body frame):
+C_PB_true = C_PB_hat (I + [eps x]).
 
-    x = [eps(3), db_g(3), da_v(3), dw_ie_P(3), dw_eP_P(3), db_a(3), dg(1), ds_g(3)]
+    x = [eps(3), db_g(3), da_v(3), dw_ie_P(3), dw_eP_P(3), db_a(3), dg(1), ds_g(3), dr_g(3)]
 
     eps'     = -[w_hat x] eps - db_g - diag(w_hat) ds_g - C_BP_hat (dw_ie_P + dw_eP_P) - n_g
-    db_g'    = -db_g / tau_bg + w          (first-order Gauss-Markov, GM)
+    db_g'    = -db_g / tau_bg + dr_g + w   (first-order Gauss-Markov, GM, plus the bias rate)
+    dr_g'    = -dr_g / tau_br + w          (bias rate of change, GM: see below)
     da_v'    = -da_v / tau_av + w          (vehicle acceleration, body frame, GM)
     dw_ie_P' = -dw_ie_P / tau_ie + w       (Earth rate in P, GM: P drifts w.r.t. N)
     dw_eP_P' = -dw_eP_P / tau_eP + w       (transport rate in P, GM)
     db_a'    = -db_a / tau_ba + w          (accelerometer bias, body, GM)
     dg'      = -dg / tau_g + w             (equator-to-pole gravity variation, GM)
     ds_g'    = -ds_g / tau_s + w           (gyro scale-factor errors, per axis, GM)
+
+Gyro bias rate (beyond the seed): a MEMS gyro's bias follows its temperature, and after the rest
+(where the zero-rate updates pin it, estimators/zero_rate) the motors and the airflow move the
+temperature for minutes: a first-order thermal settling b(t) = b_inf - (b_inf - b_0) exp(-t/tau_th)
+is exactly b' = r, r' = -r / tau_th, i.e. a ramp whose rate decays; ArduPlane SITL's gyro ramps
+0.05 deg/s per minute for 5 minutes (SIM_DRIFT_SPEED, SIM_DRIFT_TIME). A random-walk bias can
+follow a ramp only by a wide walk (0.2 deg/s over 600 s: 4070a47), which also chases every gust
+and costs roll/pitch where the bias is steady; the rate state follows a steady ramp with no lag
+while the bias walk stays narrow. Nominal: b <- b + r tau_br (1 - phi), r <- r phi per sample,
+phi = exp(-dt / tau_br) (``_ramp_bias``); error propagation over an update interval T: the bias
+row takes tau_br (1 - phi_T) dr, the attitude -int_0^T R(T, s) s ds dr ~ -T^2/2 dr (trapezoid,
+as the bias's own -0.5 T (I + R^T)).
 
 Gyro scale factors (beyond the seed): the gyro reads w_meas = (I + diag(s_g)) w + b_g, so the rate
 is w_hat = (w_meas - b_g) / (1 + s_g) ~ (w_meas - b_g)(1 - s_g) per axis, and a scale error ds_g
@@ -108,13 +122,13 @@ from estimators.rotations import (dcm_from_quat, euler_from_dcm, quat_from_euler
 
 EARTH_RATE_RAD_S = 7.292115e-5
 STANDARD_GRAVITY_M_S2 = 9.80665
-N_STATES = 22
+N_STATES = 25
 # slices of the error-state vector
 N_NOMINAL = N_STATES - 3
 """Length of x_hat (every state but the attitude error)."""
-I_ATT, I_BG, I_AV, I_WIE, I_WEP, I_BA, I_DG, I_SG = (slice(0, 3), slice(3, 6), slice(6, 9),
-                                                     slice(9, 12), slice(12, 15), slice(15, 18),
-                                                     slice(18, 19), slice(19, 22))
+I_ATT, I_BG, I_AV, I_WIE, I_WEP, I_BA, I_DG, I_SG, I_BR = (slice(0, 3), slice(3, 6), slice(6, 9),
+                                                           slice(9, 12), slice(12, 15), slice(15, 18),
+                                                           slice(18, 19), slice(19, 22), slice(22, 25))
 
 
 @dataclass(frozen=True)
@@ -129,16 +143,31 @@ class PolarAttitudeParams:
     """Gyro angle random walk (rad/s/sqrt(Hz))."""
     gyro_bias_init_sigma_rad_s: float = math.radians(0.5)
     """Prior sigma of the gyro bias at start (turn-on bias, rad/s) unless given at init."""
-    gyro_bias_sigma_rad_s: float = math.radians(0.2)
-    """Steady-state sigma of the gyro bias GM process (rad/s): how far the bias moves in flight from
-    what was measured at rest (the zero-rate updates pin it to ~0.005 deg/s before the launch). A
-    MEMS gyro's bias follows its temperature (motors, airflow), which moves it over minutes;
-    ArduPlane SITL's gyro drifts 0.05 deg/s per minute from boot (0.13 deg/s two minutes after
-    the launch). With 0.05 deg/s over 1800 s the bias could move 0.02 deg/s (1 sigma) in 150 s,
-    the tilt residual went into the accelerometer bias and roll lagged 1.5-2.3 deg on straight
-    legs. The intensity 2 sigma^2 / tau = 1.3e-4 (deg/s)^2/s is VQF's default (its bias
-    forgetting time: 0.1 deg/s per 100 s, 1e-4)."""
-    gyro_bias_tau_s: float = 600.0
+    gyro_bias_sigma_rad_s: float = math.radians(0.05)
+    """Steady-state sigma of the gyro bias GM process (rad/s): how far the bias wanders in flight from
+    what was measured at rest (the zero-rate updates pin it to ~0.005 deg/s before the launch), apart
+    from the ramp the bias-rate state carries. 2 sigma^2 / tau = 2.8e-6 (deg/s)^2/s; the simulator's
+    consumer gyro walks 1.3e-6 (2e-5 rad/s/sqrt(s)). 4070a47 widened it to 0.2 deg/s over 600 s
+    (1.3e-4) to follow ArduPlane SITL's ramp, which also let the bias chase every gust: roll/pitch
+    worse wherever the bias is steady; the ramp is now the rate state's (below)."""
+    gyro_bias_tau_s: float = 1800.0
+    gyro_bias_rate_sigma_rad_s2: float = math.radians(0.05) / 60.0
+    """Steady-state sigma of the gyro bias's rate of change (rad/s^2; a GM state per axis): 0.05 deg/s
+    per minute, ArduPlane SITL's SIM_DRIFT_SPEED default and the order of a consumer MEMS gyro's
+    warm-up drift (a bias that follows the temperature at ~0.01 deg/s per K while the board warms
+    by a few K per minute after the motors start). With it the filter follows SITL's ramp (roll
+    after the GNSS cut: docs/SIGMAS.md) while the bias walk above stays narrow. The rest pins the
+    rate too; the take-off reopens it to this (``_open_bias_rate``)."""
+    gyro_bias_rate_tau_s: float = 300.0
+    """Correlation time of the bias rate (s): a thermal settling of a few minutes (and SITL's ramp
+    reverses every 5 minutes, SIM_DRIFT_TIME)."""
+    takeoff_bias_step_sigma_rad_s: float = math.radians(0.05)
+    """Sigma of the bias's change from the rest to the flight (rad/s), added to the bias variance at
+    the take-off (``_open_bias_rate``): what the zero-rate updates measured at rest is the bias of a
+    still, cooler sensor; the take-off's accelerations and vibration (a consumer MEMS gyro's linear
+    acceleration sensitivity is ~0.1 deg/s/g, MPU-6000) and the motors' heat move it at once.
+    ArduPlane SITL's bias is 0.05 deg/s 20 s after the launch (RAW_IMU vs SIMSTATE in level legs).
+    0 leaves the bias's variance as the rest left it."""
     accel_noise_m_s2: float = 0.05
     """Per-sample white noise of the specific force (m/s^2); divided by the samples averaged."""
     accel_meas_floor_m_s2: float = 0.02
@@ -238,7 +267,8 @@ class PolarAttitudeParams:
 
     def __post_init__(self) -> None:
         for name in ("update_period_s", "init_period_s", "gyro_noise_rad_s_rt_hz",
-                     "gyro_bias_init_sigma_rad_s", "gyro_bias_sigma_rad_s", "gyro_bias_tau_s", "accel_noise_m_s2",
+                     "gyro_bias_init_sigma_rad_s", "gyro_bias_sigma_rad_s", "gyro_bias_tau_s", "gyro_bias_rate_tau_s",
+                     "accel_noise_m_s2",
                      "accel_meas_floor_m_s2", "vehicle_accel_sigma_m_s2", "vehicle_accel_tau_s",
                      "earth_rate_sigma_rad_s", "earth_rate_tau_s", "transport_rate_sigma_rad_s",
                      "transport_rate_tau_s", "accel_bias_sigma_m_s2", "accel_bias_tau_s",
@@ -251,6 +281,10 @@ class PolarAttitudeParams:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+        for name in ("gyro_bias_rate_sigma_rad_s2", "takeoff_bias_step_sigma_rad_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0.0):
+                raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
         if not (math.isfinite(self.manoeuvre_speed_m_s) and self.manoeuvre_speed_m_s >= 0.0):
             raise ValueError(f"manoeuvre_speed_m_s must be finite and >= 0, got {self.manoeuvre_speed_m_s!r}")
         g = self.reentry_match_gain
@@ -302,6 +336,9 @@ class PolarAttitudeState:
     sample_dt_s: float | None = None
     """Span of the last sample that was not a hole (s), at most ``sample_span_max_s``: the part of an
     interval a sample's rate is the mean over."""
+    bias_rate_opened: bool = False
+    """The bias rate's variance was reopened for flight (``_open_bias_rate``: params.relevel_allowed
+    went False, the vehicle left the rest); False again once it is allowed."""
     """Sigma of the gyro-bias prior given at init (None: params.gyro_bias_init_sigma_rad_s)."""
 
     def to_dict(self) -> dict:
@@ -372,6 +409,7 @@ def _initial_covariance(C_BP: np.ndarray, p: PolarAttitudeParams,
     P[I_BA, I_BA] = np.eye(3) * p.accel_bias_sigma_m_s2 ** 2
     P[I_DG, I_DG] = p.gravity_variation_sigma_m_s2 ** 2
     P[I_SG, I_SG] = np.eye(3) * p.gyro_scale_sigma ** 2
+    P[I_BR, I_BR] = np.eye(3) * p.gyro_bias_rate_sigma_rad_s2 ** 2
     return P
 
 
@@ -443,6 +481,7 @@ def polar_attitude_unseen(state: PolarAttitudeState, unseen_s: float,
     P[I_ATT, I_ATT] += np.eye(3) * s * s
     x = state.x_hat.copy()
     x[3:6] *= math.exp(-unseen_s / p.vehicle_accel_tau_s)
+    _ramp_bias(x, unseen_s, p)
     C_BP = dcm_from_quat(state.q_P_from_body).T
     return replace(state, P=0.5 * (P + P.T), x_hat=x, time_s=None, gyro_prev_rad_s=None, sample_dt_s=None,
                    acc_n=0, acc_dt_s=0.0,
@@ -520,6 +559,7 @@ def polar_attitude_step(state: PolarAttitudeState, time_s: float, gyro_body_rad_
     # vehicle-acceleration estimate is a zero-mean GM: its mean decays
     x_new = xh.copy()
     x_new[3:6] *= math.exp(-dt / params.vehicle_accel_tau_s)
+    _ramp_bias(x_new, dt, params)
     q_int = quat_mul(state.acc_q_b0_from_b, qb)
     P_att = state.P
     if hole:
@@ -606,6 +646,14 @@ def _levelled_tilt_sigma_rad(st: PolarAttitudeState, fm: np.ndarray, p: PolarAtt
     return min(math.sqrt(var / g2), p.unseen_max_sigma_rad)
 
 
+def _ramp_bias(x: np.ndarray, dt: float, p: PolarAttitudeParams) -> None:
+    """The nominal gyro bias and its rate over ``dt`` (in place on x_hat): b' = r, r' = -r / tau_r,
+    so r(dt) = r phi and b(dt) = b + r tau_r (1 - phi), phi = exp(-dt / tau_r)."""
+    phi = math.exp(-dt / p.gyro_bias_rate_tau_s)
+    x[0:3] += x[19:22] * (p.gyro_bias_rate_tau_s * (1.0 - phi))
+    x[19:22] *= phi
+
+
 def _gm(dt: float, tau: float, sigma: float) -> tuple[float, float]:
     """Discrete GM transition and process-noise variance."""
     phi = math.exp(-dt / tau)
@@ -623,12 +671,38 @@ def _gm_diagonals(dt: float, p: PolarAttitudeParams) -> tuple[np.ndarray, np.nda
                          (I_WEP, p.transport_rate_tau_s, p.transport_rate_sigma_rad_s),
                          (I_BA, p.accel_bias_tau_s, p.accel_bias_sigma_m_s2),
                          (I_DG, p.gravity_variation_tau_s, p.gravity_variation_sigma_m_s2),
-                         (I_SG, p.gyro_scale_tau_s, p.gyro_scale_sigma)):
+                         (I_SG, p.gyro_scale_tau_s, p.gyro_scale_sigma),
+                         (I_BR, p.gyro_bias_rate_tau_s, p.gyro_bias_rate_sigma_rad_s2)):
         F[sl], Q[sl] = _gm(dt, tau, sig)
     return F, Q
 
 
+def _open_bias_rate(st: PolarAttitudeState, p: PolarAttitudeParams) -> PolarAttitudeState:
+    """The bias rate's and the bias's priors for flight, once per take-off (the caller's relevel_allowed
+    going False).
+
+    At rest the zero-rate updates measure the bias chunk after chunk, which also pins its rate (the
+    bias did not move on the ground); the motors and the airflow then start another thermal regime
+    whose rate the rest did not see (ArduPlane SITL: 0 at rest, 0.05 deg/s per minute in flight).
+    Left pinned, the rate's variance regrows only by its process noise (2 sigma^2 / tau per s) and
+    the ramp is followed late. So at the take-off the rate's variance is set to its steady state
+    sigma_br^2 and its correlations with the other states are dropped (a principal block replaced by
+    a positive one: P stays positive semi-definite); its estimate is kept. The bias itself may step at
+    the take-off (``takeoff_bias_step_sigma_rad_s``): that variance is added to the bias's."""
+    if p.relevel_allowed:
+        return replace(st, bias_rate_opened=False) if st.bias_rate_opened else st
+    if st.bias_rate_opened:
+        return st
+    P = st.P.copy()
+    P[I_BR, :] = 0.0
+    P[:, I_BR] = 0.0
+    P[I_BR, I_BR] = np.eye(3) * p.gyro_bias_rate_sigma_rad_s2 ** 2
+    P[I_BG, I_BG] += np.eye(3) * p.takeoff_bias_step_sigma_rad_s ** 2
+    return replace(st, P=P, bias_rate_opened=True)
+
+
 def _update(st: PolarAttitudeState, p: PolarAttitudeParams):
+    st = _open_bias_rate(st, p)
     T = st.acc_dt_s
     R_b0_b = dcm_from_quat(st.acc_q_b0_from_b)      # body rotation over the interval
     C_BP_end = dcm_from_quat(st.q_P_from_body).T
@@ -642,6 +716,10 @@ def _update(st: PolarAttitudeState, p: PolarAttitudeParams):
     # scale factors: the increment's error is diag(theta) ds_g, theta the body rotation over T
     # (trapezoid as for the bias: -0.5 (I + Rt) diag(w_mean) T)
     F[I_ATT, I_SG] = -0.5 * (np.eye(3) + Rt) * rotvec_from_quat(st.acc_q_b0_from_b)[None, :]
+    # bias rate: db_g(s) = db_g(0) + dr s over the interval, so the angle takes -int_0^T R(T, s) s ds dr,
+    # trapezoid (as for the bias): -0.5 T (0 + T I); the bias takes tau_r (1 - phi_r) dr (~T)
+    F[I_ATT, I_BR] = -0.5 * T * T * np.eye(3)
+    F[I_BG, I_BR] = np.eye(3) * (p.gyro_bias_rate_tau_s * (1.0 - math.exp(-T / p.gyro_bias_rate_tau_s)))
     coupling = -0.5 * T * (C_BP_end + Rt @ C_BP_0)
     F[I_ATT, I_WIE] = coupling
     F[I_ATT, I_WEP] = coupling

@@ -5,7 +5,9 @@ identical).
 ``differences(a, b, path)`` walks two values (dataclass records, dicts, tuples/lists, numpy arrays,
 numbers, strings) and lists (path, why) for every leaf that is not equal in this sense:
 
-- a float: |a - b| <= RTOL max(|a|, |b|), or both NaN;
+- a float: |a - b| <= RTOL max(|a|, |b|), or both NaN; an angle (a name ending in ``_rad``) against
+  max(|a|, |b|, 1 rad): it is read off a unit quaternion or direction cosines, compared in their max
+  norm, so a roll of 3e-7 rad at a level rest carries their ~1e-16 rad of rounding;
 - a vector or a matrix that is not a covariance: max |a - b| <= RTOL max(max |a|, max |b|) (the
   max norm of the array: quaternions, biases, direction cosines);
 - a covariance (a square 2-D array whose name is ``P``, starts with ``P_`` or holds ``cov``): per
@@ -81,7 +83,8 @@ def _walk(a, b, path: str, rtol: float, bad: list) -> None:
                 bad.append((path, f"{x!r} vs {y!r}"))
     elif (isinstance(a, float) or isinstance(b, float)) and all(
             isinstance(x, (float, int)) and not isinstance(x, bool) for x in (a, b)):
-        if not (a == b or (math.isnan(a) and math.isnan(b)) or abs(a - b) <= rtol * max(abs(a), abs(b))):
+        scale = max(abs(a), abs(b), 1.0 if path.endswith("_rad") else 0.0)
+        if not (a == b or (math.isnan(a) and math.isnan(b)) or abs(a - b) <= rtol * scale):
             bad.append((path, f"{a!r} vs {b!r}"))
     elif a != b or type(a) is not type(b):
         bad.append((path, f"{a!r} vs {b!r}"))

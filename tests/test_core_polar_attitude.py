@@ -16,7 +16,7 @@ GIVEN the calls a Pipeline made into C (recorded at the Pipeline, C in the refer
 WHEN the reference and the core (the state held in C++) take the same calls,
 THEN after every call the diagnostics (reason strings, flags identical; innovation, test ratios,
 raised variance, re-level angle to 1e-9 relative), the whole state (to_state(): quaternion, x_hat,
-the 22 x 22 covariance against 1e-9 sqrt(P_ii P_jj), accumulators, counters identical) and the
+the 25 x 25 covariance against 1e-9 sqrt(P_ii P_jj), accumulators, counters identical) and the
 estimate (roll, pitch, their covariance, gyro bias) agree (tests/parity_compare.py), and a Pipeline
 on the core backend holds C in the core and gives the same solutions and events as with C's
 reference. A test here fails when any value differs beyond 1e-9 relative.
@@ -398,3 +398,9 @@ def test_the_shared_compare_flags_what_it_must():
     assert [p for p, _ in differences(d, dataclasses.replace(d, reason="y", fused=np.bool_(True)))] == \
         [".fused", ".reason"]
     assert differences((1.0, None), (1.0, 0.0)) and not differences((np.bool_(True), 2), (True, 2))
+    # an angle (``_rad``) near 0 against 1 rad: 3e-7 rad off by 7e-16 (rounding of the quaternion it is
+    # read from) is not flagged, off by 2e-9 rad is; a float that is no angle stays relative
+    e = ref.AttitudeEstimate(3e-7, 0.2, np.eye(2), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+    assert not differences(e, dataclasses.replace(e, roll_rad=3e-7 + 7e-16))
+    assert [p for p, _ in differences(e, dataclasses.replace(e, roll_rad=3e-7 + 2e-9))] == [".roll_rad"]
+    assert differences({"x_m": 3e-7}, {"x_m": 3e-7 + 7e-16})
