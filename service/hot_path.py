@@ -163,10 +163,12 @@ def hot_path_ready(p) -> bool:
     return getattr(p.core, "hot_run", None) is not None and not isinstance(p._hs, SampleState)
 
 
-def batch_steps(p, batch, samples=None):
+def batch_steps(p, batch, samples=None, rows=None, source: str | None = None):
     """Yields (row, on_imu's solution or None) for each row of ``batch`` Python handles, in order;
     the quiet rows between them are taken by the core and yield nothing (they give no solution and
-    no event). ``samples``: the rows as ImuSample objects, when the caller has them (a replay)."""
+    no event). ``samples``: the rows as ImuSample objects, when the caller has them (a replay).
+    Without a batch: ``samples`` with their ``rows`` (float64, IMU_RECORD's first 11 columns) and
+    their ``source`` (``sample_step``)."""
     from service.input_checks import _OK, CoreImuInputChecks
     from service.phases import IN_FLIGHT
     from estimators.core import HeldStrapdown
@@ -174,11 +176,10 @@ def batch_steps(p, batch, samples=None):
         for i, s in enumerate(samples if samples is not None else batch.samples()):
             yield i, p.on_imu(s)
         return
-    rec = batch.records
-    n = len(rec)
+    rec = batch.records if batch is not None else None
+    n = len(rec) if rec is not None else len(samples)
     run = p.core.hot_run
-    int16 = batch.source in _INT16_SOURCES
-    rows = None
+    int16 = (batch.source if batch is not None else source) in _INT16_SOURCES
     i = 0
     on_imu = p.on_imu
     while i < n:
@@ -219,6 +220,26 @@ def batch_steps(p, batch, samples=None):
 
 
 _NAN3 = (math.nan, math.nan, math.nan)
+
+
+def sample_step(p, s):
+    """``Pipeline.on_imu(s)`` for one sample as it comes from the link's message path, through the
+    core's hot path when the sample is quiet (``batch_steps`` with one row: in flight, 7 of 8 samples
+    at 400 Hz with the filters at 50 Hz), else on_imu itself: the same result, event and state."""
+    from service.phases import IN_FLIGHT
+    if p.phase.phase != IN_FLIGHT or not hot_path_ready(p):   # no run can start: on_imu
+        return p.on_imu(s)
+    m = s.mag_gauss
+    try:
+        row = np.array([[s.time_fc_s, s.time_rx_s, *s.gyro_rad_s, *s.accel_m_s2, *(m if m is not None else _NAN3)]],
+                       dtype=np.float64)
+    except (TypeError, ValueError):   # not 3 + 3 + 3 numbers: on_imu says what is wrong
+        return p.on_imu(s)
+    if row.shape != (1, 11):
+        return p.on_imu(s)
+    for _, sol in batch_steps(p, None, (s,), row, s.source):
+        return sol
+    return None
 
 
 def batch_of(samples: list):

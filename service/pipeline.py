@@ -57,7 +57,7 @@ from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent,
                                        synthetic_ahrs_unseen)
 from mavlink_io.samples import FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, ImuSample, PressureSample
 from service.core_backend import select as select_core
-from service.hot_path import azimuth_take_back, batch_steps, sample_field
+from service.hot_path import azimuth_take_back, batch_steps, sample_field, sample_step
 from service.input_checks import InputCheckParams
 from service.heading_arbitration import (ArbitrationParams, ArbitrationState, SourceReading,
                                          arbitrate)
@@ -531,6 +531,12 @@ class Pipeline:
         event, nothing decided: service/hot_path.py) are taken in C++ (core/hot_path.hpp) and
         on_imu handles the others; with the reference, on_imu handles every sample."""
         return [sol for _, sol in batch_steps(self, batch) if sol is not None]
+
+    def step_imu(self, s: ImuSample) -> NavSolution | None:
+        """``on_imu(s)``, with the compiled core a quiet sample taken by its hot path
+        (service/hot_path.sample_step: a batch of one row): what the daemon's message path calls.
+        The same solution, events and state as on_imu."""
+        return sample_step(self, s)
 
     def imu_batch_steps(self, batch: ImuBatch, samples: list[ImuSample] | None = None):
         """``on_imu_batch`` one handled sample at a time: yields (row, solution or None) for each row

@@ -132,3 +132,47 @@ def test_a_held_run_that_loses_stored_samples_fails(flight, monkeypatch):
     wrong = _run(core, items, cfg)
     assert seen["n"] > 100
     assert _compare(each, wrong)
+
+
+def _feed_one_by_one(p, items, step) -> dict:
+    others = {PressureSample: p.on_pressure, FcAttitude: p.on_fc_attitude, FcHeartbeat: p.on_fc_heartbeat,
+              FcFlightState: p.on_fc_flight_state, FcEkfStatus: p.on_fc_ekf_status}
+    got = {"solutions": [], "events": [], "after_batch": []}
+    for it in items:
+        if type(it) is ImuSample:
+            got["solutions"].append(step(p, it))
+            got["events"] += p.drain_events()
+            got["after_batch"].append((p.propagated_snapshot() is not None, dict(p.aiding), p.counters.imu_samples,
+                                       p.counters.imu_rejected, p.last_time_fc_s))
+        else:
+            others[type(it)](it)
+    got["solutions"].append(p.propagated_solution())
+    got["azimuth"], got["azimuth_out"], got["status"] = p.azimuth, p.azimuth_out, p.azimuth_status()
+    return got
+
+
+def test_step_imu_equals_on_imu_bit_for_bit(flight):
+    """The daemon's message path (Pipeline.step_imu: a quiet sample through the hot path as a batch
+    of one row) gives on_imu's solutions, events, counters and A's state, bit for bit, sample by
+    sample; the samples were taken by the core (on_imu not called for most in flight)."""
+    items, cfg = flight
+    core = core_backend.select({"AZIMUTHD_CORE": "core"})
+    mp = pytest.MonkeyPatch()
+    try:
+        mp.setattr(sp, "select_core", lambda: core)
+        each = _feed_one_by_one(sp.Pipeline(cfg), items, lambda p, s: p.on_imu(s))
+        p = sp.Pipeline(cfg)
+        n_on_imu = [0]
+        on_imu = p.on_imu
+
+        def counted(s, *a):
+            n_on_imu[0] += 1
+            return on_imu(s, *a)
+        p.on_imu = counted
+        stepped = _feed_one_by_one(p, items, lambda p, s: p.step_imu(s))
+    finally:
+        mp.undo()
+    n_imu = sum(type(it) is ImuSample for it in items)
+    assert n_on_imu[0] < 0.5 * n_imu, (n_on_imu[0], n_imu)
+    bad = _compare(each, stepped)
+    assert not bad, bad[:5]

@@ -60,6 +60,9 @@ class _Pipe:
         self.current[0] = s.time_fc_s
         return solution(t_fc=s.time_fc_s, t_rx=s.time_rx_s, rates=(0.0, 0.0, 0.1))
 
+    def step_imu(self, s):   # the daemon's message path (Pipeline.step_imu: on_imu, with the hot path)
+        return self.on_imu(s)
+
     def propagated_solution(self):
         return None
 

@@ -187,6 +187,7 @@ def test_a_burst_of_solutions_in_one_poll_is_published_at_the_rates(daemon):
         def on_imu(self, s):
             t[0] += 0.04  # 40 ms of daemon time per sample
             return next(sols)
+        step_imu = on_imu  # the daemon's message path (Pipeline.step_imu)
         def drain_events(self):
             return []
     real, daemon.pipeline = daemon.pipeline, _Pipe()
