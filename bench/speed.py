@@ -19,7 +19,9 @@ separate processes at 400 Hz.
    Python reference, through the core per sample, and through the core's batch API (the whole
    stream's N x 3 arrays in one call). The daemon's batch path (Pipeline.on_imu_batch) runs twice:
    the IMU samples between two other items as one batch, and one row per batch (the daemon at
-   400 Hz reads one RAW_IMU per wake-up). JSON ``ported``: per-sample costs and speed-ups
+   400 Hz reads one RAW_IMU per wake-up); and the daemon's message path (Pipeline.step_imu per
+   sample). The headline ``stack_us_per_imu_sample`` stays on_imu per sample (the reference path).
+   JSON ``ported``: per-sample costs and speed-ups
    (``*_speedup_x`` = reference / core), all from the same run as imufusion and vqf.
 2. Latency. ``bench.sitl.Sitl`` (simulator and daemon as two processes over loopback UDP) with a
    tap between them that timestamps, on one monotonic clock in one thread, every RAW_IMU it
@@ -223,6 +225,38 @@ def _pipeline_batch_pass(run, items, max_rows: int | None):
 
 case_pipeline_batch = _pipeline_batch_case(None)
 case_pipeline_batch1 = _pipeline_batch_case(1)
+
+
+def case_pipeline_step(run, items):
+    """The whole stack with the compiled core fed as the daemon's message path feeds it: each IMU
+    sample through Pipeline.step_imu (a quiet one in the core's hot path, as a batch of one row),
+    then the propagated snapshot the daemon takes between filter steps."""
+    from mavlink_io.samples import ImuSample
+    from service.pipeline import Pipeline
+    cfg = site_config(run)
+
+    def one_pass():
+        before = os.environ.get("AZIMUTHD_CORE")
+        os.environ["AZIMUTHD_CORE"] = "core"
+        try:
+            p = Pipeline(cfg)
+        finally:
+            os.environ.pop("AZIMUTHD_CORE") if before is None else os.environ.update(AZIMUTHD_CORE=before)
+        if p.core.hot_run is None:
+            raise RuntimeError(f"no hot path in this core: {p.core.why}")
+        others = {}
+        for it in items:
+            c = type(it)
+            if c is ImuSample:
+                if p.step_imu(it) is None:
+                    p.propagated_snapshot()
+                p.drain_events()
+            else:
+                fn = others.get(c)
+                if fn is None:
+                    fn = others[c] = {"PressureSample": p.on_pressure, "FcAttitude": p.on_fc_attitude}[c.__name__]
+                fn(it)
+    return one_pass
 
 
 def case_phases(run, items):
@@ -535,6 +569,7 @@ CASES = [
     ("whole stack, Python reference (AZIMUTHD_CORE=python)", "ours", case_pipeline_python),
     ("whole stack, core, batch path (on_imu_batch, hot path)", "ours", case_pipeline_batch),
     ("whole stack, core, batch path, 1 row per batch (the daemon)", "ours", case_pipeline_batch1),
+    ("whole stack, core, message path (step_imu, the daemon's default)", "ours", case_pipeline_step),
     ("phases: levelling + launch detection", "ours", case_phases),
     ("phases, core, per sample (held state)", "ours", case_phases_core),
     ("strapdown (estimators.strapdown)", "ours", case_strapdown),
@@ -772,6 +807,9 @@ def ported_figures(rows: list[dict]) -> dict:
     stack_batch1 = us.get("whole stack, core, batch path, 1 row per batch (the daemon)", math.nan)
     out["stack_core_batch1_us_per_imu_sample"] = stack_batch1
     out["stack_core_batch1_speedup_x"] = stack_py / stack_batch1 if stack_batch1 > 0 else math.nan
+    stack_step = us.get("whole stack, core, message path (step_imu, the daemon's default)", math.nan)
+    out["stack_core_step_imu_us_per_imu_sample"] = stack_step
+    out["stack_core_step_imu_speedup_x"] = stack_py / stack_step if stack_step > 0 else math.nan
     return {"ported": out, "stack_python_reference_us_per_imu_sample": stack_py}
 
 
