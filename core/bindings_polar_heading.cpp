@@ -120,10 +120,15 @@ bool read_inputs(const py::handle& u, Inputs& in) {
         const py::object r = u.attr("mag_residual_sigma_gauss");
         in.has_residual = !r.is_none();
         if (in.has_residual && !as_num(r, in.residual_sigma)) return false;
+        const py::object e = u.attr("field_model_ned_gauss");
+        in.has_field_model = !e.is_none();
+        if (in.has_field_model && !as_arr(e, 3, -1, in.field_model.data())) return false;
     } else {
         in.declination = in.declination_sigma = NAN;
         in.has_residual = false;
         in.residual_sigma = 0.0;
+        in.has_field_model = false;
+        in.field_model = {0.0, 0.0, 0.0};
     }
     return true;
 }
@@ -168,6 +173,8 @@ py::dict state_dict(const State& s) {
     d["n_resets"] = s.n_resets;
     d["r_corr_avg_rad2"] = opt(s.has_r_corr_avg, s.r_corr_avg_rad2);
     d["r_uncal_rad2"] = s.r_uncal_rad2;
+    d["field_mismatch_gauss2"] = opt(s.has_field_mismatch, s.field_mismatch_gauss2);
+    d["field_mismatch_time_s"] = opt(s.has_field_mismatch_time, s.field_mismatch_time_s);
     d["platform"] = s.platform;
     d["q_P_from_body"] = s.has_q ? py::object(vec(s.q_P_from_body.data(), 4)) : py::object(py::none());
     d["gyro_bias_prev_rad_s"] = s.has_gyro_bias_prev ? py::object(vec(s.gyro_bias_prev_rad_s.data(), 3))
@@ -197,6 +204,11 @@ State state_from(const py::dict& d) {
     s.n_resets = d["n_resets"].cast<long>();
     s.has_r_corr_avg = get_opt(d, "r_corr_avg_rad2", s.r_corr_avg_rad2);
     s.r_uncal_rad2 = d["r_uncal_rad2"].cast<double>();
+    // absent from a dict of an older PolarHeadingState: None
+    if (d.contains("field_mismatch_gauss2"))
+        s.has_field_mismatch = get_opt(d, "field_mismatch_gauss2", s.field_mismatch_gauss2);
+    if (d.contains("field_mismatch_time_s"))
+        s.has_field_mismatch_time = get_opt(d, "field_mismatch_time_s", s.field_mismatch_time_s);
     s.platform = d["platform"].cast<bool>();
     py::object q = d["q_P_from_body"];
     s.has_q = !q.is_none();
@@ -273,6 +285,10 @@ void bind_polar_heading(py::module_& m) {
         .def_readonly("n_resets", &State::n_resets)
         .def_property_readonly("r_corr_avg_rad2", [](const State& s) { return opt(s.has_r_corr_avg, s.r_corr_avg_rad2); })
         .def_readonly("r_uncal_rad2", &State::r_uncal_rad2)
+        .def_property_readonly("field_mismatch_gauss2",
+                               [](const State& s) { return opt(s.has_field_mismatch, s.field_mismatch_gauss2); })
+        .def_property_readonly("field_mismatch_time_s",
+                               [](const State& s) { return opt(s.has_field_mismatch_time, s.field_mismatch_time_s); })
         .def_readonly("platform", &State::platform)
         .def_property_readonly("q_P_from_body", [](const State& s) -> py::object {
             return s.has_q ? py::object(vec(s.q_P_from_body.data(), 4)) : py::object(py::none());

@@ -3,7 +3,7 @@
 // platform formulation, 5 states [psi_H, w_v, b_x, b_y, b_z] with the filter's own body attitude
 // C_HB; the magnetometer heading with its white and correlated variance, the innovation gate, the
 // reset after continuous rejection, the consider floor and the uncalibrated-magnetometer term of the
-// published variance; unseen intervals). Every scalar expression is the reference's, in its order.
+// published variance, widened by the field mismatch against the model; unseen intervals). Every scalar expression is the reference's, in its order.
 // The n x n products (n = 4 or 5) are dense, as numpy's: a NaN spreads as it does there (no
 // structural zero skipped); numpy's BLAS may sum or fuse in its own order, so the two agree to
 // rounding: tests/test_core_polar_heading.py asserts 1e-9 relative (covariances against
@@ -53,6 +53,10 @@ struct State {
     bool has_r_corr_avg = false;
     double r_corr_avg_rad2 = 0.0;
     double r_uncal_rad2 = 0.0;
+    bool has_field_mismatch = false;       // field_mismatch_gauss2 not None
+    double field_mismatch_gauss2 = 0.0;
+    bool has_field_mismatch_time = false;  // field_mismatch_time_s not None
+    double field_mismatch_time_s = 0.0;
     bool platform = false;
     bool has_q = false;
     Q4 q_P_from_body{1.0, 0.0, 0.0, 0.0};
@@ -71,6 +75,8 @@ struct Inputs {
     double declination, declination_sigma;
     bool has_residual;
     double residual_sigma;
+    bool has_field_model;  // field_model_ned_gauss not None
+    V3 field_model;
     bool has_q;
     Q4 q_P;
     bool has_cov_att;
@@ -89,6 +95,7 @@ enum Code : int {
     MEASURED = 6,            // a heading measurement (why below)
     BAD_DECLINATION = 7,     // the reference raises ValueError (state not handed back)
     BAD_RESIDUAL = 8,        // the reference raises ValueError (the Python face words it)
+    BAD_FIELD_MODEL = 9,     // the reference raises ValueError (the Python face words it)
 };
 enum Why : int { FUSED = 0, INITIALISED = 1, RESET = 2, GATED_OUT = 3 };
 
@@ -166,6 +173,49 @@ inline bool residual_ok(const Inputs& u) {
     return !u.has_residual || (std::isfinite(u.residual_sigma) && u.residual_sigma >= 0.0);
 }
 
+inline bool field_model_ok(const Inputs& u) {
+    return !u.has_field_model ||
+           (finite3(u.field_model) && std::hypot(u.field_model[0], u.field_model[1], u.field_model[2]) > 0.0);
+}
+
+// _levelled_down: the down component of R_y(theta) R_x(phi) m
+inline double levelled_down(const V3& m, double roll, double pitch) {
+    const double mz1 = std::sin(roll) * m[1] + std::cos(roll) * m[2];
+    return -std::sin(pitch) * m[0] + std::cos(pitch) * mz1;
+}
+
+// field_mismatch_var (the model given, finite, not 0: field_model_ok before this): the field error's
+// component normal to the model's field in the magnetic meridian, squared
+inline double field_mismatch_var(double H, double Z, const V3& e) {
+    const double H0 = std::hypot(e[0], e[1]);
+    const double dn = (H * e[2] - Z * H0) / std::hypot(H0, e[2]);
+    return dn * dn;
+}
+
+// _consider: the running mean of the field mismatch and the consider term of a measurement that enters
+// the heading (restart: initialised or reset on it); has_mis false: no model (the mean forgotten)
+inline double consider(State& st, double t, double H, double r_uncal, bool has_mis, double mis, const Params& p,
+                       bool restart) {
+    if (!has_mis) {
+        st.has_field_mismatch = false;
+        st.field_mismatch_gauss2 = 0.0;
+        st.has_field_mismatch_time = false;
+        st.field_mismatch_time_s = 0.0;
+        return r_uncal;
+    }
+    double avg;
+    if (restart || !st.has_field_mismatch || !st.has_field_mismatch_time)
+        avg = mis;
+    else
+        avg = st.field_mismatch_gauss2 + (mis - st.field_mismatch_gauss2) *
+                  std::min(1.0, std::max(0.0, t - st.field_mismatch_time_s) / p.mag_error_tau_s);
+    st.has_field_mismatch = true;
+    st.field_mismatch_gauss2 = avg;
+    st.has_field_mismatch_time = true;
+    st.field_mismatch_time_s = t;
+    return std::max(r_uncal, std::max(0.0, avg - std::pow(p.mag_noise_gauss, 2)) / (H * H));
+}
+
 // --- init, unseen, estimate, attitude --------------------------------------------------------------
 
 // polar_heading_init (arguments checked by the caller)
@@ -199,6 +249,8 @@ inline void unseen(State& s, double unseen_s, const Params& p) {
     s.P = P;
     s.has_time = false;
     s.has_last_mag = false;
+    s.has_field_mismatch_time = false;
+    s.field_mismatch_time_s = 0.0;
 }
 
 // yaw of C_PB
@@ -224,7 +276,7 @@ inline Q4 attitude(const State& s, double heading) {
 // _fuse_heading: initialise from, gate, fuse (or reset on) one heading measurement z of x[0]; r_uncal
 // becomes the state's consider term only where the measurement enters the heading (not when gated out)
 inline Diag fuse_heading(State& st, const Inputs& u, double z, double H, double R, double R_single, double r_corr,
-                         double r_uncal, const Params& p) {
+                         double r_uncal, bool has_mis, double mis, const Params& p) {
     Diag dg;
     dg.code = MEASURED;
     dg.source_available = true;
@@ -237,7 +289,7 @@ inline Diag fuse_heading(State& st, const Inputs& u, double z, double H, double 
         st.initialised = true;
         st.P = prior_P(R_single, p, n);
         st.source_available = true;
-        st.r_uncal_rad2 = r_uncal;
+        st.r_uncal_rad2 = consider(st, u.time_s, H, r_uncal, has_mis, mis, p, true);
         dg.nu = 0.0;
         dg.S = R_single;
         dg.ratio = 0.0;
@@ -259,7 +311,7 @@ inline Diag fuse_heading(State& st, const Inputs& u, double z, double H, double 
             st.has_rejected_since = false;
             st.source_available = true;
             st.n_resets += 1;
-            st.r_uncal_rad2 = r_uncal;
+            st.r_uncal_rad2 = consider(st, u.time_s, H, r_uncal, has_mis, mis, p, true);
             dg.why = RESET;
             dg.reset_jump = nu;
             return dg;
@@ -298,7 +350,7 @@ inline Diag fuse_heading(State& st, const Inputs& u, double z, double H, double 
     st.n_fused += 1;
     st.has_r_corr_avg = true;
     st.r_corr_avg_rad2 = avg;
-    st.r_uncal_rad2 = r_uncal;
+    st.r_uncal_rad2 = consider(st, u.time_s, H, r_uncal, has_mis, mis, p, false);
     return dg;
 }
 
@@ -355,7 +407,9 @@ inline Diag measure(State& st, const Inputs& u, const Params& p) {
     const double z = wrap_2pi(psi_m + u.declination);
     if (!residual_ok(u)) { Diag d; d.code = BAD_RESIDUAL; return d; }
     const double r_uncal = uncalibrated_heading_var(m, H, u.has_residual, u.residual_sigma, p);
-    return fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, p);
+    if (!field_model_ok(u)) { Diag d; d.code = BAD_FIELD_MODEL; return d; }
+    const double mis = u.has_field_model ? field_mismatch_var(H, levelled_down(m, u.roll, u.pitch), u.field_model) : 0.0;
+    return fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, u.has_field_model, mis, p);
 }
 
 // _predict (Euler formulation)
@@ -422,7 +476,7 @@ inline Diag euler_step(State& held, const Inputs& u, const Params& p) {
         return d;
     }
     d = measure(st, u, p);
-    if (d.code != BAD_DECLINATION && d.code != BAD_RESIDUAL) held = st;
+    if (d.code != BAD_DECLINATION && d.code != BAD_RESIDUAL && d.code != BAD_FIELD_MODEL) held = st;
     return d;
 }
 
@@ -525,7 +579,9 @@ inline Diag measure_platform(State& st, const Inputs& u, const Q4& q, const Para
     const double z = wrap_2pi(-std::atan2(mp[1], mp[0]) + u.declination);
     if (!residual_ok(u)) { Diag d; d.code = BAD_RESIDUAL; return d; }
     const double r_uncal = uncalibrated_heading_var(m, H, u.has_residual, u.residual_sigma, p);
-    return fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, p);
+    if (!field_model_ok(u)) { Diag d; d.code = BAD_FIELD_MODEL; return d; }
+    const double mis = u.has_field_model ? field_mismatch_var(H, mp[2], u.field_model) : 0.0;
+    return fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, u.has_field_model, mis, p);
 }
 
 // _platform_step (q_P finite with a norm > 0: the binding hands anything else to the reference)
@@ -570,7 +626,7 @@ inline Diag platform_step(State& held, const Inputs& u, const Params& p) {
     if (st.has_rejected_since && st.has_last_mag && u.time_s - st.last_mag_time_s > WITHHELD_AFTER_S)
         st.has_rejected_since = false;  // the magnetometer was withheld meanwhile: its rejections start over
     d = measure_platform(st, u, q, p);
-    if (d.code != BAD_DECLINATION && d.code != BAD_RESIDUAL) held = st;
+    if (d.code != BAD_DECLINATION && d.code != BAD_RESIDUAL && d.code != BAD_FIELD_MODEL) held = st;
     return d;
 }
 

@@ -770,7 +770,7 @@ POLAR_HEADING_AVAILABLE = AVAILABLE and hasattr(_core, "PolarHeading")
 
 # core/polar_heading.hpp Code and Why
 (_PH_PLAIN, _PH_NON_FINITE, _PH_TIME, _PH_NON_FINITE_MAG, _PH_PITCH, _PH_FIELD_WEAK, _PH_MEASURED,
- _PH_BAD_DECLINATION, _PH_BAD_RESIDUAL) = range(9)
+ _PH_BAD_DECLINATION, _PH_BAD_RESIDUAL, _PH_BAD_FIELD_MODEL) = range(10)
 _PH_FUSED, _PH_INITIALISED, _PH_RESET, _PH_GATED_OUT = range(4)
 _PH_SIMPLE = (_ph.HeadingDiag(source_available=False), _ph.HeadingDiag(source_available=True))
 _PH_REASON = {_PH_NON_FINITE: "non-finite input", _PH_NON_FINITE_MAG: "non-finite magnetometer",
@@ -809,6 +809,8 @@ class HeldPolarHeading:
     n_resets = property(lambda self: self._c.n_resets)
     r_corr_avg_rad2 = property(lambda self: self._c.r_corr_avg_rad2)
     r_uncal_rad2 = property(lambda self: self._c.r_uncal_rad2)
+    field_mismatch_gauss2 = property(lambda self: self._c.field_mismatch_gauss2)
+    field_mismatch_time_s = property(lambda self: self._c.field_mismatch_time_s)
     platform = property(lambda self: self._c.platform)
     q_P_from_body = property(lambda self: self._c.q_P_from_body)
     gyro_bias_prev_rad_s = property(lambda self: self._c.gyro_bias_prev_rad_s)
@@ -879,6 +881,9 @@ def _ph_diag(t: tuple, u: _ph.HeadingInputs, params: _ph.PolarHeadingParams) -> 
     if code == _PH_BAD_RESIDUAL:
         raise ValueError(f"mag_residual_sigma_gauss must be finite and >= 0 or None, got "
                          f"{u.mag_residual_sigma_gauss!r}")
+    if code == _PH_BAD_FIELD_MODEL:
+        raise ValueError(f"field_model_ned_gauss must be 3 finite numbers (NED, gauss), not all 0, or None, "
+                         f"got {u.field_model_ned_gauss!r}")
     return _ph.HeadingDiag(reason=_PH_REASON[code], source_available=sa)
 
 

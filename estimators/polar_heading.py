@@ -50,6 +50,34 @@ the magnetometer is compensated (``HeadingInputs.mag_residual_sigma_gauss`` = s_
 per-axis residual with its coefficients applied), r_uncal = max(0, s_r^2 - mag_noise^2) / H^2 (the
 white part is already in R). ``polar_heading_estimate`` publishes P_psi (or the consider floor)
 + r_uncal; the state, the gain and the gate are unchanged.
+Field mismatch (what the magnetometer itself shows of its error; issue 18 item 3). The priors above
+say how well an airframe is usually compensated; the measurement can say that THIS one is not: when
+the caller gives the model's field at the site (``HeadingInputs.field_model_ned_gauss``, e = [e_N,
+e_E, e_D]), the levelled measurement's horizontal magnitude H and down component Z are compared
+with the model's H_0 = hypot(e_N, e_E), Z_0 = e_D, |B_0| = hypot(H_0, Z_0). A field error dm (level
+frame) shows, to first order, along the field itself (the norm) and along the normal to it in the
+magnetic meridian (the dip),
+    dm . n = (H Z_0 - Z H_0) / |B_0| = |m| sin(dip_0 - dip),
+and hides along the horizontal normal to the field u_p, the one that turns the heading:
+d psi_m = (dm . u_p) / H. The norm is left out: a scale error (a calibration normalised to another
+field strength, a gain) changes only the norm and turns no heading; ArduPilot's MAG in
+arducopter-rtl-midflight.bin reads 9 % low at the right dip with a 1.5 deg heading error against
+its GNSS-aided FC (counting the norm gave C a 12-15 deg sigma there). With no preferred direction
+for the rest of dm (hard iron, motor currents, an anomaly: per-axis sigma s), dm . n estimates s^2
+and so the variance of the hidden component. The error is correlated (it is what the heading rests
+on, not noise), so s^2 is the running mean of (dm . n)^2 over the measurements that entered the
+heading (initialised, fused, reset on; a reset or the first one starts it over), time constant
+``mag_error_tau_s`` in the measurements' time:
+    s^2 <- s^2 + ((dm . n)^2 - s^2) min(1, dt / mag_error_tau_s)
+    r_mis = max(0, s^2 - mag_noise^2) / H^2                                     (rad^2)
+and the consider term is max(r_uncal, r_mis): the measured mismatch can only widen what the prior
+says (one component is a small sample: for an isotropic dm of one draw the hidden component is
+within 2 s of this estimate only 70 % of the time, 80 % within 3 s: their ratio is Cauchy; the
+bench has them as 70 % and 89 % with the prior, tests/test_polar_heading_field_mismatch.py).
+Example: PX4's vehicle_magnetometer in the px4-quad-no-gnss log (bench/real_logs.py) reads a dip of
+75 deg at the first sample C takes (the model's 63.5 deg at the assumed site): dm . n = 0.08 G, a
+published sigma of 27 deg where the calibrated prior (0.016 G hard iron, 1 deg soft iron) said 8 deg;
+in flight 66.5 deg (0.023 G).
 An innovation gate rejects
 disturbed samples; after ``reset_after_s`` of continuous rejection the heading is re-initialised
 from the source (reported in the diagnostics: ``reset=True`` with the jump).
@@ -218,7 +246,13 @@ class PolarHeadingState:
     r_uncal_rad2: float = 0.0
     """Consider term of the uncalibrated (or residual) magnetometer error of the last measurement
     that entered the heading (initialised, fused or reset on; not a gated-out one) (rad^2, module
-    docstring), added to the published heading variance."""
+    docstring), added to the published heading variance; the field mismatch's when that is larger."""
+    field_mismatch_gauss2: float | None = None
+    """Running mean of the per-axis field-error variance the measurements that entered the heading
+    show against the model (gauss^2, module docstring: field mismatch); None: no model given."""
+    field_mismatch_time_s: float | None = None
+    """Time of the measurement that last updated ``field_mismatch_gauss2`` (None after an unseen
+    interval: the next one starts it over)."""
     platform: bool = False
     """True: the platform formulation (x = [psi_P, w_v, d_x, d_y, d_z], module docstring)."""
     q_P_from_body: np.ndarray | None = None
@@ -269,6 +303,10 @@ class HeadingInputs:
     level_with_roll_pitch: bool = False
     """Platform mode: level the magnetometer with R_z(yaw of C_PB) R_y(pitch) R_x(roll) and
     ``cov_roll_pitch_rad2`` (e.g. a trusted FC's tilt) instead of C_PB's own tilt."""
+    field_model_ned_gauss: np.ndarray | None = None
+    """The field model's Earth field at the site (NED, gauss): the levelled measurement's horizontal
+    magnitude and down component against it set the field-mismatch consider term (module
+    docstring); None: not judged (the priors alone)."""
 
 
 @dataclass(frozen=True)
@@ -381,7 +419,7 @@ def polar_heading_unseen(state: PolarHeadingState, unseen_s: float,
     x = state.x.copy()
     x[1] *= a_v
     # the next sample restarts the time (a restarted clock may start lower)
-    return replace(state, x=x, P=P, time_s=None, last_mag_time_s=None)
+    return replace(state, x=x, P=P, time_s=None, last_mag_time_s=None, field_mismatch_time_s=None)
 
 
 def _predict(st, dt, w, phi, th, Prp, p):
@@ -457,22 +495,62 @@ def _measure(st, u, Prp, p):
     R_single = r_white + r_corr          # the error of ONE measurement (initialisation, reset)
     z = wrap_2pi(psi_m + u.declination_rad)
     r_uncal = uncalibrated_heading_var(m, H, u.mag_residual_sigma_gauss, p)
-    return _fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, p)
+    mis = field_mismatch_var(H, _levelled_down(m, u.roll_rad, u.pitch_rad), u.field_model_ned_gauss)
+    return _fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, p, mis)
 
 
-def _fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, p):
+def _levelled_down(m: np.ndarray, roll_rad: float, pitch_rad: float) -> float:
+    """Down component (gauss) of R_y(theta) R_x(phi) m (``magnetic_heading``'s levelling)."""
+    mz1 = math.sin(roll_rad) * m[1] + math.cos(roll_rad) * m[2]
+    return -math.sin(pitch_rad) * m[0] + math.cos(pitch_rad) * mz1
+
+
+def field_mismatch_var(horizontal_field_gauss: float, down_field_gauss: float,
+                       field_model_ned_gauss: np.ndarray | None) -> float | None:
+    """Per-axis variance (gauss^2) of the field error one levelled measurement (horizontal
+    magnitude H, down component Z) shows against the model (module docstring, field mismatch): its
+    component normal to the model's field in the magnetic meridian, squared,
+    ((H Z_0 - Z H_0) / |B_0|)^2 (a scale error, along the field, is none); None when the model is
+    not given."""
+    if field_model_ned_gauss is None:
+        return None
+    e = np.asarray(field_model_ned_gauss, float)
+    if e.shape != (3,) or not np.all(np.isfinite(e)) or not math.hypot(e[0], e[1], e[2]) > 0.0:
+        raise ValueError(f"field_model_ned_gauss must be 3 finite numbers (NED, gauss), not all 0, or None, "
+                         f"got {field_model_ned_gauss!r}")
+    H0 = math.hypot(e[0], e[1])
+    dn = (horizontal_field_gauss * e[2] - down_field_gauss * H0) / math.hypot(H0, e[2])
+    return dn * dn
+
+
+def _consider(st, t, H, r_uncal, mis, p, restart):
+    """(field_mismatch_gauss2, field_mismatch_time_s, consider term rad^2) once a measurement with
+    prior term ``r_uncal`` and mismatch ``mis`` enters the heading (module docstring)."""
+    if mis is None:
+        return None, None, r_uncal
+    prev, t_prev = st.field_mismatch_gauss2, st.field_mismatch_time_s
+    if restart or prev is None or t_prev is None:
+        avg = mis
+    else:
+        avg = prev + (mis - prev) * min(1.0, max(0.0, t - t_prev) / p.mag_error_tau_s)
+    return avg, t, max(r_uncal, max(0.0, avg - p.mag_noise_gauss ** 2) / (H * H))
+
+
+def _fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, p, mis=None):
     """Initialise from, gate, fuse (or reset on) one heading measurement z (rad) of state x[0].
     ``r_uncal``: the measurement's uncalibrated-magnetometer consider term; it becomes the state's
     (the published one) only where the measurement enters the heading (initialised, fused, reset):
     a gated-out sample is not in the estimate, and its field (a magnet nearby: a larger H) says
     nothing about the error the estimate carries (it shrank C's published sigma 2.84 -> 1.88 deg
-    for the 20 s the magnet stayed, bench/any_motion.py magnet_nearby seed 1)."""
+    for the 20 s the magnet stayed, bench/any_motion.py magnet_nearby seed 1). ``mis``: its field
+    mismatch (``field_mismatch_var``, None: no model), averaged in by the same rule (``_consider``)."""
     n = len(st.x)
     if not st.initialised:
         x0 = st.x.copy()
         x0[0], x0[1] = z, 0.0
+        fm, fm_t, r_uncal = _consider(st, u.time_s, H, r_uncal, mis, p, True)
         st = replace(st, initialised=True, x=x0, P=_prior_P(R_single, p, n), source_available=True,
-                     r_uncal_rad2=r_uncal)
+                     r_uncal_rad2=r_uncal, field_mismatch_gauss2=fm, field_mismatch_time_s=fm_t)
         return st, HeadingDiag(measured=True, fused=True, source_available=True,
                                horizontal_field_gauss=H, heading_meas_rad=z, innovation_rad=0.0,
                                innovation_var_rad2=R_single, test_ratio=0.0, reason="initialised from source")
@@ -491,8 +569,10 @@ def _fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, p):
             P[0, 0] = R_single
             x0 = st.x.copy()
             x0[0] = z
+            fm, fm_t, r_uncal = _consider(st, u.time_s, H, r_uncal, mis, p, True)
             st = replace(st, x=x0, P=P, rejected_since_s=None,
-                         source_available=True, n_resets=st.n_resets + 1, r_uncal_rad2=r_uncal)
+                         source_available=True, n_resets=st.n_resets + 1, r_uncal_rad2=r_uncal,
+                         field_mismatch_gauss2=fm, field_mismatch_time_s=fm_t)
             return st, HeadingDiag(**diag_kw, reset=True, reset_jump_rad=nu,
                                    reason="re-initialised from the source after continuous rejection")
         st = replace(st, rejected_since_s=since, source_available=True, n_rejected=st.n_rejected + 1)
@@ -513,8 +593,9 @@ def _fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, p):
     avg = rc if st.r_corr_avg_rad2 is None else (
         st.r_corr_avg_rad2 + (rc - st.r_corr_avg_rad2) * min(1.0, dt_m / p.mag_error_tau_s))
     P = 0.5 * (P + P.T)
+    fm, fm_t, r_uncal = _consider(st, u.time_s, H, r_uncal, mis, p, False)
     st = replace(st, x=x, P=P, rejected_since_s=None, source_available=True, n_fused=st.n_fused + 1,
-                 r_corr_avg_rad2=avg, r_uncal_rad2=r_uncal)
+                 r_corr_avg_rad2=avg, r_uncal_rad2=r_uncal, field_mismatch_gauss2=fm, field_mismatch_time_s=fm_t)
     return st, HeadingDiag(**diag_kw, fused=True)
 
 
@@ -664,7 +745,8 @@ def _measure_platform(st, u, q, p):
     R_single = r_white + r_corr
     z = wrap_2pi(-math.atan2(mp[1], mp[0]) + u.declination_rad)    # azimuth of P's x axis
     r_uncal = uncalibrated_heading_var(m, H, u.mag_residual_sigma_gauss, p)
-    return _fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, p)
+    mis = field_mismatch_var(H, float(mp[2]), u.field_model_ned_gauss)
+    return _fuse_heading(st, u, z, H, R, R_single, r_corr, r_uncal, p, mis)
 
 
 def polar_heading_attitude(state: PolarHeadingState, heading_rad: float | None = None) -> np.ndarray | None:

@@ -500,7 +500,9 @@ class Pipeline:
                                               float(np.max(residual_sigma_gauss(self.deviation)))
                                               if mag_b is not mag_b_raw else self._mag_hard_iron_residual(mag_b, att),
                                               # heading in every attitude: the platform formulation
-                                              *self._heading_platform(att, tilt)),
+                                              *self._heading_platform(att, tilt),
+                                              # the model's field: its mismatch widens the sigma
+                                              field_model_ned_gauss=self.field.e_ned_gauss),
                 self.polar_hdg_params)
             if rest_rate is not None:
                 self.polar_hdg, _ = self.core.heading_zero_rate_update(self.polar_hdg, rest_rate,

@@ -467,13 +467,59 @@ def test_platform_switch_withheld_and_levelled_with_roll_pitch():
     assert {"innovation gated out", "fused", "non-finite input", "platform", "euler"} <= set(r.kinds), r.kinds
 
 
+def test_field_mismatch_alike_in_both_formulations():
+    # GIVEN the model's field given with the magnetometer (C's field-mismatch consider term: a running
+    # mean over the measurements that enter the heading), WHEN a platform filter turns with a field
+    # 0.03 G off the model, goes through a gap, an FC clock restart, steps without the model (the mean
+    # forgotten) and with it again, and an Euler filter is reset on a turned field, THEN equal at each
+    model = FIELD + np.array([0.03, -0.01, -0.03])
+    p = PolarHeadingParams(reset_after_s=2.0)
+    r = Replay("mismatch")
+    r.init(params=p)
+    t = 0.0
+    for k in range(80):
+        q, m = _turning(t)
+        r.step(_u(t, m, q, w=(0.0, 0.0, 0.2), field_model_ned_gauss=model), p)
+        t += 0.02
+    t += 0.5                                     # a gap: widened as unseen, the mean's clock restarts
+    for k in range(20):
+        q, m = _turning(t)
+        r.step(_u(t, m, q, w=(0.0, 0.0, 0.2), field_model_ned_gauss=model), p)
+        t += 0.02
+    r.unseen(2.0, p)
+    t = 1.0
+    for k in range(20):
+        q, m = _turning(t)
+        r.step(_u(t, m, q, w=(0.0, 0.0, 0.2), field_model_ned_gauss=model if k >= 10 else None), p)
+        t += 0.02
+    assert r.ref.field_mismatch_gauss2 is not None and r.ref.field_mismatch_gauss2 > 1e-4
+    e = Replay("mismatch-euler")
+    e.init(0.2, math.radians(5.0), p)
+    c, s_ = math.cos(1.0), math.sin(1.0)
+    turned = np.array([c * FIELD[0] - s_ * FIELD[1], s_ * FIELD[0] + c * FIELD[1], FIELD[2]])
+    t = 0.0
+    for k in range(200):
+        e.step(_u(t, mag=FIELD if k < 50 else turned, q=None, roll=0.1, pitch=-0.05, field_model_ned_gauss=model), p)
+        t += 0.02
+    assert {"fused", "gap", "unseen", "platform"} <= set(r.kinds) and {"fused", "reset", "euler"} <= set(e.kinds), \
+        (r.kinds, e.kinds)
+    # a state saved before these fields existed loads (None: no mean yet) into the core as into the reference
+    d = {k: v for k, v in dataclasses.asdict(r.ref).items() if k not in ("field_mismatch_gauss2", "field_mismatch_time_s")}
+    old = ref.PolarHeadingState(**d)
+    held = core.HeldPolarHeading(core._core.PolarHeading(d))
+    assert held.field_mismatch_gauss2 is None and held.field_mismatch_time_s is None
+    assert not _state_differences(old, held.to_state(), "old")
+
+
 def test_declination_and_residual_refused_alike():
     # a magnetometer sample with a NaN declination, a negative or NaN residual sigma: the core raises the
     # reference's ValueError and its held state is the one before the call
     p = PolarHeadingParams()
     for bad in (dict(decl=math.nan), dict(mag_residual_sigma_gauss=-1.0), dict(mag_residual_sigma_gauss=math.nan),
                 dict(mag_residual_sigma_gauss=np.float64(-0.5)), dict(q=None, decl=math.inf),
-                dict(q=None, mag_residual_sigma_gauss=-2.0)):
+                dict(q=None, mag_residual_sigma_gauss=-2.0), dict(field_model_ned_gauss=(0.2, math.nan, 0.4)),
+                dict(q=None, field_model_ned_gauss=np.array([math.inf, 0.0, 0.4])),
+                dict(field_model_ned_gauss=np.zeros(3))):
         r = Replay("refused")
         r.init(params=p)
         for k in range(10):
@@ -500,7 +546,8 @@ def test_bad_shapes_answered_by_the_reference():
         t += 0.02
     for kw in (dict(w=(0.0, 0.0)), dict(q=(1.0, 0.0, 0.0)), dict(mag=(0.2, 0.0)), dict(q=(0.0, 0.0, 0.0, 0.0)),
                dict(cov_att_body_rad2=np.eye(2)), dict(q=None, cov_roll_pitch_rad2=np.eye(3) * 1e-5),
-               dict(decl="east"), dict(mag_residual_sigma_gauss="small"), dict(q=None, roll=None)):
+               dict(decl="east"), dict(mag_residual_sigma_gauss="small"), dict(q=None, roll=None),
+               dict(field_model_ned_gauss=(0.2, 0.4)), dict(q=None, field_model_ned_gauss="wmm")):
         u = _u(t, **kw)
         try:
             with np.errstate(all="ignore"):
