@@ -167,6 +167,20 @@ case_pipeline = _pipeline_case("core")
 case_pipeline_python = _pipeline_case("python")
 
 
+def _core_pipeline(cfg):
+    """A Pipeline on the compiled core with its hot path (the selection restored after)."""
+    from service.pipeline import Pipeline
+    before = os.environ.get("AZIMUTHD_CORE")
+    os.environ["AZIMUTHD_CORE"] = "core"
+    try:
+        p = Pipeline(cfg)
+    finally:
+        os.environ.pop("AZIMUTHD_CORE") if before is None else os.environ.update(AZIMUTHD_CORE=before)
+    if p.core.hot_run is None:
+        raise RuntimeError(f"no hot path in this core: {p.core.why}")
+    return p
+
+
 def _pipeline_batch_case(max_rows: int | None):
     """The whole stack with the compiled core fed as the daemon's batch path feeds it
     (Pipeline.on_imu_batch: the quiet samples in the core's hot path, service/hot_path.py): the IMU
@@ -180,7 +194,6 @@ def _pipeline_batch_case(max_rows: int | None):
 def _pipeline_batch_pass(run, items, max_rows: int | None):
     from mavlink_io.samples import ImuSample
     from service.hot_path import batch_of
-    from service.pipeline import Pipeline
     cfg = site_config(run)
     plan, imu = [], []
     for it in items:
@@ -198,14 +211,7 @@ def _pipeline_batch_pass(run, items, max_rows: int | None):
         plan.append(batch_of(imu))
 
     def one_pass():
-        before = os.environ.get("AZIMUTHD_CORE")
-        os.environ["AZIMUTHD_CORE"] = "core"
-        try:
-            p = Pipeline(cfg)
-        finally:
-            os.environ.pop("AZIMUTHD_CORE") if before is None else os.environ.update(AZIMUTHD_CORE=before)
-        if p.core.hot_run is None:
-            raise RuntimeError(f"no hot path in this core: {p.core.why}")
+        p = _core_pipeline(cfg)
         handlers = {}
         for it in plan:
             c = type(it)
@@ -232,18 +238,10 @@ def case_pipeline_step(run, items):
     sample through Pipeline.step_imu (a quiet one in the core's hot path, as a batch of one row),
     then the propagated snapshot the daemon takes between filter steps."""
     from mavlink_io.samples import ImuSample
-    from service.pipeline import Pipeline
     cfg = site_config(run)
 
     def one_pass():
-        before = os.environ.get("AZIMUTHD_CORE")
-        os.environ["AZIMUTHD_CORE"] = "core"
-        try:
-            p = Pipeline(cfg)
-        finally:
-            os.environ.pop("AZIMUTHD_CORE") if before is None else os.environ.update(AZIMUTHD_CORE=before)
-        if p.core.hot_run is None:
-            raise RuntimeError(f"no hot path in this core: {p.core.why}")
+        p = _core_pipeline(cfg)
         others = {}
         for it in items:
             c = type(it)
