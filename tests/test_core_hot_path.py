@@ -65,23 +65,47 @@ def _faulted(items: list) -> list:
     return out
 
 
-@pytest.fixture(scope="module")
-def flight():
-    run = simulate(scenario="inclined_rail", seed=3, imu_grade="consumer", imu_rate_hz=RATE_HZ,
-                   duration_s=100.0, overrides={"launcher": {"rest_s": 8.0}})
+def faulted_flight(duration_s: float, rate_hz: float = RATE_HZ) -> tuple[list, dict]:
+    """The inclined-rail flight with the input faults of ``_faulted``, and its config."""
+    run = simulate(scenario="inclined_rail", seed=3, imu_grade="consumer", imu_rate_hz=rate_hz,
+                   duration_s=duration_s, overrides={"launcher": {"rest_s": 8.0}})
     site = scenario_site("inclined_rail")
     s = run.site
     site["site"].update(lat_deg=s["lat_deg"], lon_deg=s["lon_deg"], alt_m=s["alt_m"], decimal_year=s["decimal_year"])
-    return _faulted(pipeline_inputs(run)), validate({**site, "mavlink": {"imu_rate_hz": RATE_HZ}})
+    return _faulted(pipeline_inputs(run)), validate({**site, "mavlink": {"imu_rate_hz": rate_hz}})
+
+
+@pytest.fixture(scope="module")
+def flight():
+    return faulted_flight(100.0)
+
+
+def in_batches(p, items, rng: random.Random, max_batch: int, on_batch) -> None:
+    """``items`` as the daemon's batch path hands them: consecutive IMU samples to ``on_batch(list)``
+    in batches of 1..max_batch rows (cut at every other item), the others to their handlers."""
+    others = {PressureSample: p.on_pressure, FcAttitude: p.on_fc_attitude, FcHeartbeat: p.on_fc_heartbeat,
+              FcFlightState: p.on_fc_flight_state, FcEkfStatus: p.on_fc_ekf_status}
+    run: list = []
+    size = rng.randint(1, max_batch)
+    for it in items:
+        if type(it) is ImuSample:
+            run.append(it)
+            if len(run) >= size:
+                on_batch(run)
+                run = []
+                size = rng.randint(1, max_batch)
+        else:
+            if run:
+                on_batch(run)
+                run = []
+            others[type(it)](it)
+    if run:
+        on_batch(run)
 
 
 def feed_batches(p, items, seed: int = 7, max_batch: int = 40) -> dict:
-    """``items`` as the daemon's batch path hands them: consecutive IMU samples in batches of
-    1..max_batch rows (cut at every other item), the others to their handlers; after each batch
-    what the daemon reads: the propagated solution, A's output, the aiding records, the counters."""
-    rng = random.Random(seed)
-    others = {PressureSample: p.on_pressure, FcAttitude: p.on_fc_attitude, FcHeartbeat: p.on_fc_heartbeat,
-              FcFlightState: p.on_fc_flight_state, FcEkfStatus: p.on_fc_ekf_status}
+    """``items`` through ``in_batches``; after each batch what the daemon reads: the propagated
+    solution, A's output, the aiding records, the counters."""
     got = {"solutions": [], "events": [], "after_batch": []}
     handled = [0]
     on_imu = p.on_imu
@@ -90,27 +114,13 @@ def feed_batches(p, items, seed: int = 7, max_batch: int = 40) -> dict:
         handled[0] += 1
         return on_imu(s, *a)
     p.on_imu = counted
-    run: list = []
-    size = rng.randint(1, max_batch)
 
-    def flush():
+    def on_batch(run):
         got["solutions"] += p.on_imu_batch(batch_of(run))
         got["events"] += p.drain_events()
         got["after_batch"].append((p.propagated_solution(), p.azimuth_out, dict(p.aiding), p.counters.imu_samples,
                                    p.counters.imu_rejected, p.last_time_fc_s, p.azimuth_status()))
-        run.clear()
-    for it in items:
-        if type(it) is ImuSample:
-            run.append(it)
-            if len(run) >= size:
-                flush()
-                size = rng.randint(1, max_batch)
-        else:
-            if run:
-                flush()
-            others[type(it)](it)
-    if run:
-        flush()
+    in_batches(p, items, random.Random(seed), max_batch, on_batch)
     got["python_handled"] = handled[0]
     got["pipeline"] = p
     return got

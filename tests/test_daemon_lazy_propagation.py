@@ -23,7 +23,7 @@ import pytest
 from estimators.rotations import euler_from_quat, wrap_2pi
 from mavlink_io.link import MavlinkLink
 from mem_transport import MemTransport
-from test_mavlink_imu_batch_daemon import SCENARIO, _reads, _record, scenario_site
+from test_mavlink_imu_batch_daemon import SCENARIO, _reads, _record, _same_solution, scenario_site
 
 
 def _former_propagated_solution(p):
@@ -95,16 +95,7 @@ def _run(tmp_path, name: str, reads, batch: bool, mode: str, monkeypatch) -> dic
 def _same(a, b) -> bool:
     if a is None or b is None:
         return a is b
-    for f in dataclasses.fields(a):
-        x, y = getattr(a, f.name), getattr(b, f.name)
-        if isinstance(x, np.ndarray) or isinstance(y, np.ndarray):
-            if not np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True):
-                return False
-        elif isinstance(x, float) and isinstance(y, float) and math.isnan(x) and math.isnan(y):
-            continue
-        elif x != y:
-            return False
-    return True
+    return _same_solution(a, b)
 
 
 def _same_sent(a: list, b: list) -> bool:

@@ -24,56 +24,28 @@ from parity_compare import differences
 from service import core_backend
 from service.hot_path import batch_of
 import service.pipeline as sp
-from bench.sitl import pipeline_inputs, scenario_site
-from test_core_hot_path import _faulted
+from test_core_hot_path import faulted_flight, in_batches
 from estimators import core as ec
-from service.config import validate
-from sim.offline import simulate
 
 pytestmark = pytest.mark.skipif(not ec.HOT_PATH_AVAILABLE, reason="compiled core without the hot path")
 
 
-RATE_HZ = 400.0
-
-
 @pytest.fixture(scope="module")
 def flight():
-    run = simulate(scenario="inclined_rail", seed=3, imu_grade="consumer", imu_rate_hz=RATE_HZ,
-                   duration_s=45.0, overrides={"launcher": {"rest_s": 8.0}})
-    site = scenario_site("inclined_rail")
-    s = run.site
-    site["site"].update(lat_deg=s["lat_deg"], lon_deg=s["lon_deg"], alt_m=s["alt_m"], decimal_year=s["decimal_year"])
-    return _faulted(pipeline_inputs(run)), validate({**site, "mavlink": {"imu_rate_hz": RATE_HZ}})
+    return faulted_flight(45.0, rate_hz=400.0)   # the daemon's rate: one RAW_IMU per wake-up
 
 
 def _feed(p, items, seed: int = 11, max_batch: int = 4) -> dict:
-    rng = random.Random(seed)
-    others = {PressureSample: p.on_pressure, FcAttitude: p.on_fc_attitude, FcHeartbeat: p.on_fc_heartbeat,
-              FcFlightState: p.on_fc_flight_state, FcEkfStatus: p.on_fc_ekf_status}
     got = {"solutions": [], "events": [], "after_batch": [], "held_on": 0}
-    run: list = []
-    size = rng.randint(1, max_batch)
 
-    def flush():
+    def on_batch(run):
         held = p._azimuth_held
         got["solutions"] += p.on_imu_batch(batch_of(run))
         got["events"] += p.drain_events()
         got["held_on"] += held is not None and p._azimuth_held is held   # the same run went on
         got["after_batch"].append((p.propagated_solution(), dict(p.aiding), p.counters.imu_samples,
                                    p.counters.imu_rejected, p.last_time_fc_s))
-        run.clear()
-    for it in items:
-        if type(it) is ImuSample:
-            run.append(it)
-            if len(run) >= size:
-                flush()
-                size = rng.randint(1, max_batch)
-        else:
-            if run:
-                flush()
-            others[type(it)](it)
-    if run:
-        flush()
+    in_batches(p, items, random.Random(seed), max_batch, on_batch)
     got["azimuth"], got["azimuth_out"], got["status"] = p.azimuth, p.azimuth_out, p.azimuth_status()
     return got
 
