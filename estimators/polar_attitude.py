@@ -333,13 +333,13 @@ class PolarAttitudeState:
     rest_s: float = 0.0
     """Time those updates span (s)."""
     n_relevels: int = 0
+    """Re-levellings done (``_rest_test``)."""
     sample_dt_s: float | None = None
     """Span of the last sample that was not a hole (s), at most ``sample_span_max_s``: the part of an
     interval a sample's rate is the mean over."""
     bias_rate_opened: bool = False
     """The bias rate's variance was reopened for flight (``_open_bias_rate``: params.relevel_allowed
     went False, the vehicle left the rest); False again once it is allowed."""
-    """Sigma of the gyro-bias prior given at init (None: params.gyro_bias_init_sigma_rad_s)."""
 
     def to_dict(self) -> dict:
         out = {}
