@@ -208,7 +208,8 @@ inline double consider(State& st, double t, double H, double r_uncal, bool has_m
         avg = mis;
     else
         avg = st.field_mismatch_gauss2 + (mis - st.field_mismatch_gauss2) *
-                  std::min(1.0, std::max(0.0, t - st.field_mismatch_time_s) / p.mag_error_tau_s);
+                  std::min(1.0, std::min(std::max(0.0, t - st.field_mismatch_time_s), p.mag_update_period_s) /
+                                    p.mag_error_tau_s);   // a gap is not measured time (the reference)
     st.has_field_mismatch = true;
     st.field_mismatch_gauss2 = avg;
     st.has_field_mismatch_time = true;

@@ -166,7 +166,8 @@ class PolarAttitudeParams:
     the take-off (``_open_bias_rate``): what the zero-rate updates measured at rest is the bias of a
     still, cooler sensor; the take-off's accelerations and vibration (a consumer MEMS gyro's linear
     acceleration sensitivity is ~0.1 deg/s/g, MPU-6000) and the motors' heat move it at once.
-    ArduPlane SITL's bias is 0.05 deg/s 20 s after the launch (RAW_IMU vs SIMSTATE in level legs).
+    ArduPlane SITL's bias is 0.05 deg/s 20 s after the launch (measured offline against its own
+    simulated state in level legs, docs/SIGMAS.md).
     0 leaves the bias's variance as the rest left it."""
     accel_noise_m_s2: float = 0.05
     """Per-sample white noise of the specific force (m/s^2); divided by the samples averaged."""

@@ -68,7 +68,7 @@ and so the variance of the hidden component. The error is correlated (it is what
 on, not noise), so s^2 is the running mean of (dm . n)^2 over the measurements that entered the
 heading (initialised, fused, reset on; a reset or the first one starts it over), time constant
 ``mag_error_tau_s`` in the measurements' time:
-    s^2 <- s^2 + ((dm . n)^2 - s^2) min(1, dt / mag_error_tau_s)
+    s^2 <- s^2 + ((dm . n)^2 - s^2) min(1, dt / mag_error_tau_s),  dt = min(interval, mag_update_period_s)
     r_mis = max(0, s^2 - mag_noise^2) / H^2                                     (rad^2)
 and the consider term is max(r_uncal, r_mis): the measured mismatch can only widen what the prior
 says (one component is a small sample: for an isotropic dm of one draw the hidden component is
@@ -532,7 +532,11 @@ def _consider(st, t, H, r_uncal, mis, p, restart):
     if restart or prev is None or t_prev is None:
         avg = mis
     else:
-        avg = prev + (mis - prev) * min(1.0, max(0.0, t - t_prev) / p.mag_error_tau_s)
+        # one measurement's weight: its interval, at most the measurement period (a gap in which
+        # nothing entered is not measured time: after a 25 s magnet rejection the first sample
+        # alone replaced the mean, tests/test_mag_disturbance_pipeline.py magnet attached)
+        dt = min(max(0.0, t - t_prev), p.mag_update_period_s)
+        avg = prev + (mis - prev) * min(1.0, dt / p.mag_error_tau_s)
     return avg, t, max(r_uncal, max(0.0, avg - p.mag_noise_gauss ** 2) / (H * H))
 
 
