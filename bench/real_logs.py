@@ -175,8 +175,12 @@ def log_takeoffs(path: pathlib.Path) -> tuple[list[float] | None, str]:
 def mag_verdict(stdout: str, summary: dict) -> tuple[bool | None, str]:
     """Usable magnetometer or the replay's named rejection (its summary JSON, else its text)."""
     mag = summary.get("magnetometer") if isinstance(summary, dict) else None
-    if isinstance(mag, dict) and "usable" in mag:
-        return bool(mag["usable"]), str(mag.get("reason", ""))
+    if isinstance(mag, dict) and "usable" in mag:  # the replay's timeline: its state at the end of the log
+        spans = (f"usable {mag['usable_s']:.1f} s, rejected {mag['rejected_s']:.1f} s "
+                 f"({mag['rejections']}x), {'usable' if mag['usable_at_end'] else 'rejected'} at the end")
+        if mag["usable"]:
+            return True, f"{spans}; first rejection: {mag['reason']}" if mag.get("rejections") else ""
+        return False, f"{mag['reason']}; {spans}"
     for m in summary.get("missing_streams", []) if isinstance(summary, dict) else []:
         if m.startswith("magnetometer"):
             return False, m
@@ -355,7 +359,8 @@ def print_row(name: str, e: dict) -> None:
           f"{e['log_takeoffs_s'] if e['log_takeoffs_s'] else '-'} ({e['log_takeoff_source']}); error "
           f"{'-' if te is None else f'{te:+.1f} s'}")
     mu = e["magnetometer_usable"]
-    print(f"  magnetometer: {'usable' if mu else ('-' if mu is None else 'REJECTED: ' + e['fc_excluded'].get('magnetometer_reason', ''))}")
+    why = e["fc_excluded"].get("magnetometer_reason", "")
+    print(f"  magnetometer: {'-' if mu is None else ('usable' + (': ' + why if why else '')) if mu else 'REJECTED: ' + why}")
 
 
 if __name__ == "__main__":

@@ -492,6 +492,7 @@ def summary(res: ReplayResult) -> dict:
         "notes": res.notes,
         "events": len(res.events),
         "event_reasons": event_reasons(res.events),
+        "magnetometer": magnetometer_timeline(res.events, span[1] if res.imu_samples > 1 else math.nan),
         "imu_rejected": getattr(res.counters, "imu_rejected", 0),
         "imu_rejected_reasons": dict(getattr(res.counters, "reasons", {})),
         "wall_time_s": res.wall_s,
@@ -512,6 +513,35 @@ def summary(res: ReplayResult) -> dict:
         out["roll_rms_diff_in_flight_deg"] = _rms(d_roll[inflight])
         out["pitch_rms_diff_in_flight_deg"] = _rms(d_pitch[inflight])
     return out
+
+
+def magnetometer_timeline(events: list, end_time_s: float) -> dict | None:
+    """The magnetometer's verdicts over the log (the Pipeline's ``magnetometer`` events: usable /
+    rejected (reason)): the seconds spent usable and rejected after the first verdict, the log's
+    verdict (usable for at least half of that time), its state at the end and the first rejection's
+    reason. None when the log gave no verdict (no magnetometer,
+    or too short to judge it): a reader then says so from ``missing_streams``."""
+    verdicts = [(t, str(d)) for t, kind, d in events if kind == "magnetometer" and t is not None]
+    if not verdicts:
+        return None
+    usable_s = rejected_s = 0.0
+    for (t0, d0), (t1, _) in zip(verdicts, verdicts[1:] + [(end_time_s, "")]):
+        dt = max(0.0, t1 - t0) if t1 == t1 else 0.0
+        if d0 == "usable":
+            usable_s += dt
+        else:
+            rejected_s += dt
+    rejections = [(t, d) for t, d in verdicts if d != "usable"]
+    last_t, last_d = verdicts[-1]
+    judged_s = usable_s + rejected_s
+    share = usable_s / judged_s if judged_s > 0 else (1.0 if last_d == "usable" else 0.0)
+    # the log's verdict: usable for most of the time it was judged (a rejection that ended early
+    # does not make a log's magnetometer unusable, nor a late recovery a rejected one usable)
+    return {"usable": share >= 0.5, "usable_share": share, "usable_at_end": last_d == "usable",
+            "since_s": last_t, "usable_s": usable_s, "rejected_s": rejected_s,
+            "rejections": len(rejections),
+            "reason": " ".join(rejections[0][1].split()) if rejections else "",
+            "first_rejected_s": rejections[0][0] if rejections else None}
 
 
 MAX_REASON_LINES = 25
@@ -564,6 +594,11 @@ def print_summary(s: dict, res: ReplayResult, notes: list[str], log: Path, out=N
             p(f"    {g['kind']}: {g['reason']}{t} x{g['count']}{vary}")
         if len(groups) > MAX_REASON_LINES:
             p(f"    ... {len(groups) - MAX_REASON_LINES} more reasons (--json lists them all)")
+    mag = s.get("magnetometer")
+    if mag:
+        state = "usable" if mag["usable_at_end"] else "rejected"
+        p(f"  magnetometer: usable {mag['usable_s']:.1f} s, rejected {mag['rejected_s']:.1f} s "
+          f"({mag['rejections']} rejection(s)); {state} at the end (since {mag['since_s']:.2f} s)")
     if s["imu_rejected"]:
         p(f"  IMU samples rejected by the pipeline: {s['imu_rejected']} {s['imu_rejected_reasons']}")
     for w in s["warnings"]:

@@ -35,3 +35,20 @@ def test_progress_bar_on_a_terminal_only_unless_asked():
     # not a terminal: nothing by default, one line per update when asked
     lines = pipe.getvalue().splitlines()
     assert len(lines) == 1 and lines[0].startswith("replay [") and "ETA " in lines[0] and "log t=12.0 s" in lines[0]
+
+
+def test_magnetometer_timeline_judges_the_whole_log_not_its_first_rejection():
+    """GIVEN a log whose magnetometer was rejected for 18 s, then usable for 70 s (px4-quad-no-gnss's
+    shape) THEN the log's magnetometer is usable, with the rejection's time and reason kept; GIVEN one
+    usable 8 s at the end of 200 s rejected THEN it is rejected, though usable at the end."""
+    from service.replay import magnetometer_timeline
+    rej = "rejected (dip 79.4 deg vs the model's 63.5 deg): the heading coasts on the gyros"
+    quad = [(100.0, "phase", "pre-launch"), (105.0, "magnetometer", rej), (123.0, "magnetometer", "usable")]
+    m = magnetometer_timeline(quad, 193.0)
+    assert m["usable"] and m["usable_at_end"] and m["rejections"] == 1
+    assert m["rejected_s"] == 18.0 and m["usable_s"] == 70.0 and m["reason"] == rej
+    assert m["first_rejected_s"] == 105.0 and m["since_s"] == 123.0
+    late = [(0.0, "magnetometer", rej), (200.0, "magnetometer", "usable")]
+    m = magnetometer_timeline(late, 208.0)
+    assert not m["usable"] and m["usable_at_end"] and abs(m["usable_share"] - 8 / 208) < 1e-12
+    assert magnetometer_timeline([(1.0, "phase", "pre-launch")], 10.0) is None  # no verdict: none claimed
