@@ -350,7 +350,9 @@ class Sitl:
         ``rcvbuf_bytes`` (UdpTap)."""
         import tempfile
         self.scenario = scenario
-        self.workdir = Path(workdir or tempfile.mkdtemp(prefix="azimuthd-sitl-"))
+        # no folder given: a new one under $AZIMUTHD_SITL_TMPDIR (the test suite's, pruned by pytest), else /tmp
+        self.workdir = Path(workdir or tempfile.mkdtemp(prefix="azimuthd-sitl-",
+                                                        dir=os.environ.get("AZIMUTHD_SITL_TMPDIR") or None))
         self.fc_port = free_udp_port()
         self.out_port = free_udp_port()
         self.truth_log = self.workdir / "truth.csv"

@@ -14,6 +14,21 @@ import pytest
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+@pytest.fixture(scope="session", autouse=True)
+def _simulated_flights_under_basetemp(tmp_path_factory):
+    """A simulated flight's work folder (bench/sitl.py: logs, truth, the daemon's state), when a
+    test gives none, goes under pytest's base folder, which pytest prunes to its last three runs: a
+    suite run leaves no flight folders behind in /tmp. (Not every temporary file: a test that runs
+    the daemon as an unprivileged user needs a folder that user can reach.)"""
+    before = os.environ.get("AZIMUTHD_SITL_TMPDIR")
+    os.environ["AZIMUTHD_SITL_TMPDIR"] = str(tmp_path_factory.mktemp("sitl", numbered=False))
+    yield
+    if before is None:
+        os.environ.pop("AZIMUTHD_SITL_TMPDIR", None)
+    else:
+        os.environ["AZIMUTHD_SITL_TMPDIR"] = before
+
+
 # --- what a busy machine may change, and what it may not ---------------------------------------
 # The machine running the suite is shared (load 10-17 on 2 cores): a process may be descheduled
 # for seconds. A test asserts what holds at any speed: rates in the sender's own clock (its
