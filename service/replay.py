@@ -171,7 +171,27 @@ def build_config(args, reader) -> tuple[dict, list[str]]:
         # set after validation: the key may be newer than this config's schema
         cfg["heading"]["use_fc_yaw"] = False
         notes.append("the FC's yaw excluded (--exclude-fc-yaw): heading.use_fc_yaw = false")
+    elif cfg["heading"].get("use_fc_yaw", True):
+        from_us = fc_yaw_from_our_odometry(reader.summary)
+        if from_us is not None:
+            cfg["heading"]["use_fc_yaw"] = False
+            notes.append(f"the FC's yaw excluded: the log's parameters say it came from our ODOMETRY ({from_us}); "
+                         "it is neither a heading source nor a reference here, as the daemon would have done")
     return cfg, notes
+
+
+def fc_yaw_from_our_odometry(summary) -> str | None:
+    """Why the log's FC yaw is ours (its EKF fused azimuthd's ODOMETRY yaw: VISO_TYPE with an
+    EK3_SRCn_YAW 6, PX4's EKF2_EV_CTRL yaw bit), as the daemon decides it live from the same
+    parameters (mavlink_io/fc_yaw_feed.py); None when the parameters do not say so or are absent."""
+    from mavlink_io.fc_yaw_feed import check_fc_yaw_feed, params_for
+    params = getattr(summary, "params", None) or {}
+    autopilot = getattr(summary, "autopilot", None)
+    wanted = params_for(autopilot)
+    if not params or not wanted:
+        return None
+    check = check_fc_yaw_feed(autopilot, params, set(wanted) - set(params))
+    return check.reason if check.fc_yaw_from_us else None
 
 
 # --- the replay --------------------------------------------------------------------------------

@@ -69,3 +69,40 @@ def test_exclude_fc_yaw_sets_the_key(binlog):
     Args.exclude_fc_yaw = False
     cfg, _ = build_config(Args, open_log(binlog))
     assert cfg["heading"].get("use_fc_yaw", True) is True
+
+
+def test_a_log_whose_fc_yaw_came_from_our_odometry_excludes_it_by_itself(binlog):
+    """GIVEN a DataFlash log whose parameters say EKF3 fused our ODOMETRY yaw (VISO_TYPE 1,
+    EK3_SRC1_YAW 6, EK2_ENABLE 0: an ArduPlane flight with azimuthd feeding the FC) WHEN it is
+    replayed without --exclude-fc-yaw THEN the FC's yaw is excluded with the reason, as the daemon
+    decides it live (comparing our heading with the FC's would compare it with itself); the real
+    RTL log (VISO_TYPE 0) and a PX4 log with EKF2_EV_CTRL's yaw bit off keep it."""
+    from service.logreaders import LogSummary, open_log
+    from service.replay import build_config, fc_yaw_from_our_odometry
+
+    class Args:
+        config, site, exclude_fc_yaw = None, None, False
+    data = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+    rtl = (data if data.is_dir() else Path("/work/shared/data")) / "arducopter-rtl-midflight.bin"
+    if rtl.exists():
+        reader = open_log(rtl)
+        assert reader.summary.params.get("VISO_TYPE") == 0.0  # the real log's own parameters were read
+        assert fc_yaw_from_our_odometry(reader.summary) is None
+        cfg, notes = build_config(Args, reader)
+        assert cfg["heading"].get("use_fc_yaw", True) is True and not any("ODOMETRY" in n for n in notes)
+    reader = open_log(binlog)
+    assert reader.summary.params == {}  # a log with no PARM records claims nothing
+    cfg, _ = build_config(Args, reader)
+    assert cfg["heading"].get("use_fc_yaw", True) is True
+
+    ours = {f"EK3_SRC{n}_{k}": 0.0 for n in (1, 2, 3) for k in ("POSXY", "VELXY", "POSZ", "VELZ", "YAW")}
+    ours.update(VISO_TYPE=1.0, EK2_ENABLE=0.0, EK3_ENABLE=1.0, EK3_SRC1_YAW=6.0, EK3_SRC1_POSZ=1.0)
+    reader.summary.params = ours
+    why = fc_yaw_from_our_odometry(reader.summary)
+    assert why is not None and "EK3_SRC1_YAW 6" in why
+    cfg, notes = build_config(Args, reader)
+    assert cfg["heading"]["use_fc_yaw"] is False and any("came from our ODOMETRY" in n for n in notes)
+    assert fc_yaw_from_our_odometry(LogSummary("ulog", "px4", params={"EKF2_EV_CTRL": 0.0})) is None
+    assert "yaw comes from our ODOMETRY" in fc_yaw_from_our_odometry(
+        LogSummary("ulog", "px4", params={"EKF2_EV_CTRL": 8.0}))
+    assert fc_yaw_from_our_odometry(LogSummary("tlog")) is None  # no parameters: nothing claimed

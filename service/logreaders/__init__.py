@@ -68,6 +68,9 @@ class LogSummary:
     missing: list = field(default_factory=list)
     notes: list = field(default_factory=list)
     fc_identity: FcIdentity | None = None
+    params: dict = field(default_factory=dict)
+    """Every FC parameter the log carries (name -> value; one set again during the log keeps its
+    last value); empty where the format keeps none (a tlog)."""
 
 
 class LogReader(Protocol):

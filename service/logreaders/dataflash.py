@@ -179,6 +179,7 @@ class DataflashReader:
         self._stats = st
         self._takeoffs = track.takeoffs_s
         self.summary.fc_identity = _identity(firmware, params)
+        self.summary.params = params
         self._infer_start_state(first_change)
         names = st.names()
         self._use: dict[str, tuple[str, int | None]] = {}

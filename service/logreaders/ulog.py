@@ -168,6 +168,9 @@ class UlogReader:
             self.summary.notes.append("pyulog reports file corruption: data after the damage may be missing")
         self._imu_check()
         self.summary.fc_identity = self._identity()
+        self.summary.params = {str(k): float(v) for k, v in
+                               (getattr(self.ulog, "initial_parameters", {}) or {}).items()
+                               if isinstance(v, (int, float))}
         self._status_said = False
         self.estimator_status: str | None = "estimator_status" if self._status()[0] is not None else None
         """Where the FC's estimator status comes from, None when the log has none (said in the notes)."""
