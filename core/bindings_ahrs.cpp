@@ -242,6 +242,8 @@ py::dict get_state(const Ahrs& s, const AhrsParams& p) {
     d["first_imu_time_s"] = opt(s.has_first_imu, s.first_imu_time_s);
     d["ref_heading_sens"] = s.ref_heading_sens;
     d["reacquire_heading"] = s.reacquire_heading;
+    d["imu_integrated_s"] = s.imu_integrated_s;
+    d["imu_not_integrated_s"] = s.imu_not_integrated_s;
     return d;
 }
 
@@ -320,6 +322,8 @@ Ahrs state_from(const py::dict& d) {
     s.has_first_imu = get_opt(d, "first_imu_time_s", s.first_imu_time_s);
     s.ref_heading_sens = d["ref_heading_sens"].cast<double>();
     s.reacquire_heading = d["reacquire_heading"].cast<bool>();
+    s.imu_integrated_s = d["imu_integrated_s"].cast<double>();
+    s.imu_not_integrated_s = d["imu_not_integrated_s"].cast<double>();
     return s;
 }
 
@@ -332,7 +336,8 @@ py::tuple output_tuple(const Ahrs& s, const AhrsParams& p) {
     return py::make_tuple(s.time_s, o.valid, o.roll, o.pitch, o.heading, o.roll_sigma, o.pitch_sigma, o.heading_sigma,
                           s.trusted, trust_text(s.trust, p.health), s.air_active, s.air_off_reason, s.kf1_learning,
                           np1(bias), n ? k.n_mag_fused : 0, n ? k.n_mag_rejected : 0, n ? k.n_mag_gated : 0,
-                          n ? k.n_air_fused : 0, n ? k.n_air_rejected : 0, n ? k.n_ref_fused : 0, s.n_kf1_rejected);
+                          n ? k.n_air_fused : 0, n ? k.n_air_rejected : 0, n ? k.n_ref_fused : 0, s.n_kf1_rejected,
+                          s.imu_integrated_s, s.imu_not_integrated_s);
 }
 
 struct Held {

@@ -78,6 +78,8 @@ struct Ahrs {
     double first_imu_time_s = 0.0;
     double ref_heading_sens = 0.0;
     bool reacquire_heading = false;
+    double imu_integrated_s = 0.0;      // IMU intervals integrated (<= kf2.max_dt_s each) ...
+    double imu_not_integrated_s = 0.0;  // ... and those held across (longer: a gap, inputs too slow)
 };
 
 inline V3 m3v(const M3& C, const V3& v) { return mv<3, 3>(C, v); }
@@ -181,6 +183,7 @@ inline void ahrs_on_imu(Ahrs& s, const V3& g_s, bool has_mag, const V3& mag_s, d
         for (int i = 0; i < 3; ++i) wlp[i] = s.omega_lp_rad_s[i] + k * (w[i] - s.omega_lp_rad_s[i]);
         qf = s.q_gyro_free;
         if (dt <= p.kf2.max_dt_s) {
+            s.imu_integrated_s += dt;
             qf = quat_unit(quat_mul(qf, quat_from_rotvec({w[0] * dt, w[1] * dt, w[2] * dt})));  // rectangular
             if (s.has_gyro_prev) {
                 // each step's error is (mean rate - sample) dt; E|w_k - w_k-1|^2 = 6 sigma_w^2 over 3 axes
@@ -189,8 +192,10 @@ inline void ahrs_on_imu(Ahrs& s, const V3& g_s, bool has_mag, const V3& mag_s, d
                 const double sigma_w2 = (d0 * d0 + d1 * d1 + d2 * d2) / 6.0;
                 s.gyro_free_var_rad2 = s.gyro_free_var_rad2 + sigma_w2 * dt * dt;
             }
-        } else if (!s.health.anchors->empty()) {
-            clear_anchors(s.health);  // a gap the gyro-only attitude did not see: re-lay the anchors
+        } else {
+            s.imu_not_integrated_s += dt;
+            if (!s.health.anchors->empty())
+                clear_anchors(s.health);  // a gap the gyro-only attitude did not see: re-lay the anchors
         }
     }
     s.has_q_free = true; s.q_gyro_free = qf;

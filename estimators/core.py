@@ -247,7 +247,7 @@ def levelling_step(state: LevellingState, gyro_rad_s: np.ndarray, accel_m_s2: np
 _B_OUT_FIELDS = ("time_s", "valid", "roll_rad", "pitch_rad", "heading_rad", "roll_sigma_rad", "pitch_sigma_rad",
                  "heading_sigma_rad", "reference_trusted", "reference_reason", "air_correction_active",
                  "air_off_reason", "kf1_learning", "gyro_bias_rad_s", "mag_fused", "mag_rejected", "mag_gated",
-                 "air_fused", "air_rejected", "ref_fused", "kf1_rejected")
+                 "air_fused", "air_rejected", "ref_fused", "kf1_rejected", "imu_integrated_s", "imu_not_integrated_s")
 _STALE = object()
 
 

@@ -273,9 +273,14 @@ class SyntheticAhrsState:
     n_kf1_rejected: int = 0
     first_imu_time_s: float | None = None
     ref_heading_sens: float = 0.0
+    """b2: sensitivity a of our heading error to the FC's (correlated) yaw error (module docstring)."""
     reacquire_heading: bool = False
     """b2: a gap left the heading as good as unknown: take it from the magnetometer next."""
-    """b2: sensitivity a of our heading error to the FC's (correlated) yaw error (module docstring)."""
+    imu_integrated_s: float = 0.0
+    """Sum of the IMU intervals integrated (at most ``kf2.max_dt_s`` each) ..."""
+    imu_not_integrated_s: float = 0.0
+    """... and of those longer, held across and not integrated (a gap; inputs too slow): the
+    caller's measure of whether B can follow the rotation at all (service/heading_sources)."""
 
 
 @dataclass(frozen=True)
@@ -306,6 +311,10 @@ class SyntheticAhrsOutput:
     air_rejected: int = 0
     ref_fused: int = 0
     kf1_rejected: int = 0
+    imu_integrated_s: float = 0.0
+    """SyntheticAhrsState.imu_integrated_s / imu_not_integrated_s: the time B integrated the gyros
+    and the time it held its attitude across intervals longer than it integrates (s, since start)."""
+    imu_not_integrated_s: float = 0.0
 
 
 def synthetic_ahrs_params_for_site(lat_deg: float, lon_deg: float, alt_m: float, decimal_year: float,
@@ -467,6 +476,7 @@ def _on_imu(state: SyntheticAhrsState, ev: ImuEvent, params: SyntheticAhrsParams
         return state
     bias = _gyro_bias(state)
     w = gyro_b - bias
+    seen_s, unseen_s = state.imu_integrated_s, state.imu_not_integrated_s
     if state.omega_lp_rad_s is None or state.time_s is None or state.q_gyro_free is None:
         wlp, qf = w, np.array([1.0, 0.0, 0.0, 0.0])
     else:
@@ -474,6 +484,7 @@ def _on_imu(state: SyntheticAhrsState, ev: ImuEvent, params: SyntheticAhrsParams
         wlp = state.omega_lp_rad_s + dt / (params.rate_lp_tau_s + dt) * (w - state.omega_lp_rad_s)
         qf = state.q_gyro_free
         if dt <= params.kf2.max_dt_s:
+            seen_s += dt
             qf = quat_mul(qf, quat_from_rotvec(w * dt))   # rectangular: ample for the test
             qf = qf / math.sqrt(float(qf @ qf))
             if state.gyro_prev_rad_s is not None:
@@ -484,11 +495,14 @@ def _on_imu(state: SyntheticAhrsState, ev: ImuEvent, params: SyntheticAhrsParams
                 # out. Manoeuvres inflate it (conservative).
                 sigma_w2 = float(np.sum((w - state.gyro_prev_rad_s) ** 2)) / 6.0
                 state = _upd(state, gyro_free_var_rad2=state.gyro_free_var_rad2 + sigma_w2 * dt * dt)
-        elif state.health.anchors:
-            # a gap: the gyro-only attitude did not see it, so the FC's change across it cannot be
-            # compared with ours (it would read as a silent divergence): re-lay the anchors
-            state = _upd(state, health=_upd(state.health, anchors=()))
-    state = _upd(state, q_gyro_free=qf, omega_lp_rad_s=wlp, time_s=t, gyro_prev_rad_s=w)
+        else:
+            unseen_s += dt
+            if state.health.anchors:
+                # a gap: the gyro-only attitude did not see it, so the FC's change across it cannot be
+                # compared with ours (it would read as a silent divergence): re-lay the anchors
+                state = _upd(state, health=_upd(state.health, anchors=()))
+    state = _upd(state, q_gyro_free=qf, omega_lp_rad_s=wlp, time_s=t, gyro_prev_rad_s=w, imu_integrated_s=seen_s,
+                 imu_not_integrated_s=unseen_s)
     state = _trust(state, t, params)
     if state.b1 is not None:
         return _upd(state, b1=b1_imu_step(state.b1, gyro_b, t, params.b1))
@@ -788,7 +802,8 @@ def synthetic_ahrs_output(state: SyntheticAhrsState, params: SyntheticAhrsParams
                   reference_reason=state.trust_reason, air_correction_active=state.air_active,
                   air_off_reason=state.air_off_reason, kf1_learning=state.kf1_learning,
                   kf1_applied_flights=None if state.kf1_applied is None else state.kf1_applied.flight_count,
-                  gyro_bias_rad_s=_gyro_bias(state).copy(), kf1_rejected=state.n_kf1_rejected)
+                  gyro_bias_rad_s=_gyro_bias(state).copy(), kf1_rejected=state.n_kf1_rejected,
+                  imu_integrated_s=state.imu_integrated_s, imu_not_integrated_s=state.imu_not_integrated_s)
     nan = math.nan
     if state.b1 is not None:
         o = b1_output(state.b1, params.b1)

@@ -37,6 +37,8 @@ WHY_NOT = {
                   "certain (A's sigma widened by its disagreement)",
     "excluded": "switched off by configuration, or the FC's yaw is excluded",
     "no_reference": "the reference the source is built on is lost (no trusted FC, no air data)",
+    "no_propagation": "the source's inputs arrive too seldom for it to propagate (method B: most of its last 5 s of "
+                      "IMU intervals longer than it integrates)",
     "not_valid": "the source says its reading is not valid",
     "inconsistent": "the source's own measurements keep failing its own gate (method A: it keeps disagreeing with the sources it supersedes)",
     "non_finite": "heading, sigma or time not finite",

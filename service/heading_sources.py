@@ -46,6 +46,11 @@ B_REFERENCE_MAX_AGE_S = 30.0
 """Method B with no trusted FC attitude and no air-data fusion for this long (s) lost its reference."""
 B_CONSISTENCY_WINDOW_S = 5.0
 """Window (s) over which method B's gated-out magnetometer updates are counted."""
+B_PROPAGATION_WINDOW_S = 5.0
+"""Window (s) over which method B's IMU time integrated and held across (not integrated) is summed."""
+B_MAX_NOT_INTEGRATED_SHARE = 0.5
+"""Method B whose IMU intervals were longer than it integrates (``kf2.max_dt_s``) for more than
+this share of the time in ``B_PROPAGATION_WINDOW_S``: it cannot propagate (not a candidate)."""
 SOURCE_INCONSISTENT_AFTER_S = 2.0
 """Method C's magnetometer innovations gated out this long (s): not a heading candidate."""
 SUPERSEDED = "method A has a solution (it solves the magnetometer distortions; this source does not)"
@@ -189,33 +194,57 @@ def _nis(h1: float, s1: float, h2: float, s2: float) -> float:
 
 
 class SyntheticAhrsHealth:
-    """Method B as a heading source: (has a reference, consistent, why not). B integrates the
-    gyros and corrects roll/pitch only from the trusted FC attitude or from air data; without
+    """Method B as a heading source: (has a reference, consistent, why not, why code). B integrates
+    the gyros and corrects roll/pitch only from the trusted FC attitude or from air data; without
     them its tilt (and so its levelled magnetometer heading) drifts with nothing to say so: not
     a candidate. The allowance ``B_REFERENCE_MAX_AGE_S`` runs from B's last air-data fusion only;
     a B that never fused air data is dropped as soon as the FC attitude stops being trusted
     (measured: the same 30 s after an FC loss made the RTL log's FC-excluded heading worse,
     5.15 -> 8.04 deg RMS: B ended 26.6 deg off with a 2.15 deg sigma). Inconsistent: most of its
     magnetometer updates over the last ``B_CONSISTENCY_WINDOW_S`` were gated out (it disagrees with
-    its own measurements)."""
+    its own measurements).
+
+    Cannot propagate (issue 18 item 3): B integrates an IMU interval only up to ``kf2.max_dt_s``;
+    a longer one is held across (the attitude kept, its covariance widened: ``kf2_unseen``). While
+    more than ``B_MAX_NOT_INTEGRATED_SHARE`` of the last ``B_PROPAGATION_WINDOW_S`` of IMU time was
+    held across (the output's ``imu_not_integrated_s`` against ``imu_integrated_s``), B is not
+    following the rotation at all and its covariance is outside its model: not a candidate,
+    'no_propagation', until the window is mostly integrated again (inputs back at their rate).
+    Why: on ../shared/data/arducopter-flight.tlog (RAW_IMU at ~2.7 Hz, every interval ~0.37 s) B
+    held its heading for minutes while the vehicle turned, and a roll/pitch-only FC update then
+    took its heading sigma from 105 to 16.5 deg (its linearisation, at the attitude carried back to
+    the FC's time, sees the heading variance through an attitude it never integrated to): published
+    97 deg RMS off at a ~27 deg sigma. One gap is not this: B's covariance widens over it and the
+    window forgets it. The share is of time, not of samples (a 1 s gap weighs 1 s)."""
 
     def __init__(self) -> None:
         self.air_fused, self.air_fused_s, self.mag_hist = 0, -math.inf, deque()
+        self.imu_hist = deque()
 
-    def check(self, b, t: float) -> tuple[bool, bool, str]:
+    def check(self, b, t: float) -> tuple[bool, bool, str, str]:
         if b.air_fused != self.air_fused:
             self.air_fused, self.air_fused_s = b.air_fused, t
         hist = self.mag_hist
         hist.append((t, b.mag_fused, b.mag_gated))
         while t - hist[0][0] > B_CONSISTENCY_WINDOW_S:
             hist.popleft()
+        imu = self.imu_hist
+        if imu and (b.time_s < imu[-1][0] or b.imu_integrated_s < imu[-1][1]):
+            imu.clear()                                   # a restarted clock (synthetic_ahrs_unseen), a new B
+        imu.append((b.time_s, b.imu_integrated_s, b.imu_not_integrated_s))
+        while len(imu) > 1 and b.time_s - imu[1][0] >= B_PROPAGATION_WINDOW_S:
+            imu.popleft()                                 # the base: the last entry at least a window old
+        seen, held = imu[-1][1] - imu[0][1], imu[-1][2] - imu[0][2]
+        if held > B_MAX_NOT_INTEGRATED_SHARE * (seen + held):
+            return False, True, (f"cannot propagate: {held:.1f} s of its last {seen + held:.1f} s of IMU intervals "
+                                 f"too long to integrate (inputs too slow or gaps)"), "no_propagation"
         if not b.reference_trusted and t - self.air_fused_s > B_REFERENCE_MAX_AGE_S:
-            return False, True, "lost its reference (no trusted FC attitude, no air data)"
+            return False, True, "lost its reference (no trusted FC attitude, no air data)", "no_reference"
         fused, rejected = hist[-1][1] - hist[0][1], hist[-1][2] - hist[0][2]   # (gated: innovation gate only)
         if rejected >= 10 and rejected > 4 * fused:
             return True, False, f"its magnetometer updates gated out ({rejected} of {fused + rejected} in " \
-                                f"{B_CONSISTENCY_WINDOW_S:.0f} s)"
-        return True, True, ""
+                                f"{B_CONSISTENCY_WINDOW_S:.0f} s)", "inconsistent"
+        return True, True, "", ""
 
 
 def synthetic_ahrs_source(b, health: SyntheticAhrsHealth, t: float, superseded: bool,
@@ -232,10 +261,9 @@ def synthetic_ahrs_source(b, health: SyntheticAhrsHealth, t: float, superseded: 
                           if b.reference_reason else "not initialised")
     if not math.isfinite(b.heading_rad):
         return NotOffered("synthetic_ahrs", "non_finite", "heading not finite")
-    has_ref, consistent, why = health.check(b, t)
+    has_ref, consistent, why, code = health.check(b, t)
     return SourceReading("synthetic_ahrs", b.heading_rad, b.heading_sigma_rad, has_ref, t,
-                         (MAG_GROUP, FC_REF_GROUP) if use_fc_yaw else MAG_GROUP, consistent, why,
-                         why_code="no_reference" if not has_ref else "inconsistent" if not consistent else "")
+                         (MAG_GROUP, FC_REF_GROUP) if use_fc_yaw else MAG_GROUP, consistent, why, why_code=code)
 
 
 def heading_filter_source(h, state, last_measurement, t: float, superseded: bool,
