@@ -334,6 +334,9 @@ class OutputScheduler:
                              f"got {rates['ODOMETRY']}")
         self.rates_hz: dict[str, float] = rates
         self._enabled = tuple(n for n, r in rates.items() if r > 0.0)
+        self._dense_s = min((0.5 / rates[n] for n in self._enabled), default=math.inf)
+        """A sample interval up to this leaves no enabled message fillable (``_fillable``): ``next_fill_s``
+        says None at once (the daemon asks twice per wake-up, the samples are dense in flight)."""
         self.profile: OdometryProfile = profile or ODOMETRY_PROFILES["mavlink"]
         self._last_slot: dict[str, int | None] = {name: None for name in rates}
         """Per message: the FC-time slot last taken (sent, or passed by a solution that had no such message)."""
@@ -425,7 +428,7 @@ class OutputScheduler:
     def next_fill_s(self) -> float | None:
         """Local time at which ``fill`` has a slot to send (None: every slot gets a sample of its own, or no
         solution yet): the next slot's FC time carried to the local clock from the newest solution."""
-        if self._offered is None:
+        if self._offered is None or (self.sample_interval_s is not None and self.sample_interval_s <= self._dense_s):
             return None
         t_fc, t_local = self._offered
         times = [t_local + (self._last_slot[n] + 1) / self.rates_hz[n] - t_fc

@@ -832,10 +832,14 @@ class Daemon:
             sol = self.last_solution  # built now: the offered one (_offered_sol)
             fill = False
         else:
-            sol = self.last_solution  # an offered snapshot built now is the offered solution
-            if sol is None or self.link is None:
+            if self.link is None:
                 return
-            if sol is not self._offered_sol:
+            # a pending snapshot here was offered already and took no slot: it is the offered solution
+            # (built now it would be _offered_sol), so only a fill can want it, and it is built only then
+            sol = self._last_solution if snap is None else None
+            if snap is None and sol is None:
+                return
+            if sol is not None and sol is not self._offered_sol:
                 self._offered_sol = sol
                 if not sched.reaches_slot(sol.time_fc_s):
                     sched.note(sol.time_fc_s, now)  # most samples: no slot, nothing to build
@@ -845,6 +849,7 @@ class Daemon:
                 due_s = sched.next_fill_s()
                 if due_s is None or now < due_s or now - self._last_solution_s > self.output_limits.max_extrapolation_s:
                     return
+                sol = self.last_solution  # the offered solution (a pending snapshot built now)
                 fill = True
         # Not brought forward by its local age (output_gate.extrapolate_solution): when the daemon works off
         # a backlog that age is queueing delay, and a stamp pushed ahead of the FC stream held back every

@@ -22,6 +22,7 @@ import pytest
 
 from estimators.rotations import euler_from_quat, wrap_2pi
 from mavlink_io.link import MavlinkLink
+from mavlink_io.outputs import OutputScheduler
 from mem_transport import MemTransport
 from test_mavlink_imu_batch_daemon import SCENARIO, _reads, _record, _same_solution, scenario_site
 
@@ -128,3 +129,42 @@ def test_a_wrongly_built_snapshot_fails_the_comparison(reads, tmp_path, monkeypa
     wrong = _run(tmp_path, "wrong", reads, False, "wrong", monkeypatch)
     assert not (_same_sent(wrong["sent"], eager["sent"])
                 and all(_same(a, b) for a, b in zip(wrong["read"], eager["read"])))
+
+
+SPARSE_IMU_HZ = 80.0
+"""RAW_IMU sparser than half an ATTITUDE slot (12.5 ms > 10 ms at 50 Hz): the slots between two samples
+are filled on the local clock (OutputScheduler.fill), and with the filters at 50 Hz some samples are
+propagated between filter steps and take no slot of their own: a fill then sends that snapshot."""
+WAKE_S = 0.002
+
+
+@pytest.fixture(scope="module")
+def sparse_reads():
+    """One read per frame at its time, and the loop waking every WAKE_S in between without input."""
+    import test_mavlink_imu_batch_daemon as rec
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(rec.RATES_HZ, 27, SPARSE_IMU_HZ)
+        mp.setattr(rec, "FLIGHT_S", 14.0)   # the bad frames sit at the 900th RAW_IMU
+        frames = rec._record()
+    reads, t_prev = [], 0.0
+    for t, f in frames:
+        while t_prev + WAKE_S < t:
+            t_prev += WAKE_S
+            reads.append((t_prev, []))
+        reads.append((t, [f]))
+        t_prev = t
+    return reads
+
+
+def test_a_slot_filled_between_sparse_samples_sends_what_the_eager_daemon_did(sparse_reads, tmp_path, monkeypatch):
+    fills = []
+    real_fill = OutputScheduler.fill
+    monkeypatch.setattr(OutputScheduler, "fill",
+                        lambda self, sol, now_s, late=False: fills.append(real_fill(self, sol, now_s, late)) or fills[-1])
+    eager = _run(tmp_path, "eager", sparse_reads, False, "eager", monkeypatch)
+    n_eager_fills = sum(1 for f in fills if f)
+    fills.clear()
+    unread = _run(tmp_path, "unread", sparse_reads, False, "unread", monkeypatch)
+    assert n_eager_fills > 50, n_eager_fills    # slots were filled between samples
+    assert sum(1 for f in fills if f) == n_eager_fills
+    assert _same_sent(unread["sent"], eager["sent"])
