@@ -14,6 +14,7 @@ import os
 
 os.environ["MAVLINK20"] = "1"  # before the first pymavlink import (mavutil reads it at import)
 
+import math
 from typing import Callable
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -68,6 +69,11 @@ class StreamRates:
         self.wanted: list[tuple[str, int, float]] = []
         self._last_request_s: dict[str, float] = {}
         self._silent_requests: dict[str, int] = {}
+        self._silent_not_before_s = -math.inf
+        """``check_silent`` finds no stream silent before this local time (a lower bound from the last
+        requests and receive times; -inf: not known). The loop wakes for every datagram: most wake-ups
+        skip the walk over the streams."""
+        self._silent_bound_at_s = -math.inf
 
     def next_due_s(self) -> float | None:
         """When a retry or the achieved-rate check is next due (None: nothing pending)."""
@@ -126,6 +132,7 @@ class StreamRates:
         batch = self.wanted if only is None else only
         if not batch:
             return
+        self._silent_not_before_s = -math.inf
         for n, _i, _r in batch:
             self._last_request_s[n] = now
         listing = ", ".join(f"{n} {r:g} Hz" for n, _i, r in batch)
@@ -223,23 +230,46 @@ class StreamRates:
     def check_silent(self, now: float, items: list, connected: bool) -> None:
         """Re-request a requested stream that has gone silent (the FC dropped our interval, e.g.
         after a reboot we did not see). At most every stream_recheck_s, and at most
-        _MAX_SILENT_REQUESTS times in a row for a stream that never comes."""
+        _MAX_SILENT_REQUESTS times in a row for a stream that never comes (its count starts again
+        once it comes).
+
+        The loop calls this on every wake-up (every datagram): until the earliest time a stream can
+        be silent (``_silent_not_before_s``) only the streams with a count are looked at."""
         if (self.cfg.stream_recheck_s <= 0 or not connected or self.requester.active
                 or not self.wanted):
+            return
+        recheck_s, timeout_s = max(self.cfg.stream_recheck_s, self.cfg.link_timeout_s), self.cfg.link_timeout_s
+        if self._silent_bound_at_s <= now < self._silent_not_before_s:
+            for name in list(self._silent_requests):   # the full walk's reset of a count, for these alone
+                if self.stats.rate_results.get(name) in ("denied", "unsupported", "failed") \
+                        or now - self._last_request_s.get(name, now) < recheck_s:
+                    continue
+                seen_s = self._seen_s.get(name)
+                if seen_s is not None and now - seen_s <= timeout_s:
+                    del self._silent_requests[name]
+                    self._silent_not_before_s = -math.inf   # it can go silent again
             return
         silent = []
         for name, msg_id, rate in self.wanted:
             if self.stats.rate_results.get(name) in ("denied", "unsupported", "failed"):
                 continue
-            if now - self._last_request_s.get(name, now) < max(self.cfg.stream_recheck_s, self.cfg.link_timeout_s):
+            if now - self._last_request_s.get(name, now) < recheck_s:
                 continue
             seen_s = self._seen_s.get(name)
-            if seen_s is not None and now - seen_s <= self.cfg.link_timeout_s:
+            if seen_s is not None and now - seen_s <= timeout_s:
                 self._silent_requests.pop(name, None)
                 continue
             if self._silent_requests.get(name, 0) >= _MAX_SILENT_REQUESTS:
                 continue
             self._silent_requests[name] = self._silent_requests.get(name, 0) + 1
             silent.append((name, msg_id, rate))
+        # the earliest a stream can be found silent: requests and receive times only move on (a stream
+        # with its requests used up waits for its count to reset, above); a bit early is harmless
+        bound = math.inf
+        for name, _i, _r in self.wanted:
+            last_s, seen_s = self._last_request_s.get(name), self._seen_s.get(name)
+            if last_s is not None and self._silent_requests.get(name, 0) < _MAX_SILENT_REQUESTS:
+                bound = min(bound, max(last_s + recheck_s, seen_s + timeout_s if seen_s is not None else -math.inf))
+        self._silent_not_before_s, self._silent_bound_at_s = bound - 1e-6, now
         if silent:
             self.request(now, f"stream(s) silent: {', '.join(n for n, _i, _r in silent)}", items, only=silent)
