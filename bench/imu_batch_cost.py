@@ -9,8 +9,11 @@ or the read's frames packed in one; what the daemon then hands the Pipeline is i
 (process), best of ``--repeat``; the load is printed beside it (a shared machine inflates every
 figure, not their ratio much).
 
-- ``message_us_per_imu``: LinkConfig.imu_batch off: pymavlink parses and decodes every frame;
-- ``batch_us_per_imu``: on: frame_scan sets the RAW_IMU frames apart (fastcrc), one decode per read.
+- ``message_us_per_imu``: LinkConfig.imu_batch off (the default): frame_scan sets the RAW_IMU frames
+  apart (fastcrc) and each becomes its ImuSample without pymavlink (imu_batch.raw_imu_sample);
+- ``pymavlink_us_per_imu``: the message path as with a signing key: pymavlink parses and decodes
+  every frame (what the message path did until session 10);
+- ``batch_us_per_imu``: imu_batch on: frame_scan sets the RAW_IMU frames apart, one decode per read.
 """
 from __future__ import annotations
 
@@ -36,7 +39,8 @@ def _frames(n: int) -> tuple[bytes, list[bytes]]:
     return hb, out
 
 
-def cpu_us_per_imu(batch: bool, per_read: int, packed: bool, hb: bytes, frames: list[bytes]) -> float:
+def cpu_us_per_imu(batch: bool, per_read: int, packed: bool, hb: bytes, frames: list[bytes],
+                   pymavlink: bool = False) -> float:
     from mavlink_io.imu_batch import ImuBatch
     from mavlink_io.link import LinkConfig, MavlinkLink
     from mavlink_io.samples import ImuSample
@@ -44,6 +48,8 @@ def cpu_us_per_imu(batch: bool, per_read: int, packed: bool, hb: bytes, frames: 
     t = [0.0]
     tr = MemTransport()
     link = MavlinkLink(LinkConfig(url="udpin:127.0.0.1:0", imu_batch=batch), clock=lambda: t[0], transport=tr)
+    if pymavlink:
+        link._parser.split_imu = False
     tr.inbox.append(hb)
     link.poll(0.0)
     n = 0
@@ -74,13 +80,14 @@ def main(argv=None) -> int:
     rows = []
     for per_read in (1, 4, 8, 32):
         for packed in ((False,) if per_read == 1 else (False, True)):
-            m, b = (min(cpu_us_per_imu(batch, per_read, packed, hb, frames) for _ in range(a.repeat))
-                    for batch in (False, True))
+            m, pm, b = (min(cpu_us_per_imu(batch, per_read, packed, hb, frames, pym) for _ in range(a.repeat))
+                        for batch, pym in ((False, False), (False, True), (True, False)))
             load = os.getloadavg()[0]
             rows.append({"frames_per_read": per_read, "packed_in_one_datagram": packed, "message_us_per_imu": m,
-                         "batch_us_per_imu": b, "load_avg_1min": load})
+                         "pymavlink_us_per_imu": pm, "batch_us_per_imu": b, "load_avg_1min": load})
             print(f"{per_read:2d} frames per read{' (one datagram)' if packed else '':15s}: message path "
-                  f"{m:6.1f} us, batch path {b:6.1f} us CPU per RAW_IMU (load {load:.1f})")
+                  f"{m:6.1f} us (through pymavlink {pm:6.1f}), batch path {b:6.1f} us CPU per RAW_IMU "
+                  f"(load {load:.1f})")
     if a.json:
         Path(a.json).write_text(json.dumps({"samples": len(frames), "rows": rows}, indent=2))
     return 0

@@ -1,4 +1,4 @@
-"""Set unsigned RAW_IMU frames apart from a read, CRC-checked, for the batch path (issue 19 item 3).
+"""Set unsigned RAW_IMU frames apart from a read, CRC-checked, decoded without pymavlink (issue 19 item 3).
 
 :func:`split_raw_imu` walks the bytes of a read frame by frame with pymavlink's own framing rules,
 so every byte it does not take goes to pymavlink exactly as pymavlink would have framed it:
@@ -13,7 +13,7 @@ A frame is taken when it is MAVLink 2, id 27 (RAW_IMU), its incompatibility flag
 and its CRC-16/MCRF4XX over header and payload plus RAW_IMU's CRC_EXTRA matches: the frames pymavlink
 would decode into a RAW_IMU message. Everything else (other messages, signed frames, bad CRCs,
 garbage) comes back as byte segments, in order, for pymavlink. The CRC is ``fastcrc``'s compiled
-MCRF4XX (the one pymavlink's dialects use when it is importable); without ``fastcrc`` the batch path
+MCRF4XX (the one pymavlink's dialects use when it is importable); without ``fastcrc`` the split
 is off (:data:`AVAILABLE`) and everything goes through pymavlink.
 """
 from __future__ import annotations

@@ -4,7 +4,7 @@
 datagram that starts with a magic byte resets a half frame left by the previous one; a sender that
 splits frames across datagrams is detected and then parsed as a byte stream). With ``split_imu``
 on, CRC-checked unsigned RAW_IMU frames come back as :class:`~mavlink_io.frame_scan.RawImuFrame`
-(the batch path, :mod:`mavlink_io.frame_scan`), everything else as pymavlink messages, in order; a
+(:mod:`mavlink_io.frame_scan`: the link decodes them itself), everything else as pymavlink messages, in order; a
 sender that splits frames keeps the pymavlink-only path. :class:`SeqTracker`
 counts sequence gaps as lost packets. Neither ever raises on bad bytes: errors are counted in the
 link's :class:`~mavlink_io.stats.LinkStats`.
@@ -46,7 +46,7 @@ class FrameParser:
         """A datagram transport whose sender splits frames across datagrams: no per-datagram reset."""
         self._split_seen = False
         self.split_imu = False
-        """Hand unsigned RAW_IMU frames back as RawImuFrame (the link's batch path); needs fastcrc."""
+        """Hand unsigned RAW_IMU frames back as RawImuFrame (the link without a signing key); needs fastcrc."""
 
     def reset(self) -> None:
         """A new byte stream: drop any half frame of the old one (pymavlink has no reset method)."""

@@ -97,6 +97,17 @@ def _records_small(padded: list[bytes], time_rx_s: float) -> tuple[np.ndarray, n
     return np.array(rows, dtype=IMU_RECORD), np.array(usec, dtype=np.uint64)
 
 
+def raw_imu_sample(payload: bytes, time_fc_s: float, time_rx_s: float) -> ImuSample:
+    """One RAW_IMU payload (CRC already checked, as frame_scan takes it) -> the ImuSample the message
+    path hands on: decode.decode_raw_imu's values bit for bit (the same int -> float64 array times the
+    same factor), without a pymavlink message object. A cut payload's missing bytes are zeros."""
+    _t, a0, a1, a2, g0, g1, g2, m0, m1, m2, imu_id = _WIRE_UNPACK(
+        payload if len(payload) == _WIRE_SIZE else payload[:_WIRE_SIZE].ljust(_WIRE_SIZE, b"\0"))
+    mag = None if m0 == 0 and m1 == 0 and m2 == 0 else np.array((m0, m1, m2), dtype=float) * MGAUSS_TO_GAUSS
+    return ImuSample(time_fc_s, time_rx_s, np.array((g0, g1, g2), dtype=float) * MRAD_TO_RAD,
+                     np.array((a0, a1, a2), dtype=float) * MG_TO_M_S2, mag, "RAW_IMU", imu_id)
+
+
 @dataclass(frozen=True, slots=True)
 class ImuBatch:
     """The IMU samples of one read, in FC time order, each row stamped by the timebase."""

@@ -15,10 +15,11 @@ this class only wires them):
 1. (re)open the transport if it is down and its backoff has expired (:mod:`mavlink_io.session`);
 2. wait up to ``timeout_s`` for bytes (less if a timer is due), read everything available;
 3. parse with pymavlink (MAVLink 2 out, 1 or 2 in, ardupilotmega dialect; :mod:`mavlink_io.framing`);
-   bad CRC / framing / unknown ids are counted in :class:`~mavlink_io.stats.LinkStats`; with
-   ``imu_batch``, CRC-checked unsigned RAW_IMU frames are set apart first and decoded together
-   (:mod:`mavlink_io.imu_batch`: the same checks, counters and events per frame, one ImuBatch per
-   run of consecutive samples);
+   bad CRC / framing / unknown ids are counted in :class:`~mavlink_io.stats.LinkStats`; without a
+   signing key, CRC-checked unsigned RAW_IMU frames are set apart first (:mod:`mavlink_io.frame_scan`,
+   fastcrc) and decoded without pymavlink (:mod:`mavlink_io.imu_batch`: the same checks, counters and
+   events per frame; each its ImuSample, or with ``imu_batch`` one ImuBatch per run of consecutive
+   samples);
 4. signing policy and commands to us (:mod:`mavlink_io.security`): a signed frame that fails
    verification is dropped, unsigned frames by ``require_signed``; COMMAND_LONG/INT addressed
    exactly to our component become IncomingCommand; then keep only the autopilot's messages (its
@@ -54,7 +55,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from mavlink_io import decode as dec
 from mavlink_io.frame_scan import RawImuFrame
 from mavlink_io.framing import FrameParser, SeqTracker
-from mavlink_io.imu_batch import BatchBuilder, ImuBatch
+from mavlink_io.imu_batch import BatchBuilder, ImuBatch, raw_imu_sample
 from mavlink_io.link_config import (DEFAULT_STREAM_RATES_HZ, IMU_SOURCES, LINK_EVENT_KINDS,  # noqa: F401 - re-exported
                                     REQUIRE_SIGNED, FcPeer, LinkConfig, LinkEvent, message_id)
 from mavlink_io.params import ParamReader
@@ -119,7 +120,9 @@ class MavlinkLink:
         self._closed = False
         self._security = LinkSecurity(cfg, self.mav, self.stats, wall_clock, self._event)
         self._parser = FrameParser(self.stats, self._split_sender_found, self._set_error)
-        self._parser.split_imu = cfg.imu_batch and self._security.verifier is None
+        # unsigned RAW_IMU frames without pymavlink (frame_scan, fastcrc) on both paths: a read's samples
+        # as one ImuBatch (imu_batch), else each its ImuSample; a key sends every frame to pymavlink
+        self._parser.split_imu = self._security.verifier is None
         self._batch = BatchBuilder()
         self._seq = SeqTracker(self.stats)
         self._rates = StreamRates(cfg, self.stats, self._fc, self._source_seen_s, self.mav, self.send, self._event)
@@ -464,9 +467,10 @@ class MavlinkLink:
                 self.last_error = f"subscriber {getattr(cb, '__qualname__', cb)!s} on {mtype}: {exc!r}"
 
     def _handle_imu_frame(self, f: RawImuFrame, peer, rx_s: float, items: list) -> None:
-        """``_handle`` for a RAW_IMU frame of the batch path: the same counters, checks and events
+        """``_handle`` for a RAW_IMU frame set apart by frame_scan: the same counters, checks and events
         in the same order (without a key, security passes every frame as unsigned; RAW_IMU is no
-        command and no HEARTBEAT); a stamped sample joins the read's batch."""
+        command and no HEARTBEAT); a stamped sample joins the read's batch (``imu_batch``) or is
+        handed on as the ImuSample pymavlink's decode gives (imu_batch.raw_imu_sample)."""
         self.stats.messages_received += 1
         src = (f.src_system, f.src_component)
         if src == (self.mav.srcSystem, self.mav.srcComponent):
@@ -486,7 +490,10 @@ class MavlinkLink:
         self._source_seen_s["RAW_IMU"] = rx_s
         t = self._decoder.stamp_raw_imu(time_usec, p[26] if len(p) > 26 else 0, rx_s, items)
         if t is not None:
-            self._batch.add(p, t, items)
+            if self.cfg.imu_batch:
+                self._batch.add(p, t, items)
+            else:
+                items.append(raw_imu_sample(p, t, rx_s))
 
     def _act_on(self, mtype: str, out, rx_s: float, items: list) -> None:
         """What the link itself does with a STATUSTEXT, a PARAM_VALUE or a COMMAND_ACK, before

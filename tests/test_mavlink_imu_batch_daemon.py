@@ -110,7 +110,7 @@ def _reads(frames, packed: bool) -> list[tuple[float, list[bytes]]]:
     return reads
 
 
-def _run(tmp_path: Path, name: str, reads, batch: bool, one_per_read: bool = False):
+def _run(tmp_path: Path, name: str, reads, batch: bool, one_per_read: bool = False, pymavlink_only: bool = False):
     from service.config import validate
     from service.daemon import Daemon
     over = {k: dict(v) for k, v in scenario_site(SCENARIO).items()}
@@ -120,6 +120,8 @@ def _run(tmp_path: Path, name: str, reads, batch: bool, one_per_read: bool = Fal
     d = Daemon(validate(over), clock=lambda: clock[0])
     tr = MemTransport(datagram=True)
     d.link = MavlinkLink(dataclasses.replace(d.link_cfg, imu_batch=batch), clock=lambda: clock[0], transport=tr)
+    if pymavlink_only:   # every frame parsed and decoded by pymavlink (as a link with a signing key)
+        d.link._parser.split_imu = False
     events, solutions, kinds = [], [], {"batches": 0, "batch_rows": 0, "samples": 0}
     d._event = lambda kind, detail: events.append((kind, detail))
     publish = d.publish
@@ -184,3 +186,55 @@ def test_batched_reads_give_the_message_paths_solutions_events_and_counts(record
         differ = {k: (stats[k], stats0[k]) for k in stats0 if stats[k] != stats0[k]
                   and k not in ("messages_sent", "send_errors")}
         assert differ == {}, name
+
+
+def _link_items(reads, split: bool) -> list:
+    """Everything a message-path link hands on for the reads (a frame per datagram, one read each)."""
+    from mavlink_io.link import LinkConfig
+    clock = [0.0]
+    tr = MemTransport(datagram=True)
+    link = MavlinkLink(LinkConfig(url="udpin:127.0.0.1:14550"), clock=lambda: clock[0], transport=tr)
+    link._parser.split_imu = split
+    items = []
+    for t, datagrams in reads:
+        clock[0] = t
+        for dg in datagrams:
+            tr.inbox.append(dg)
+            items += link.poll(0.0)
+    return items, link.stats.as_dict()
+
+
+def _same_item(a, b) -> bool:
+    if type(a) is not type(b):
+        return False
+    if not dataclasses.is_dataclass(a):
+        return a == b
+    return _same_solution(a, b) and all(
+        (getattr(a, f.name) is None) == (getattr(b, f.name) is None) for f in dataclasses.fields(a))
+
+
+def test_the_message_path_decodes_raw_imu_without_pymavlink_as_pymavlink_does(recording, tmp_path):
+    """GIVEN the recording above, a frame per datagram and packed, WHEN the message path (no signing key)
+    sets RAW_IMU frames apart (frame_scan, fastcrc) and builds each ImuSample itself
+    (imu_batch.raw_imu_sample) and WHEN pymavlink parses and decodes every frame, THEN the link hands on
+    the same items (every ImuSample field for field, bit for bit; a missing compass None) with the same
+    receive counters, and the daemons make the same solutions, events and counts."""
+    from mavlink_io import frame_scan
+    from mavlink_io.samples import ImuSample
+    assert frame_scan.AVAILABLE   # fastcrc is a dependency
+    per_frame = _reads(recording, packed=False)
+    fast, fast_stats = _link_items(per_frame, split=True)
+    slow, slow_stats = _link_items(per_frame, split=False)
+    n_imu = sum(type(i) is ImuSample for i in slow)
+    assert n_imu > 1500 and slow_stats["crc_errors"] >= 1 and slow_stats["framing_errors"] >= 1
+    assert len(fast) == len(slow) and all(_same_item(a, b) for a, b in zip(fast, slow))
+    assert fast_stats == slow_stats
+    for name, reads, one in (("datagram per frame", per_frame, True),
+                             ("packed", _reads(recording, packed=True), False)):
+        sols0, events0, stats0, counters0, kinds0 = _run(tmp_path, f"p{one}", reads, batch=False, one_per_read=one,
+                                                         pymavlink_only=True)
+        sols, events, stats, counters, kinds = _run(tmp_path, f"f{one}", reads, batch=False, one_per_read=one)
+        assert kinds == kinds0 and kinds["samples"] > 1500, name
+        assert len(sols) == len(sols0) > 100 and all(_same_solution(a, b) for a, b in zip(sols, sols0)), name
+        assert events == events0 and counters == counters0, name
+        assert {k: (stats[k], stats0[k]) for k in stats0 if stats[k] != stats0[k]} == {}, name
