@@ -11,7 +11,8 @@ The rule
 1. Candidates: readings that are ``valid``, finite, with 0 < sigma <= ``max_sigma_rad`` and no
    older than ``max_age_s``.
 2. Reference: the previous fused heading propagated to now with the heading rate (from the
-   gyros, when the caller gives it; variance + (rate_sigma dt)^2), else held with the variance
+   gyros, when the caller gives it; variance + (rate_sigma dt)^2, + (max_turn_rate (dt -
+   rate_max_dt))^2 over an interval longer than a rate sample covers), else held with the variance
    grown by (max_turn_rate dt)^2. On the first call (or after every source was lost) the
    reference is the best candidate (smallest sigma, then ``priority``). So it is after an
    interval longer than ``max_age_s`` without a call (an input gap: neither the rate given now
@@ -125,6 +126,11 @@ class ArbitrationParams:
     """Largest rate at which a source-change offset is bled off (rad/s)."""
     rate_sigma_rad_s: float = math.radians(0.5)
     """Sigma of the caller's heading rate (rad/s), for propagating the reference."""
+    rate_max_dt_s: float = 0.1
+    """The caller's heading rate carries the reference over at most this interval (s; the filters'
+    longest integration step, as method B's and C's ``max_dt_s``): over a longer one (inputs at a
+    few Hz, a gap) the rate is one sample, not the turn made meanwhile, and the part beyond is as
+    unseen as without a rate (the variance grows by (max_turn_rate (dt - this))^2)."""
     max_turn_rate_rad_s: float = math.radians(60.0)
     """Without a heading rate, the reference variance grows by (this * dt)^2."""
     reinit_after_s: float = 2.0
@@ -134,7 +140,7 @@ class ArbitrationParams:
 
     def __post_init__(self) -> None:
         for name in ("gate_chi2", "max_age_s", "max_sigma_rad", "blend_rate_rad_s", "rate_sigma_rad_s",
-                     "max_turn_rate_rad_s", "reinit_after_s"):
+                     "rate_max_dt_s", "max_turn_rate_rad_s", "reinit_after_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0.0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
@@ -302,7 +308,8 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
         ref, ref_var = best.heading_rad, best.sigma_rad ** 2
     elif heading_rate_rad_s is not None and math.isfinite(heading_rate_rad_s):
         ref = _wrap_2pi(state.fused_rad + heading_rate_rad_s * dt)
-        ref_var = state.fused_var_rad2 + (params.rate_sigma_rad_s * dt) ** 2
+        ref_var = (state.fused_var_rad2 + (params.rate_sigma_rad_s * dt) ** 2
+                   + (params.max_turn_rate_rad_s * max(0.0, dt - params.rate_max_dt_s)) ** 2)
     else:
         ref = state.fused_rad
         ref_var = state.fused_var_rad2 + (params.max_turn_rate_rad_s * dt) ** 2
