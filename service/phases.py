@@ -102,6 +102,24 @@ class InFlightParams:
     accel_tilt_sigma_rad: float = math.radians(20.0)
     """1-sigma roll/pitch given to the attitude filter initialised in flight from the
     accelerometer (in a turn the specific force is not gravity: the bank angle is the error)."""
+    gyro_bias_sigma_rad_s: float = math.radians(0.2)
+    """1-sigma gyro bias (per axis, zero mean) given to the attitude filter initialised in flight.
+    No rest measured it, but the stream is the FC's calibrated gyro (ArduPilot and PX4 remove the
+    offset at boot): what is left is the in-run drift since, ~0.2 deg/s (the simulator's consumer
+    gyro: 0.2; ArduPlane SITL 0.01-0.14 over a flight; ArduCopter EKF3's own estimate on the real
+    RTL log: 0.25 on y). C's built-in 0.5 deg/s (a raw sensor's turn-on bias) let the first
+    sustained accelerations of a run started on the take-off roll go into the bias: 1.1 / 0.4 /
+    -3.7 deg/s and a roll error of -20 deg for 20 s on an ArduPlane SITL log
+    (bench/started_in_flight_logs.py). Only for a stream of at least ``calibrated_gyro_min_rate_hz``."""
+    calibrated_gyro_min_rate_hz: float = 40.0
+    """The prior above holds for an IMU stream whose samples resolve the FC's low-passed gyro: at
+    least twice its cutoff (ArduPilot's INS_GYRO_FILTER, 20 Hz by default: 40 Hz; PX4's
+    IMU_GYRO_CUTOFF 40 Hz would ask 80, its logs carry >= 100 Hz). A slower stream's samples are
+    instants of that rate, aliased: their integration has an error of its own that no calibration
+    bounds, and C's bias state must stay free to take it (its built-in turn-on prior). Measured on
+    the real ArduCopter RTL log (25 Hz, INS_GYRO_FILTER 20): with EKF3's own bias estimate and a
+    tight prior C's roll error grew ~1 deg/s in the hover while the accelerometer agreed with the
+    FC within 0.7 deg (roll RMS 2.51 -> 3.68 deg)."""
 
     def __post_init__(self) -> None:
         for name, v in self.__dict__.items():

@@ -786,13 +786,27 @@ class Pipeline:
             else:
                 f = self.C_body_from_sensor @ accel_sensor_m_s2
                 roll, pitch = math.atan2(-f[1], -f[2]), math.atan2(f[0], math.hypot(f[1], f[2]))
-        bias = old.gyro_bias_rad_s if old is not None else None
-        self.polar_att = self.core.polar_attitude_init_at(t, roll, pitch, sigma, self.polar_att_params, bias)
+        # the gyro bias: the FC's calibrated stream's residual (zero mean, its in-run drift as the
+        # sigma), not C's bias so far: a filter that levelled on a take-off roll or in a turn has put
+        # that motion into it, and no rest measured it; a stream too slow to resolve the FC's gyro
+        # keeps C's own bias and turn-on prior (phases.InFlightParams.gyro_bias_sigma_rad_s)
+        t0 = self.phase.start_time_s
+        rate_hz = (self.counters.imu_samples - 1) / (t - t0) if t0 is not None and t > t0 else 0.0
+        if rate_hz >= p.calibrated_gyro_min_rate_hz:
+            bias, bias_sigma = np.zeros(3), p.gyro_bias_sigma_rad_s
+            bias_text = (f"gyro bias 0 +- {math.degrees(bias_sigma):.2f} deg/s (the FC's calibrated gyro at "
+                         f"{rate_hz:.0f} Hz, no rest to measure it)")
+        else:
+            bias, bias_sigma = (old.gyro_bias_rad_s if old is not None else None), None
+            bias_text = (f"gyro bias prior {math.degrees(self.polar_att_params.gyro_bias_init_sigma_rad_s):.2f} "
+                         f"deg/s: a {rate_hz:.0f} Hz stream does not resolve the FC's gyro")
+        self.polar_att = self.core.polar_attitude_init_at(t, roll, pitch, sigma, self.polar_att_params, bias,
+                                                          bias_sigma)
         self.polar_hdg = self.core.polar_heading_init(params=self.polar_hdg_params)
         self._hdg_available = None
         self.zero_rate = ZeroRateState()
         self._event("attitude", f"started in flight: roll/pitch from {src} (roll {math.degrees(roll):.1f} deg, "
-                    f"pitch {math.degrees(pitch):.1f} deg, sigma {math.degrees(sigma):.1f} deg)")
+                    f"pitch {math.degrees(pitch):.1f} deg, sigma {math.degrees(sigma):.1f} deg), {bias_text}")
         self._event("azimuth", "disabled: started in flight (method A needs the levelling and the launch)")
 
     def _account_unseen(self, s: ImuSample) -> None:
