@@ -86,6 +86,12 @@ _EVENT_SEVERITY = {"internal_fault": "error", "pipeline_rebuilt": "warning", "ra
                    "input_backlog": "warning"}
 
 
+def _snapshot_time_fc_s(snap) -> float:
+    """The FC time of a Pipeline.propagated_snapshot that is not a NavSolution: (solution, (q, time_s,
+    rx, gyro) of the output attitude, phase, gyro bias)."""
+    return snap[1][1]
+
+
 def _fmt_angle(rad: float | None, sigma: float | None, width: int = 6) -> str:
     if rad is None or not math.isfinite(rad):
         return "-".rjust(width) + "         "
@@ -826,8 +832,9 @@ class Daemon:
         if snap is not None and snap is not self._offered_snap and self.link is not None:
             # a new propagated solution (not built yet): offered by its FC time, built if it takes a slot
             self._offered_snap = snap
-            if not sched.reaches_slot(snap[1][1]):
-                sched.note(snap[1][1], now)  # most samples: no slot, nothing to build
+            t_fc = _snapshot_time_fc_s(snap)
+            if not sched.reaches_slot(t_fc):
+                sched.note(t_fc, now)  # most samples: no slot, nothing to build
                 return
             sol = self.last_solution  # built now: the offered one (_offered_sol)
             fill = False
