@@ -6,6 +6,7 @@
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
+#include <cmath>
 #include <stdexcept>
 #include <string>
 
@@ -71,6 +72,65 @@ void out_set(SampleState& h, const py::object& v) {
     o.has_inc = !inc.is_none();
     if (o.has_inc) take_seq(inc, o.inc, 3, "OutputState.increment_prev");
     h.out = o;
+}
+
+py::object rest_state_class() {  // estimators.declination.RestState, looked up once
+    static py::object* cls = new py::object(py::module_::import("estimators.declination").attr("RestState"));
+    return *cls;
+}
+
+py::object rest_get(const RestAcc& r) {
+    return rest_state_class()(r.n, give(r.gyro_mean, 3), give(r.gyro_m2, 3), give(r.accel_mean, 3),
+                              give(r.accel_m2, 3), give(r.mag_mean, 3), give(r.mag_m2, 3));
+}
+
+RestAcc rest_in(const py::handle& v) {
+    RestAcc r;
+    r.n = v.attr("n").cast<long long>();
+    take(v.attr("gyro_mean_rad_s"), r.gyro_mean, 3, "RestState.gyro_mean_rad_s");
+    take(v.attr("gyro_m2"), r.gyro_m2, 3, "RestState.gyro_m2");
+    take(v.attr("accel_mean_m_s2"), r.accel_mean, 3, "RestState.accel_mean_m_s2");
+    take(v.attr("accel_m2"), r.accel_m2, 3, "RestState.accel_m2");
+    take(v.attr("mag_mean_gauss"), r.mag_mean, 3, "RestState.mag_mean_gauss");
+    take(v.attr("mag_m2"), r.mag_m2, 3, "RestState.mag_m2");
+    return r;
+}
+
+ArrayC pending_out(const GroundState& g) {
+    ArrayC out({static_cast<py::ssize_t>(g.pending.size()), py::ssize_t(7)});
+    double* d = out.mutable_data();
+    for (const auto& e : g.pending)
+        for (int k = 0; k < 7; ++k) *d++ = e[k];
+    return out;
+}
+
+ArrayC levelling_out(const LevellingAcc& s) {
+    ArrayC out(LEVELLING_PACKED_SIZE);
+    levelling_pack(s, out.mutable_data());
+    return out;
+}
+
+// A's pre-launch part into the core: the delay line ((k, 7) rows: time, gyro, accel), the packed
+// levelling accumulator (core/levelling.hpp levelling_pack) and the delay
+void azimuth_in(GroundState& g, const py::object& pending, const py::object& levelling, double buffer_s) {
+    ArrayC p = ArrayC::ensure(pending);
+    if (!p || p.ndim() != 2 || p.shape(1) != 7)
+        throw std::invalid_argument("pending: the delay line as (k, 7) rows (time, gyro, accel) expected");
+    ArrayC l = ArrayC::ensure(levelling);
+    if (!l || l.ndim() != 1 || l.shape(0) != LEVELLING_PACKED_SIZE)
+        throw std::invalid_argument("levelling: a packed levelling accumulator (38 floats) expected");
+    if (!std::isfinite(buffer_s)) throw std::invalid_argument("buffer_s: a finite delay (s) expected");
+    g.pending.clear();
+    const double* d = p.data();
+    for (py::ssize_t i = 0; i < p.shape(0); ++i, d += 7) g.pending.push_back({d[0], d[1], d[2], d[3], d[4], d[5], d[6]});
+    g.a_levelling = levelling_unpack(l.data());
+    g.buffer_s = buffer_s;
+    g.a_held = true;
+}
+
+py::tuple ground_get(const GroundState& g) {
+    return py::make_tuple(g.a_held, g.buffer_s, pending_out(g), levelling_out(g.a_levelling), rest_get(g.rest),
+                          rest_get(g.candidate));
 }
 
 py::tuple sample_state_get(const SampleState& h) {
@@ -228,11 +288,60 @@ void bind_hot_path(py::module_& m) {
              "(q, time_prev_s, gyro_prev_rad_s, G (3, 12), C_isf_sf, last_mag_s, stored samples (k, 49): time, h "
              "(3), C_sf_from_isf (9), G (36)); the stored samples are handed over (cleared here).");
 
+    py::class_<GroundState>(m, "GroundState",
+                            "The Pipeline's ground (pre-launch) state (core/ground.hpp): method A's delay line and "
+                            "levelling while held here, method E's rest data.")
+        .def(py::init<>())
+        .def_readonly("a_held", &GroundState::a_held, "Method A's pre-launch part is held here.")
+        .def("set_azimuth", &azimuth_in, py::arg("pending"), py::arg("levelling"), py::arg("buffer_s"),
+             "Method A's pre-launch part in: the delay line as (k, 7) rows (time, gyro (3), accel (3)), the packed "
+             "levelling accumulator, AzimuthParams.prelaunch_buffer_s.")
+        .def("take_azimuth",
+             [](GroundState& g) {
+                 if (!g.a_held) throw std::invalid_argument("method A's pre-launch part is not held here");
+                 py::tuple out = py::make_tuple(pending_out(g), levelling_out(g.a_levelling));
+                 g.a_held = false;
+                 g.pending.clear();
+                 g.a_levelling = LevellingAcc();
+                 return out;
+             },
+             "Method A's pre-launch part out (no longer held here): (delay line (k, 7), packed levelling).")
+        .def_property("rest", [](const GroundState& g) { return rest_get(g.rest); },
+                      [](GroundState& g, const py::object& v) { g.rest = rest_in(v); },
+                      "The Pipeline's rest (estimators.declination.RestState; a new record per read).")
+        .def_property("rest_candidate", [](const GroundState& g) { return rest_get(g.candidate); },
+                      [](GroundState& g, const py::object& v) { g.candidate = rest_in(v); },
+                      "The rest data of the still block filling (estimators.declination.RestState).")
+        .def("step",
+             [](GroundState& g, const py::object& gyro, const py::object& accel, const py::object& mag, double t,
+                bool block_ended, bool block_passed) {
+                 if (!g.a_held) throw std::invalid_argument("method A's pre-launch part is not held here");
+                 double gv[3], av[3], mv[3];
+                 take(gyro, gv, 3, "gyro_rad_s");
+                 take(accel, av, 3, "accel_m_s2");
+                 if (!mag.is_none()) take(mag, mv, 3, "mag_gauss");
+                 ground_step(g, gv, av, mag.is_none() ? nullptr : mv, t, block_ended, block_passed);
+             },
+             py::arg("gyro_rad_s"), py::arg("accel_m_s2"), py::arg("mag_gauss"), py::arg("time_s"),
+             py::arg("block_ended"), py::arg("block_passed"),
+             "service/pipeline.py _step_azimuth's pre-launch branch for one sample (core/ground.hpp ground_step).")
+        .def("get_state", &ground_get, "(a_held, buffer_s, delay line, packed levelling, rest, rest candidate).")
+        .def(py::pickle(&ground_get, [](const py::tuple& s) {
+            if (s.size() != 6) throw std::invalid_argument("GroundState: 6 fields expected");
+            GroundState g;
+            if (s[0].cast<bool>()) azimuth_in(g, s[2], s[3], s[1].cast<double>());
+            g.buffer_s = s[1].cast<double>();
+            g.rest = rest_in(s[4]);
+            g.candidate = rest_in(s[5]);
+            return g;
+        }));
+
     m.attr("HOT_STOP_END") = static_cast<int>(HS_END);
     m.def("hot_run",
           [](SampleState& h, InputChecks& ic, py::object strapdown, AzimuthRun& a, const ArrayC& rows, long start,
              const py::object& gyro_bias, const py::object& C_bs, double strapdown_max_dt_s, double out_max_dt_s,
-             double filter_period_s, bool int16_source) {
+             double filter_period_s, bool int16_source, const py::object& phase_state, const py::object& phase_params,
+             const py::object& ground, const py::object& evidence) {
               if (rows.ndim() != 2 || rows.shape(1) < 11)
                   throw std::invalid_argument("rows: IMU_RECORD rows as an (N, >= 11) float64 block expected");
               StrapdownState* sd = strapdown.is_none() ? nullptr : strapdown.cast<StrapdownState*>();
@@ -248,13 +357,44 @@ void bind_hot_path(py::module_& m) {
               int verdict = 0;
               bool checked = false;
               long handled = 0;
-              const long stop = hot_run(h, ic, sd, a, in, rows.data(), n, static_cast<long>(rows.shape(1)), start,
-                                        verdict, checked, handled);
+              long stop;
+              if (phase_state.is_none()) {
+                  stop = hot_run(h, ic, sd, a, in, rows.data(), n, static_cast<long>(rows.shape(1)), start, verdict,
+                                 checked, handled);
+              } else {  // the ground run
+                  GroundInputs gi;
+                  gi.ph = phase_state.cast<phases::State*>();
+                  gi.pp = phase_params.cast<const phases::Params*>();
+                  gi.gs = ground.is_none() ? nullptr : ground.cast<GroundState*>();
+                  if (gi.ph->phase != phases::PRE_LAUNCH)
+                      throw std::invalid_argument("phases: a ground run starts in phase pre-launch");
+                  if (gi.gs != nullptr && !gi.gs->a_held)
+                      throw std::invalid_argument("ground: method A's pre-launch part is not held there");
+                  py::tuple e = evidence.cast<py::tuple>();
+                  if (e.size() != 8)
+                      throw std::invalid_argument("evidence: (armed, fc_reports_flying, fc_landed, has_air, air_time_s, "
+                                                  "air_max_age_s, airspeed_m_s, alt_rate_m_s) expected");
+                  gi.armed = e[0].cast<int>();
+                  gi.fc_reports_flying = e[1].cast<int>();
+                  gi.fc_landed = e[2].cast<int>();
+                  gi.has_air = e[3].cast<bool>();
+                  gi.air_time_s = e[4].cast<double>();
+                  gi.air_max_age_s = e[5].cast<double>();
+                  gi.airspeed_m_s = e[6].cast<double>();
+                  gi.alt_rate_m_s = e[7].cast<double>();
+                  stop = ground_run(h, ic, gi, in, rows.data(), n, static_cast<long>(rows.shape(1)), start, verdict,
+                                    checked, handled);
+              }
               return py::make_tuple(stop, verdict, checked, handled);
           },
           py::arg("state"), py::arg("checks"), py::arg("strapdown"), py::arg("azimuth"), py::arg("rows"),
           py::arg("start"), py::arg("gyro_bias_rad_s"), py::arg("C_body_from_sensor"), py::arg("strapdown_max_dt_s"),
-          py::arg("out_max_dt_s"), py::arg("filter_period_s"), py::arg("int16_source"),
+          py::arg("out_max_dt_s"), py::arg("filter_period_s"), py::arg("int16_source"), py::arg("phases") = py::none(),
+          py::arg("phase_params") = py::none(), py::arg("ground") = py::none(), py::arg("evidence") = py::none(),
           "The quiet rows from `start`: (first row not handled (N: all), its input-check verdict, whether its "
-          "check ran, rows handled).");
+          "check ran, rows handled). In flight by default; with `phases` (the held _core.Phases in phase "
+          "pre-launch), its _core.PhaseParams, the GroundState (None: method A off) and the evidence tuple "
+          "(armed, fc_reports_flying, fc_landed as -1 None / 0 / 1, has_air, air_time_s, air_max_age_s, "
+          "airspeed_m_s, alt_rate_m_s, NaN: none) the ground run (core/hot_path.hpp ground_run; strapdown and "
+          "azimuth unused).");
 }

@@ -16,6 +16,10 @@
 // Every step is first done on copies; only a sample found quiet is committed, so the one that
 // stops the loop leaves the state as it was before it (bar its input check, whose verdict goes
 // back). The reference's operation order throughout; the build has no FMA contraction.
+//
+// On the ground (phase pre-launch) ground_run below takes the quiet samples instead: the phases
+// (core/phases.hpp) stepped with no event, method A's delay line and method E's rest data
+// (core/ground.hpp), the accumulators and the output attitude.
 #pragma once
 
 #include <cmath>
@@ -24,7 +28,9 @@
 #include <vector>
 
 #include "azimuth_propagation.hpp"
+#include "ground.hpp"
 #include "input_checks.hpp"
+#include "phases.hpp"
 #include "strapdown.hpp"
 
 namespace azimuthd {
@@ -220,6 +226,89 @@ inline long hot_run(SampleState& h, InputChecks& ic, StrapdownState* sd, Azimuth
             }
         }
         if (sd != nullptr) *sd = p_sd;
+        accumulate(h, g, acc, has_mag ? m : nullptr, t, in.filter_period_s);
+        if (h.out.has) {
+            const double* C = in.C_bs;
+            const double gb[3] = {C[0] * g[0] + C[1] * g[1] + C[2] * g[2], C[3] * g[0] + C[4] * g[1] + C[5] * g[2],
+                                  C[6] * g[0] + C[7] * g[1] + C[8] * g[2]};
+            turn_output(h, t, gb, in.out_max_dt_s, rx, g);
+        }
+    }
+    checked = false;
+    verdict = 0;
+    return n;
+}
+
+// The ground run's inputs: the Pipeline's held phases (service/phases_core.py HeldPhaseState) and its
+// converted params, its GroundState (nullptr: _step_azimuth does nothing, method A being off), and
+// what Pipeline._flight_evidence builds from, fixed over a batch (the FC's messages cut batches): the
+// FC's armed / flying / landed (tri-states as core/phases.hpp Evidence) and the air data's time with
+// the airspeed and altitude rate it would give while fresh (NaN: it gives none).
+struct GroundInputs {
+    phases::State* ph = nullptr;
+    const phases::Params* pp = nullptr;
+    GroundState* gs = nullptr;
+    int armed = -1, fc_reports_flying = -1, fc_landed = -1;
+    bool has_air = false;
+    double air_time_s = 0.0, air_max_age_s = 1.0;
+    double airspeed_m_s = NAN, alt_rate_m_s = NAN;
+};
+
+// The QUIET ground samples (phase pre-launch) of a batch, from row `start`, as hot_run's in flight: a
+// quiet ground sample is one on which on_imu passes the input checks with no event, sees finite and
+// increasing time, steps the phases with no event and the phase staying pre-launch (they hold the
+// levelling, the take-off and started-in-flight rules: any decision of theirs words an event),
+// steps _step_azimuth's pre-launch branch (ground_step: it decides nothing), accumulates for the
+// filters with no filter step due and turns the output attitude. The phases step on a copy,
+// committed only for a quiet sample; the one that stops the loop leaves every state as it was (bar
+// its input check, whose verdict goes back).
+inline long ground_run(SampleState& h, InputChecks& ic, const GroundInputs& gi, const HotInputs& in,
+                       const double* rows, long n, long stride, long start, int& verdict, bool& checked,
+                       long& handled) {
+    checked = false;
+    verdict = 0;
+    handled = 0;
+    const double due_tol = 0.05 * in.filter_period_s;
+    phases::Evidence ev;
+    ev.armed = gi.armed;
+    ev.fc_reports_flying = gi.fc_reports_flying;
+    ev.fc_landed = gi.fc_landed;
+    phases::Events events;
+    for (long i = start; i < n; ++i) {
+        const double* r = rows + i * stride;
+        const double t = r[0], rx = r[1];
+        const double* g = r + 2;
+        const double* acc = r + 5;
+        const double* m = r + 8;
+        const double v[6] = {g[0], g[1], g[2], acc[0], acc[1], acc[2]};
+        verdict = ic.step(v, t, in.int16_source);
+        checked = true;
+        if (verdict != IC_OK) return i;
+        if (!(std::isfinite(t) && std::isfinite(g[0]) && std::isfinite(g[1]) && std::isfinite(g[2]) &&
+              std::isfinite(acc[0]) && std::isfinite(acc[1]) && std::isfinite(acc[2])))
+            return i;
+        if (h.has_last_time && t <= h.last_time_fc_s) return i;
+        const bool has_mag = std::isfinite(m[0]) && std::isfinite(m[1]) && std::isfinite(m[2]);
+        // Pipeline._flight_evidence at t: the air data counts while fresh
+        const bool fresh = gi.has_air && std::fabs(t - gi.air_time_s) <= gi.air_max_age_s;
+        ev.airspeed_m_s = fresh ? gi.airspeed_m_s : NAN;
+        ev.alt_rate_m_s = fresh ? gi.alt_rate_m_s : NAN;
+        // the phases, on a copy
+        phases::State ph = *gi.ph;
+        events.clear();
+        phases::phase_step(ph, g, acc, t, *gi.pp, ev, events);
+        if (!events.empty() || ph.phase != phases::PRE_LAUNCH) return i;
+        if (!(t < h.filter_due_s - due_tol)) return i;  // a filter step
+        // quiet: commit, in on_imu's order
+        h.last_time_fc_s = t;
+        h.has_last_time = true;
+        ++handled;
+        h.last_rx_s = rx;
+        h.has_last_rx = true;
+        const bool block_ended = ph.block_start_s && *ph.block_start_s == t;
+        const bool block_passed = ph.block_passed_s && *ph.block_passed_s == t;
+        *gi.ph = std::move(ph);
+        if (gi.gs != nullptr) ground_step(*gi.gs, g, acc, has_mag ? m : nullptr, t, block_ended, block_passed);
         accumulate(h, g, acc, has_mag ? m : nullptr, t, in.filter_period_s);
         if (h.out.has) {
             const double* C = in.C_bs;

@@ -945,3 +945,7 @@ if HOT_PATH_AVAILABLE:
     SampleState = _core.SampleState
     AzimuthRun = _core.AzimuthRun
     hot_run = _core.hot_run
+GROUND_AVAILABLE = HOT_PATH_AVAILABLE and hasattr(_core, "GroundState")
+"""The ground (pre-launch) path in the core (core/ground.hpp: GroundState, hot_run's ground run)."""
+if GROUND_AVAILABLE:
+    GroundState = _core.GroundState

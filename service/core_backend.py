@@ -25,6 +25,7 @@ from estimators.strapdown import strapdown_step as _strapdown_step_reference
 from service.input_checks import CoreImuInputChecks, ImuInputChecks
 from service import phases_core
 from service.phases import phase_step as _phase_step_reference
+from service.hot_path import GroundState as _GroundStateReference
 from service.hot_path import SampleState as _SampleStateReference
 
 log = logging.getLogger("azimuthd.core")
@@ -87,6 +88,9 @@ class Backend:
     reference's PhaseState or the core's held one)."""
     sample_state: Callable = _SampleStateReference
     """The Pipeline's per-sample fields (service/hot_path.py SampleState, or the core's twin)."""
+    ground_state: Callable = _GroundStateReference
+    """The Pipeline's ground state (service/hot_path.py GroundState, or the core's twin that also holds
+    method A's delay line: the ground path then runs in the core)."""
     hot_run: Callable | None = None
     """The per-sample hot path behind Pipeline.on_imu_batch (estimators._core.hot_run; None: on_imu
     takes every sample)."""
@@ -166,4 +170,5 @@ def select(environ=os.environ) -> Backend:
                    polar_heading_unseen=core.polar_heading_unseen,
                    heading_zero_rate_update=core.heading_zero_rate_update,
                    **(dict(phase_step=phases_core.phase_step) if _phases_ported() else {}),
-                   **(dict(sample_state=core.SampleState, hot_run=core.hot_run) if core.HOT_PATH_AVAILABLE else {}))
+                   **(dict(sample_state=core.SampleState, hot_run=core.hot_run) if core.HOT_PATH_AVAILABLE else {}),
+                   **(dict(ground_state=core.GroundState) if core.GROUND_AVAILABLE and _phases_ported() else {}))

@@ -25,6 +25,19 @@ per-sample output is built when read (``Pipeline.azimuth_out``, estimators.azimu
 run's count of samples. What decides whether a run may start (the phase, pending events, A's
 phase, a solver result waiting) changes only on a sample Python handles, so it is judged before
 each run.
+
+The ground (issue 19): before the take-off (phase PRE_LAUNCH) a quiet sample is one on which on_imu
+passes the input checks with no event, steps the phases with no event and the phase staying
+PRE_LAUNCH (every decision of theirs: a levelling, a take-off, the started-in-flight rule, a failed
+still block, words an event), steps ``_step_azimuth``'s pre-launch branch (method A's delay line into
+its levelling, method E's rest data: nothing decided), accumulates with no filter step due and turns
+the output attitude; the core's ground run (core/hot_path.hpp ground_run) takes those. What it steps
+lives in the core for the whole ground phase: the phases (HeldPhaseState), the Pipeline's
+``GroundState`` (core/ground.hpp; this module's :class:`GroundState` with the reference): method E's
+``rest`` and ``_rest_candidate`` (Pipeline properties over it), and method A's delay line and levelling
+accumulator, taken in from the AzimuthState at the first ground step (``ground_take_in``) and given
+back when Python reads ``Pipeline.azimuth`` (``ground_take_back``: at the take-off, and whatever else
+reads it). ``on_imu`` steps the same object on the ground samples Python handles (``ground_step``).
 """
 from __future__ import annotations
 
@@ -33,10 +46,15 @@ import math
 import numpy as np
 
 from estimators import core as _ec
-from estimators.azimuth import MagRecord, azimuth_status
+from estimators.azimuth import MagRecord, azimuth_prelaunch_step, azimuth_status
+from estimators.core import HeldStrapdown
+from estimators.declination import RestState
 from estimators.output_propagation import output_step
 from estimators.records import fast_replace
 from estimators.strapdown import StrapdownState
+from service.input_checks import _OK, CoreImuInputChecks
+from service.phases import IN_FLIGHT, PRE_LAUNCH
+from service.phases_core import HeldPhaseState
 
 
 class SampleState:
@@ -84,6 +102,80 @@ class SampleState:
 def sample_field(name: str, doc: str = "") -> property:
     """A Pipeline attribute that is ``Pipeline._hs.<name>``."""
     return property(lambda self: getattr(self._hs, name), lambda self, v: setattr(self._hs, name, v), doc=doc)
+
+
+class GroundState:
+    """The Pipeline's ground state, the reference's (the core's twin: _core.GroundState, which also
+    holds method A's pre-launch part while it is taken in): method E's rest data."""
+    __slots__ = ("rest", "rest_candidate")
+
+    def __init__(self):
+        self.rest = RestState()
+        """The rest data of consecutive still blocks (what method E uses at launch)."""
+        self.rest_candidate = RestState()
+        """... with the still block filling now."""
+
+
+def ground_field(name: str, doc: str = "") -> property:
+    """A Pipeline attribute that is ``Pipeline._ground.<name>``."""
+    return property(lambda self: getattr(self._ground, name), lambda self, v: setattr(self._ground, name, v),
+                    doc=doc)
+
+
+def ground_take_in(p) -> None:
+    """Method A's pre-launch part (its delay line and levelling accumulator) from ``Pipeline.azimuth``
+    into the core's GroundState (A in phase "prelaunch")."""
+    st = p._azimuth
+    if st.phase != "prelaunch":   # the reference's error (azimuth_prelaunch_step in another phase)
+        azimuth_prelaunch_step(st, _ZERO3, _ZERO3, 0.0)
+    rows = np.array([(t, *g.tolist(), *a.tolist()) for t, g, a in st.pending], dtype=np.float64).reshape(-1, 7)
+    p._ground.set_azimuth(rows, _ec.levelling_pack(st.levelling), st.params.prelaunch_buffer_s)
+    p._ground_a = True
+
+
+def ground_take_back(p) -> None:
+    """Method A's pre-launch part back from the core into ``Pipeline.azimuth`` (what reading it does)."""
+    rows, lev = p._ground.take_azimuth()
+    p._ground_a = False
+    pending = tuple((t, r[1:4].copy(), r[4:7].copy()) for t, r in zip(rows[:, 0].tolist(), rows))
+    p._azimuth = fast_replace(p._azimuth, pending=pending, levelling=_ec.levelling_unpack(lev))
+
+
+def ground_step(p, gyro_rad_s, accel_m_s2, mag_gauss, time_s: float) -> None:
+    """``Pipeline._step_azimuth``'s pre-launch branch in the core (the phases stepped on the sample):
+    A's delay line, E's rest data and the end of a still block (core/ground.hpp ground_step)."""
+    if not p._ground_a:
+        ground_take_in(p)
+    ph = p.phase
+    p._ground.step(gyro_rad_s, accel_m_s2, mag_gauss, time_s, ph.block_start_s == time_s, ph.block_passed_s == time_s)
+
+
+def _tri(x) -> int:
+    """A FlightEvidence tri-state as core/phases.hpp Evidence takes it (the reference asks ``is True``)."""
+    return 1 if x is True else (0 if x is False else -1)
+
+
+_AIR_MAX_AGE_S = None
+
+
+def _evidence(p) -> tuple:
+    """What ``Pipeline._flight_evidence`` builds from, for a ground run: (armed, fc_reports_flying,
+    fc_landed, has_air, air_time_s, air_max_age_s, airspeed_m_s, alt_rate_m_s) with the airspeed and
+    altitude rate the air data gives while fresh (NaN: none). Fixed over a batch: the FC's messages
+    and the pressure samples come between batches."""
+    global _AIR_MAX_AGE_S
+    if _AIR_MAX_AGE_S is None:
+        from service.pipeline import AIR_EVIDENCE_MAX_AGE_S
+        _AIR_MAX_AGE_S = AIR_EVIDENCE_MAX_AGE_S
+    air = p.ahrs.air_last
+    head = (_tri(p.fc_armed), _tri(p.fc_reports_flying), _tri(p.fc_landed))
+    if air is None:
+        return (*head, False, 0.0, _AIR_MAX_AGE_S, math.nan, math.nan)
+    has_pitot = p.pressure is not None and p.pressure.press_diff_pa is not None
+    speed = air.tas_m_s if has_pitot and not air.pitot_noisy else None
+    rate = air.alt_rate_m_s if air.rate_valid else None
+    return (*head, True, float(air.time_s), _AIR_MAX_AGE_S, math.nan if speed is None else float(speed),
+            math.nan if rate is None else float(rate))
 
 
 _INT16_SOURCES = ("RAW_IMU", "SCALED_IMU")   # service/input_checks.py's
@@ -169,9 +261,6 @@ def batch_steps(p, batch, samples=None, rows=None, source: str | None = None):
     no event). ``samples``: the rows as ImuSample objects, when the caller has them (a replay).
     Without a batch: ``samples`` with their ``rows`` (float64, IMU_RECORD's first 11 columns) and
     their ``source`` (``sample_step``)."""
-    from service.input_checks import _OK, CoreImuInputChecks
-    from service.phases import IN_FLIGHT
-    from estimators.core import HeldStrapdown
     if not hot_path_ready(p):   # the reference (or a core without the hot path): on_imu for every sample
         for i, s in enumerate(samples if samples is not None else batch.samples()):
             yield i, p.on_imu(s)
@@ -185,8 +274,9 @@ def batch_steps(p, batch, samples=None, rows=None, source: str | None = None):
     while i < n:
         verdict = None
         s = None
+        phase = p.phase.phase
         if not (p.vehicle.pending or p._unseen_pending or p._fc_status_pending is not None) \
-                and p.phase.phase == IN_FLIGHT \
+                and phase == IN_FLIGHT \
                 and not (p.phase.started_in_flight and p.polar_att_params.relevel_allowed) \
                 and isinstance(p.input_checks, CoreImuInputChecks) \
                 and (p.strapdown is None or isinstance(p.strapdown, HeldStrapdown)):
@@ -213,10 +303,45 @@ def batch_steps(p, batch, samples=None, rows=None, source: str | None = None):
                 if checked:
                     s = samples[i] if samples is not None else _sample(rec, i, batch.source)
                     verdict = _OK if code == 0 else p.input_checks._words(code, s)
+        elif phase == PRE_LAUNCH and p._ground_core \
+                and not (p.vehicle.pending or p._unseen_pending or p._fc_status_pending is not None) \
+                and type(p.phase) is HeldPhaseState and not p.phase.started_in_flight \
+                and isinstance(p.input_checks, CoreImuInputChecks) \
+                and (p._azimuth_off is not None or p._ground_a or p._azimuth.phase == "prelaunch"):
+            # the ground run: _step_azimuth steps A's delay line and the rest data unless A is off
+            ground = None
+            if p._azimuth_off is None:
+                if not p._ground_a:
+                    ground_take_in(p)
+                ground = p._ground
+            if rows is None:
+                rows = _rows(rec)
+            stop, code, checked, handled = run(
+                p._hs, p.input_checks._c, None, _idle_run(), rows, i, p.gyro_bias_rad_s, p.C_body_from_sensor,
+                p.strapdown_params.max_dt_s, p.polar_att_params.max_dt_s, p.filter_period_s, int16,
+                p.phase._c, p.phase._p(p.phase_params), ground, _evidence(p))
+            if handled:
+                p.counters.imu_samples += handled
+            i = stop
+            if i >= n:
+                break
+            if checked:
+                s = samples[i] if samples is not None else _sample(rec, i, batch.source)
+                verdict = _OK if code == 0 else p.input_checks._words(code, s)
         if s is None:
             s = samples[i] if samples is not None else _sample(rec, i, batch.source)
         yield i, (on_imu(s) if verdict is None else on_imu(s, verdict))
         i += 1
+
+
+_IDLE = []
+
+
+def _idle_run():
+    """An AzimuthRun that steps nothing (the ground run does not use it)."""
+    if not _IDLE:
+        _IDLE.append(_ec.AzimuthRun())
+    return _IDLE[0]
 
 
 _NAN3 = (math.nan, math.nan, math.nan)
@@ -224,10 +349,10 @@ _NAN3 = (math.nan, math.nan, math.nan)
 
 def sample_step(p, s):
     """``Pipeline.on_imu(s)`` for one sample as it comes from the link's message path, through the
-    core's hot path when the sample is quiet (``batch_steps`` with one row: in flight, 7 of 8 samples
-    at 400 Hz with the filters at 50 Hz), else on_imu itself: the same result, event and state."""
-    from service.phases import IN_FLIGHT
-    if p.phase.phase != IN_FLIGHT or not hot_path_ready(p):   # no run can start: on_imu
+    core's hot path when the sample is quiet (``batch_steps`` with one row: in flight and on the ground,
+    7 of 8 samples at 400 Hz with the filters at 50 Hz), else on_imu itself: the same result, event and state."""
+    ph = p.phase.phase
+    if not (ph == IN_FLIGHT or (ph == PRE_LAUNCH and p._ground_core)) or not hot_path_ready(p):   # no run: on_imu
         return p.on_imu(s)
     m = s.mag_gauss
     try:

@@ -57,7 +57,9 @@ from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent,
                                        synthetic_ahrs_unseen)
 from mavlink_io.samples import FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, ImuSample, PressureSample
 from service.core_backend import select as select_core
-from service.hot_path import azimuth_take_back, batch_steps, sample_field, sample_step
+from service.hot_path import GroundState as GroundStateReference
+from service.hot_path import (azimuth_take_back, batch_steps, ground_field, ground_step, ground_take_back,
+                              sample_field, sample_step)
 from service.input_checks import InputCheckParams
 from service.heading_arbitration import (ArbitrationParams, ArbitrationState, SourceReading,
                                          arbitrate)
@@ -161,6 +163,10 @@ class Pipeline:
     _out_bias_body_rad_s = sample_field("out_bias_body_rad_s")
     _out_rx_s = sample_field("out_rx_s")
     _out_gyro_s = sample_field("out_gyro_s")
+    # the ground state: method E's rest data (service/hot_path.py GroundState, or the core's, which also
+    # holds method A's delay line on the ground)
+    rest = ground_field("rest", "Rest data of consecutive still blocks (what method E uses at launch).")
+    _rest_candidate = ground_field("rest_candidate")
 
     def __init__(self, cfg: dict, kf1_learn: Kf1State | None = None, kf1_applied: Kf1State | None = None,
                  solver=None, deviation: DeviationState | None = None):
@@ -190,6 +196,12 @@ class Pipeline:
         """The compiled core or the Python reference for the ported parts (service/core_backend.py)."""
         self._hs = self.core.sample_state()
         """The per-sample fields (service/hot_path.py): the core's object, or the reference's."""
+        self._ground = self.core.ground_state()
+        """The ground state (service/hot_path.py): the core's object, or the reference's."""
+        self._ground_core = not isinstance(self._ground, GroundStateReference)
+        """The ground path runs in the core (_step_azimuth's pre-launch branch: service/hot_path.ground_step)."""
+        self._ground_a = False
+        """Method A's delay line and levelling live in the core's ground state (``azimuth`` takes them back)."""
         # q_body_from_sensor: the sensor axes' attitude in the body frame (configured mount)
         self.q_body_from_sensor = quat_from_euler(math.radians(imu["mount_roll_deg"]),
                                                   math.radians(imu["mount_pitch_deg"]),
@@ -205,7 +217,6 @@ class Pipeline:
         # method E: declination from Earth rate at rest, when the gyros can see it (else the WMM's)
         self.declination_rad = self.field.declination_rad
         self.rest = RestState()
-        """Rest data of consecutive still blocks (what method E uses at launch)."""
         self._rest_candidate = RestState()
         self.declination_result = None
 
@@ -366,11 +377,14 @@ class Pipeline:
         """Method A's state (estimators.azimuth.AzimuthState)."""
         if self._azimuth_held is not None:
             azimuth_take_back(self)
+        if self._ground_a:   # its delay line and levelling held in the core on the ground
+            ground_take_back(self)
         return self._azimuth
 
     @azimuth.setter
     def azimuth(self, st: AzimuthState) -> None:
         self._azimuth_held = None   # a held run's state is replaced with the rest
+        self._ground_a = False      # ... and so is a held delay line
         self._azimuth = st
 
     @property
@@ -838,6 +852,9 @@ class Pipeline:
         if self.phase.started_in_flight or self._azimuth_off is not None:
             return
         if self.phase.phase == PRE_LAUNCH:
+            if self._ground_core:   # the same in the core (service/hot_path.py ground_step, core/ground.hpp)
+                ground_step(self, gyro_s, accel_s, mag_s, t)
+                return
             self.azimuth = azimuth_prelaunch_step(self.azimuth, gyro_s, accel_s, t)
             if mag_s is not None:
                 self._rest_candidate = rest_accumulate(self._rest_candidate, gyro_s, accel_s, mag_s)
