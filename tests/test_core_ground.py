@@ -26,8 +26,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import math
-import random
 import sys
 from pathlib import Path
 
