@@ -819,6 +819,15 @@ class Pipeline:
         self.polar_hdg = self.core.polar_heading_init(params=self.polar_hdg_params)
         self._hdg_available = None
         self.zero_rate = ZeroRateState()
+        # the magnetic-disturbance check levels the field with C's attitude: its field references (norm,
+        # dip) and its pair anchor were taken in C's old frame and tilt (levelled on a take-off roll: an
+        # ArduPlane SITL log's dip reference was 11 deg off, and the field read as disturbed for 145 s
+        # once the tilt was right); the hard iron it learnt from relative turns is kept
+        md = self.mag_dist
+        self.mag_dist = MagDisturbanceState(
+            hard_iron_gauss=np.array(md.hard_iron_gauss, float),
+            P_hard_iron=None if md.P_hard_iron is None else np.array(md.P_hard_iron, float),
+            n_relearns=int(md.n_relearns))
         self._event("attitude", f"started in flight: roll/pitch from {src} (roll {math.degrees(roll):.1f} deg, "
                     f"pitch {math.degrees(pitch):.1f} deg, sigma {math.degrees(sigma):.1f} deg), {bias_text}")
         self._event("azimuth", "disabled: started in flight (method A needs the levelling and the launch)")
