@@ -47,10 +47,13 @@ B_REFERENCE_MAX_AGE_S = 30.0
 B_CONSISTENCY_WINDOW_S = 5.0
 """Window (s) over which method B's gated-out magnetometer updates are counted."""
 B_PROPAGATION_WINDOW_S = 5.0
-"""Window (s) over which method B's IMU time integrated and held across (not integrated) is summed."""
+"""Window (s) over which method B's IMU intervals integrated and held across (not integrated) are counted."""
 B_MAX_NOT_INTEGRATED_SHARE = 0.5
 """Method B whose IMU intervals were longer than it integrates (``kf2.max_dt_s``) for more than
-this share of the time in ``B_PROPAGATION_WINDOW_S``: it cannot propagate (not a candidate)."""
+this share of its intervals in ``B_PROPAGATION_WINDOW_S`` (and at least ``B_MIN_HELD_INTERVALS``
+of them): it cannot propagate (not a candidate)."""
+B_MIN_HELD_INTERVALS = 3
+"""... so that one gap (an outage: B widens its covariance over it, kf2_unseen) is not this."""
 SOURCE_INCONSISTENT_AFTER_S = 2.0
 """Method C's magnetometer innovations gated out this long (s): not a heading candidate."""
 SUPERSEDED = "method A has a solution (it solves the magnetometer distortions; this source does not)"
@@ -206,16 +209,19 @@ class SyntheticAhrsHealth:
 
     Cannot propagate (issue 18 item 3): B integrates an IMU interval only up to ``kf2.max_dt_s``;
     a longer one is held across (the attitude kept, its covariance widened: ``kf2_unseen``). While
-    more than ``B_MAX_NOT_INTEGRATED_SHARE`` of the last ``B_PROPAGATION_WINDOW_S`` of IMU time was
-    held across (the output's ``imu_not_integrated_s`` against ``imu_integrated_s``), B is not
-    following the rotation at all and its covariance is outside its model: not a candidate,
-    'no_propagation', until the window is mostly integrated again (inputs back at their rate).
-    Why: on ../shared/data/arducopter-flight.tlog (RAW_IMU at ~2.7 Hz, every interval ~0.37 s) B
-    held its heading for minutes while the vehicle turned, and a roll/pitch-only FC update then
-    took its heading sigma from 105 to 16.5 deg (its linearisation, at the attitude carried back to
-    the FC's time, sees the heading variance through an attitude it never integrated to): published
-    97 deg RMS off at a ~27 deg sigma. One gap is not this: B's covariance widens over it and the
-    window forgets it. The share is of time, not of samples (a 1 s gap weighs 1 s)."""
+    more than ``B_MAX_NOT_INTEGRATED_SHARE`` of its IMU intervals of the last
+    ``B_PROPAGATION_WINDOW_S`` were held across (at least ``B_MIN_HELD_INTERVALS``; each new
+    interval is told by which of the output's ``imu_integrated_s`` / ``imu_not_integrated_s``
+    grew), B is not following the rotation at all and its covariance is outside its model: not a
+    candidate, 'no_propagation', until its inputs are back at their rate. Why: on
+    ../shared/data/arducopter-flight.tlog (RAW_IMU at ~2.7 Hz, every interval ~0.37 s) B held its
+    heading for minutes while the vehicle turned, and a roll/pitch-only FC update then took its
+    heading sigma from 105 to 16.5 deg (its linearisation, at the attitude carried back to the FC's
+    time, sees the heading variance through an attitude it never integrated to): published 97 deg
+    RMS off at a ~27 deg sigma. Intervals are counted, not timed: one outage is one interval (B
+    re-takes its heading from the magnetometer after it and is good at once: a time share kept it
+    out 5 s after heading_consistency's 10 s gap, and the output lost 0.97 -> 1.06 deg there).
+    Each check sees B's intervals since the last one as one (the Pipeline steps B once per check)."""
 
     def __init__(self) -> None:
         self.air_fused, self.air_fused_s, self.mag_hist = 0, -math.inf, deque()
@@ -229,15 +235,17 @@ class SyntheticAhrsHealth:
         while t - hist[0][0] > B_CONSISTENCY_WINDOW_S:
             hist.popleft()
         imu = self.imu_hist
-        if imu and (b.time_s < imu[-1][0] or b.imu_integrated_s < imu[-1][1]):
+        if imu and (b.time_s < imu[-1][0] or b.imu_integrated_s < imu[-1][2]):
             imu.clear()                                   # a restarted clock (synthetic_ahrs_unseen), a new B
-        imu.append((b.time_s, b.imu_integrated_s, b.imu_not_integrated_s))
-        while len(imu) > 1 and b.time_s - imu[1][0] >= B_PROPAGATION_WINDOW_S:
-            imu.popleft()                                 # the base: the last entry at least a window old
-        seen, held = imu[-1][1] - imu[0][1], imu[-1][2] - imu[0][2]
-        if held > B_MAX_NOT_INTEGRATED_SHARE * (seen + held):
-            return False, True, (f"cannot propagate: {held:.1f} s of its last {seen + held:.1f} s of IMU intervals "
-                                 f"too long to integrate (inputs too slow or gaps)"), "no_propagation"
+        if not imu or b.time_s > imu[-1][0]:              # a new interval: held across or integrated
+            held_now = bool(imu) and b.imu_not_integrated_s > imu[-1][3]
+            imu.append((b.time_s, held_now, b.imu_integrated_s, b.imu_not_integrated_s))
+        while b.time_s - imu[0][0] >= B_PROPAGATION_WINDOW_S:
+            imu.popleft()
+        n_held = sum(x[1] for x in imu)
+        if n_held >= B_MIN_HELD_INTERVALS and n_held > B_MAX_NOT_INTEGRATED_SHARE * len(imu):
+            return False, True, (f"cannot propagate: {n_held} of its last {len(imu)} IMU intervals too long to "
+                                 f"integrate (inputs too slow)"), "no_propagation"
         if not b.reference_trusted and t - self.air_fused_s > B_REFERENCE_MAX_AGE_S:
             return False, True, "lost its reference (no trusted FC attitude, no air data)", "no_reference"
         fused, rejected = hist[-1][1] - hist[0][1], hist[-1][2] - hist[0][2]   # (gated: innovation gate only)
