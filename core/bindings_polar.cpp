@@ -31,8 +31,6 @@ Params params_from(const py::object& o) {
     p.gyro_bias_tau_s = num(o, "gyro_bias_tau_s");
     p.gyro_bias_rate_sigma_rad_s2 = num(o, "gyro_bias_rate_sigma_rad_s2");
     p.gyro_bias_rate_tau_s = num(o, "gyro_bias_rate_tau_s");
-    p.bias_ramp_prior_prob = num(o, "bias_ramp_prior_prob");
-    p.takeoff_bias_ramp_prior_prob = num(o, "takeoff_bias_ramp_prior_prob");
     p.takeoff_bias_step_sigma_rad_s = num(o, "takeoff_bias_step_sigma_rad_s");
     p.accel_noise_m_s2 = num(o, "accel_noise_m_s2");
     p.accel_meas_floor_m_s2 = num(o, "accel_meas_floor_m_s2");
@@ -141,7 +139,6 @@ py::dict state_dict(const State& s) {
     d["n_relevels"] = s.n_relevels;
     d["sample_dt_s"] = opt(s.has_sample_dt, s.sample_dt_s);
     d["bias_rate_opened"] = s.bias_rate_opened;
-    d["ramp_prob"] = s.ramp_prob;
     return d;
 }
 
@@ -174,8 +171,6 @@ State state_from(const py::dict& d) {
     s.has_sample_dt = get_opt(d, "sample_dt_s", s.sample_dt_s);
     if (d.contains("bias_rate_opened"))   // a record from before the field: False, as its default
         s.bias_rate_opened = d["bias_rate_opened"].cast<bool>();
-    if (d.contains("ramp_prob"))   // a record from before the field: 1, the rate model alone
-        s.ramp_prob = d["ramp_prob"].cast<double>();
     return s;
 }
 
@@ -222,10 +217,9 @@ void bind_polar(py::module_& m) {
                  if (!s.initialised) return py::none();
                  double roll, pitch;
                  Mat<2, 2> cov;
-                 V3 bias;
-                 Q4 q;
-                 estimate(s, roll, pitch, cov, bias, q);
-                 return py::make_tuple(roll, pitch, np2(cov.data(), 2, 2), np1(bias), np1(q));
+                 estimate(s, roll, pitch, cov);
+                 return py::make_tuple(roll, pitch, np2(cov.data(), 2, 2),
+                                       np1(V3{s.x_hat[0], s.x_hat[1], s.x_hat[2]}), np1(s.q_P_from_body));
              },
              "None before levelling, else (roll, pitch, cov (2, 2), gyro bias (3,), q_P_from_body (4,)).")
         .def_readonly("initialised", &State::initialised)

@@ -26,8 +26,7 @@ using XVec = std::array<double, NX>;
 // estimators.polar_attitude.PolarAttitudeParams (the fields the filter reads)
 struct Params {
     double update_period_s, init_period_s, gyro_noise_rad_s_rt_hz, gyro_bias_init_sigma_rad_s,
-        gyro_bias_sigma_rad_s, gyro_bias_tau_s, gyro_bias_rate_sigma_rad_s2, gyro_bias_rate_tau_s, bias_ramp_prior_prob, takeoff_bias_ramp_prior_prob,
-        takeoff_bias_step_sigma_rad_s,
+        gyro_bias_sigma_rad_s, gyro_bias_tau_s, gyro_bias_rate_sigma_rad_s2, gyro_bias_rate_tau_s, takeoff_bias_step_sigma_rad_s,
         accel_noise_m_s2, accel_meas_floor_m_s2, vehicle_accel_sigma_m_s2,
         vehicle_accel_tau_s, manoeuvre_speed_m_s, earth_rate_sigma_rad_s, earth_rate_tau_s,
         transport_rate_sigma_rad_s, transport_rate_tau_s, accel_bias_sigma_m_s2, accel_bias_tau_s, gyro_scale_sigma,
@@ -69,7 +68,6 @@ struct State {
     bool has_sample_dt = false;
     double sample_dt_s = 0.0;
     bool bias_rate_opened = false;
-    double ramp_prob = 1.0;
 };
 
 // what a step did: the reference's PolarAttitudeDiag.reason, as a code (the Python face words it)
@@ -393,62 +391,6 @@ inline double relevel(State& st, const Params& p) {
     return angle;
 }
 
-// _chol3: lower Cholesky factor of a symmetric 3x3 (false unless positive definite), the reference's loops
-inline bool chol3(const M3& A, M3& L) {
-    L = M3{};
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j <= i; ++j) {
-            double acc = A[i * 3 + j];
-            for (int k = 0; k < j; ++k) acc -= L[i * 3 + k] * L[j * 3 + k];
-            if (i == j) {
-                if (!(acc > 0.0)) return false;
-                L[i * 3 + i] = std::sqrt(acc);
-            } else {
-                L[i * 3 + j] = acc / L[j * 3 + j];
-            }
-        }
-    return true;
-}
-// _chol3_solve: x with L L^T x = b
-inline V3 chol3_solve(const M3& L, const V3& b) {
-    V3 y{}, x{};
-    for (int i = 0; i < 3; ++i) {
-        double acc = b[i];
-        for (int k = 0; k < i; ++k) acc -= L[i * 3 + k] * y[k];
-        y[i] = acc / L[i * 3 + i];
-    }
-    for (int i = 2; i >= 0; --i) {
-        double acc = y[i];
-        for (int k = i + 1; k < 3; ++k) acc -= L[k * 3 + i] * x[k];
-        x[i] = acc / L[i * 3 + i];
-    }
-    return x;
-}
-inline M3 rate_block(const PMat& P) {
-    M3 B{};
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) B[i * 3 + j] = P[(22 + i) * NS + 22 + j];
-    return B;
-}
-
-// _ramp_prob: posterior probability of the bias-ramp model against r = 0 (the Bayes factor of the rate
-// estimate: 0.5 r^T P_rr^-1 r - 0.5 log det(S0 P_rr^-1), S0 = sigma_br^2 I)
-inline double ramp_prob(const PMat& P, const XVec& x, const Params& p, bool after_takeoff) {
-    const double p1 = after_takeoff ? p.takeoff_bias_ramp_prior_prob : p.bias_ramp_prior_prob;
-    const double s0 = std::pow(p.gyro_bias_rate_sigma_rad_s2, 2);
-    if (p1 >= 1.0 || s0 == 0.0) return 1.0;
-    if (p1 <= 0.0) return 0.0;
-    M3 L;
-    if (!chol3(rate_block(P), L)) return 1.0;
-    const V3 r{x[19], x[20], x[21]};
-    const V3 y = chol3_solve(L, r);
-    const double log_det = 2.0 * (std::log(L[0]) + std::log(L[4]) + std::log(L[8]));
-    const double a = 0.5 * dot3(r, y) - 0.5 * (3.0 * std::log(s0) - log_det) + std::log(p1 / (1.0 - p1));
-    if (a >= 0.0) return 1.0 / (1.0 + std::exp(-a));
-    const double e = std::exp(a);
-    return e / (1.0 + e);
-}
-
 // _open_bias_rate: the bias rate's and the bias's priors for flight, once per take-off (relevel_allowed
 // going False)
 inline void open_bias_rate(State& st, const Params& p) {
@@ -644,7 +586,6 @@ inline Diag update(State& st, const Params& p) {
         dg.why = RELEVELLED;
         dg.accel_var_raised_m2_s4 = 0.0;
     }
-    st.ramp_prob = ramp_prob(st.P, st.x_hat, p, st.bias_rate_opened);
     return dg;
 }
 
@@ -787,42 +728,13 @@ inline Diag step(State& s, double time_s, const V3& w, const V3& f, const Params
     return u;
 }
 
-// polar_attitude_estimate (for an initialised state): roll, pitch, their 2x2 covariance, the gyro bias and
-// q_P_from_body of the two bias models mixed by ramp_prob (the rate model and it conditioned on r = 0)
-inline void estimate(const State& s, double& roll, double& pitch, Mat<2, 2>& cov, V3& bias, Q4& q) {
-    q = s.q_P_from_body;
-    M3 P_att = att_block(s.P);
-    bias = {s.x_hat[0], s.x_hat[1], s.x_hat[2]};
-    const double w1 = s.ramp_prob;
-    M3 L;
-    if (w1 < 1.0 && chol3(rate_block(s.P), L)) {
-        // _no_ramp_shift: d = -P_(x r) P_rr^-1 r_hat (attitude and bias rows), M = P_(att r) P_rr^-1 P_(r att)
-        const V3 y = chol3_solve(L, {s.x_hat[19], s.x_hat[20], s.x_hat[21]});
-        double d[6];
-        for (int i = 0; i < 6; ++i)
-            d[i] = -(s.P[i * NS + 22] * y[0] + s.P[i * NS + 23] * y[1] + s.P[i * NS + 24] * y[2]);
-        M3 Y{};   // P_rr^-1 P_(r att), column j
-        for (int j = 0; j < 3; ++j) {
-            const V3 c = chol3_solve(L, {s.P[22 * NS + j], s.P[23 * NS + j], s.P[24 * NS + j]});
-            for (int k = 0; k < 3; ++k) Y[k * 3 + j] = c[k];
-        }
-        M3 M{};
-        for (int i = 0; i < 3; ++i)
-            for (int j = 0; j < 3; ++j)
-                M[i * 3 + j] = s.P[i * NS + 22] * Y[j] + s.P[i * NS + 23] * Y[3 + j] + s.P[i * NS + 24] * Y[6 + j];
-        const double w0 = 1.0 - w1;
-        q = quat_unit(quat_mul(q, quat_from_rotvec({w0 * d[0], w0 * d[1], w0 * d[2]})));
-        for (int i = 0; i < 3; ++i)
-            for (int j = 0; j < 3; ++j)
-                P_att[i * 3 + j] = P_att[i * 3 + j] - w0 * (0.5 * (M[i * 3 + j] + M[j * 3 + i]))
-                                   + (w0 * w1) * (d[i] * d[j]);
-        for (int i = 0; i < 3; ++i) bias[i] = bias[i] + w0 * d[3 + i];
-    }
-    const V3 e = euler_from_dcm(dcm_from_quat(q));
+// polar_attitude_estimate (for an initialised state): roll, pitch, their 2x2 covariance
+inline void estimate(const State& s, double& roll, double& pitch, Mat<2, 2>& cov) {
+    const V3 e = euler_from_dcm(dcm_from_quat(s.q_P_from_body));
     roll = e[0];
     pitch = e[1];
     // roll_pitch_jacobian
-    const V3 d = down_in_body(q);
+    const V3 d = down_in_body(s.q_P_from_body);
     const M3 Dd = skew(d);
     const double den = std::pow(d[1], 2) + std::pow(d[2], 2);
     const double sq = std::sqrt(std::max(1e-12, den));  // 1 - d_x^2 without its cancellation
@@ -831,7 +743,7 @@ inline void estimate(const State& s, double& roll, double& pitch, Mat<2, 2>& cov
         J[j] = (d[2] * Dd[3 + j] - d[1] * Dd[6 + j]) / den;
         J[3 + j] = -Dd[j] / sq;
     }
-    cov = mm<2, 3, 2>(mm<2, 3, 3>(J, P_att), tr<2, 3>(J));
+    cov = mm<2, 3, 2>(mm<2, 3, 3>(J, att_block(s.P)), tr<2, 3>(J));
 }
 
 }  // namespace polar

@@ -46,19 +46,6 @@ phi = exp(-dt / tau_br) (``_ramp_bias``); error propagation over an update inter
 row takes tau_br (1 - phi_T) dr, the attitude -int_0^T R(T, s) s ds dr ~ -T^2/2 dr (trapezoid,
 as the bias's own -0.5 T (I + R^T)).
 
-Ramp or no ramp, decided by the data (session 10, issue 18): the rate state costs roll/pitch wherever the
-bias does not ramp (its steady prior lets the bias wander sigma_br tau), and opening it blindly at every
-take-off traded one bench for another. So the filter carries the rate, and what it publishes is the mixture
-of two models: its own estimate (the ramp model) and the same filter conditioned on r = 0 (the model without
-a ramp: for a constant r in a linear-Gaussian filter the posterior given r = 0 is exactly the posterior of a
-filter that never had r, so no second filter runs), weighted by their posterior probabilities from the
-Bayes factor of the rate estimate (``_ramp_prob``: the generalised likelihood ratio of a ramp, with its
-Occam term; tests/test_polar_bias_ramp_evidence.py). At rest the zero-rate updates pin r (no ramp). The
-evidence cannot tell a ramp of one prior sigma from none within the first two minutes of a flight, so once a
-take-off was declared the prior is the ramp model's (``takeoff_bias_ramp_prior_prob`` 1: the motors start
-the thermal regime; docs/SIGMAS.md has what less cost on ArduPlane SITL); the data decide where no
-take-off is known (C alone, ``bias_ramp_prior_prob`` 0.5).
-
 Gyro scale factors (beyond the seed): the gyro reads w_meas = (I + diag(s_g)) w + b_g, so the rate
 is w_hat = (w_meas - b_g) / (1 + s_g) ~ (w_meas - b_g)(1 - s_g) per axis, and a scale error ds_g
 turns the attitude by diag(w) ds_g dt: over one 360 deg loop a consumer gyro's 0.3 % is 1.1 deg
@@ -171,26 +158,9 @@ class PolarAttitudeParams:
     by a few K per minute after the motors start). With it the filter follows SITL's ramp (roll
     after the GNSS cut: docs/SIGMAS.md) while the bias walk above stays narrow. The rest pins the
     rate too; the take-off reopens it to this (``_open_bias_rate``)."""
-    gyro_bias_rate_tau_s: float = 1800.0
-    """Correlation time of the bias rate (s): a thermal settling of tens of minutes. Long against a flight
-    (ArduPlane SITL's ramp reverses after 5 minutes, SIM_DRIFT_TIME; its flights here last 3), so over one
-    the rate is nearly a constant, which is what lets the model without a ramp be the same filter
-    conditioned on r = 0 (``polar_attitude_estimate``); 300 s (session 9) forgot the rate's evidence within
-    minutes and mixed the two models near 1:1 whether the bias ramped or not."""
-    bias_ramp_prior_prob: float = 0.5
-    """Prior probability that the gyro bias ramps (dimensionless, 0..1): the weight of the model with the
-    bias-rate state against the model without it (the rate pinned at 0) before the data have said anything.
-    The filter carries the rate; the published roll/pitch mix the two models by their posterior
-    probabilities (``_ramp_prob``, ``polar_attitude_estimate``). 1 publishes the rate model alone (the
-    filter before session 10), 0 the model without a ramp. Applies while no take-off was declared (the
-    caller's relevel_allowed has stayed True: C alone, or a vehicle whose take-off is not known)."""
-    takeoff_bias_ramp_prior_prob: float = 1.0
-    """The same prior once a take-off was declared (``bias_rate_opened``): the motors and the airflow start
-    the thermal regime the rate stands for (the reason the take-off reopens it). The evidence cannot tell a
-    ramp of one prior sigma (ArduPlane SITL's) from none within the first two minutes of a flight, and any
-    weight on "no ramp" there lags the ramp: measured on the six ArduPlane SITL recordings (docs/SIGMAS.md),
-    roll after the GNSS cut 0.745 deg with 1, 0.783 with 0.9, 0.915 with 0.5. So after a take-off the rate
-    model is published; the data decide where no take-off was declared."""
+    gyro_bias_rate_tau_s: float = 300.0
+    """Correlation time of the bias rate (s): a thermal settling of a few minutes (and SITL's ramp
+    reverses every 5 minutes, SIM_DRIFT_TIME)."""
     takeoff_bias_step_sigma_rad_s: float = math.radians(0.05)
     """Sigma of the bias's change from the rest to the flight (rad/s), added to the bias variance at
     the take-off (``_open_bias_rate``): what the zero-rate updates measured at rest is the bias of a
@@ -316,10 +286,6 @@ class PolarAttitudeParams:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0.0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
-        for name in ("bias_ramp_prior_prob", "takeoff_bias_ramp_prior_prob"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 <= v <= 1.0):
-                raise ValueError(f"{name} must be in [0, 1], got {v!r}")
         if not (math.isfinite(self.manoeuvre_speed_m_s) and self.manoeuvre_speed_m_s >= 0.0):
             raise ValueError(f"manoeuvre_speed_m_s must be finite and >= 0, got {self.manoeuvre_speed_m_s!r}")
         g = self.reentry_match_gain
@@ -375,10 +341,6 @@ class PolarAttitudeState:
     bias_rate_opened: bool = False
     """The bias rate's variance was reopened for flight (``_open_bias_rate``: params.relevel_allowed
     went False, the vehicle left the rest); False again once it is allowed."""
-    ramp_prob: float = 1.0
-    """Posterior probability of the bias-ramp model at the last update (``_ramp_prob``): the weight of the
-    rate model in the published roll/pitch, the rest going to the model without a ramp. 1 before the first
-    update (and in a record from before the field): the rate model alone."""
 
     def to_dict(self) -> dict:
         out = {}
@@ -836,85 +798,12 @@ def _update(st: PolarAttitudeState, p: PolarAttitudeParams):
         st2 = replace(st2, rest_gated_run=0, rest_f_sum_m_s2=np.zeros(3), rest_s=0.0)
     if p.relevel_allowed and st2.rest_gated_run and st2.rest_s + 1e-9 >= p.relevel_rest_s:
         st2, moved = _relevel(st2, p)
-        st2 = replace(st2, ramp_prob=_ramp_prob(st2.P, st2.x_hat, p, st2.bias_rate_opened))
         return st2, PolarAttitudeDiag(
             updated=True, fused=False, innovation_m_s2=z, test_ratio=ratio, settle_ratio=settle_ratio,
             reason=f"re-levelled at rest: tilt corrected by {math.degrees(moved):.1f} deg from the accelerometer "
                    f"after {p.relevel_rest_s:.1f} s of gated-out updates", relevelled=True, relevel_rad=moved)
-    st2 = replace(st2, ramp_prob=_ramp_prob(st2.P, st2.x_hat, p, st2.bias_rate_opened))
     return st2, PolarAttitudeDiag(updated=True, fused=fused, innovation_m_s2=z, test_ratio=ratio,
                                   reason=reason, settle_ratio=settle_ratio, accel_var_raised_m2_s4=raised)
-
-
-def _ramp_prob(P: np.ndarray, x_hat: np.ndarray, p: PolarAttitudeParams, after_takeoff: bool = False) -> float:
-    """Posterior probability of the bias-ramp model (the rate state r, prior N(0, sigma_br^2 I)) against the
-    model without a ramp (r = 0), from the filter's own estimate of r.
-
-    In a linear-Gaussian filter with a constant parameter r of prior N(0, S0), the data enter r's posterior
-    through an information J and vector j: P_rr = (S0^-1 + J)^-1, r_hat = P_rr j. Under "no ramp" j ~
-    N(0, J), under "ramp" j ~ N(0, J + J S0 J); the ratio of the two densities of the data (the Bayes
-    factor; the rest of the likelihood is common) is
-        log B = 0.5 r_hat^T P_rr^-1 r_hat - 0.5 log det(S0 P_rr^-1),
-    the generalised likelihood ratio of a ramp with its Occam term (the log det: a prior wider than the
-    posterior costs evidence). r is a Gauss-Markov rate here (tau_br), not a constant: S0 is its steady
-    state sigma_br^2 I, which is also what ``_open_bias_rate`` reopens it to at the take-off, so with no
-    information since (P_rr = S0, r_hat = 0) log B = 0 and the prior probability stands; at rest the
-    zero-rate updates pin r (P_rr << S0, r_hat ~ 0): "no ramp". Returns
-    1 / (1 + (1 - p1) / p1 / B), p1 = ``bias_ramp_prior_prob``, or ``takeoff_bias_ramp_prior_prob``
-    ``after_takeoff`` (the state's bias_rate_opened)."""
-    p1 = p.takeoff_bias_ramp_prior_prob if after_takeoff else p.bias_ramp_prior_prob
-    s0 = p.gyro_bias_rate_sigma_rad_s2 ** 2
-    if p1 >= 1.0 or s0 == 0.0:
-        return 1.0
-    if p1 <= 0.0:
-        return 0.0
-    Prr = P[I_BR, I_BR]
-    r = x_hat[19:22]
-    L = _chol3(Prr)
-    if L is None:       # not positive definite (cannot happen with s0 > 0): the rate model alone
-        return 1.0
-    y = _chol3_solve(L, r)
-    log_det = 2.0 * (math.log(L[0, 0]) + math.log(L[1, 1]) + math.log(L[2, 2]))
-    a = 0.5 * float(r @ y) - 0.5 * (3.0 * math.log(s0) - log_det) + math.log(p1 / (1.0 - p1))
-    if a >= 0.0:
-        return 1.0 / (1.0 + math.exp(-a))
-    e = math.exp(a)
-    return e / (1.0 + e)
-
-
-def _chol3(A: np.ndarray) -> np.ndarray | None:
-    """Lower Cholesky factor of a symmetric 3x3 (None unless positive definite); spelled out so the core
-    computes it with the same operations."""
-    L = np.zeros((3, 3))
-    for i in range(3):
-        for j in range(i + 1):
-            acc = float(A[i, j])
-            for k in range(j):
-                acc -= L[i, k] * L[j, k]
-            if i == j:
-                if not (acc > 0.0):
-                    return None
-                L[i, i] = math.sqrt(acc)
-            else:
-                L[i, j] = acc / L[j, j]
-    return L
-
-
-def _chol3_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """x with L L^T x = b (forward then back substitution)."""
-    y = np.zeros(3)
-    for i in range(3):
-        acc = float(b[i])
-        for k in range(i):
-            acc -= L[i, k] * y[k]
-        y[i] = acc / L[i, i]
-    x = np.zeros(3)
-    for i in (2, 1, 0):
-        acc = y[i]
-        for k in range(i + 1, 3):
-            acc -= L[k, i] * x[k]
-        x[i] = acc / L[i, i]
-    return x
 
 
 def _at_rest(st: PolarAttitudeState, f_c: np.ndarray, g: float, w_mean: np.ndarray, z: np.ndarray,
@@ -1077,51 +966,15 @@ def roll_pitch_jacobian(q_P_from_body: np.ndarray) -> np.ndarray:
 
 
 def polar_attitude_estimate(state: PolarAttitudeState) -> AttitudeEstimate | None:
-    """Roll, pitch (rad) and their covariance; None before the filter has levelled.
-
-    The two models of the gyro bias, mixed by their posterior probabilities (``state.ramp_prob`` = w1):
-    the filter's own estimate (the bias-rate model) and the same filter conditioned on r = 0 (the model
-    without a ramp: for a constant r in a linear-Gaussian filter, the posterior given r = 0 is exactly the
-    posterior of the filter that never had r; ``_no_ramp_shift``). With d the conditioned shift of the
-    states and M = P_xr P_rr^-1 P_rx the variance it removes, w0 = 1 - w1:
-        mean = x_hat + w0 d,   cov = P - w0 M + w0 w1 d d^T   (the mixture's first two moments).
-    The attitude part of the mean is injected as the filter's own update is, q <- q * q(eps)."""
+    """Roll, pitch (rad) and their covariance; None before the filter has levelled."""
     if not state.initialised:
         return None
-    q = state.q_P_from_body
-    P_att = state.P[I_ATT, I_ATT]
-    b_g = state.x_hat[0:3].copy()
-    w1 = state.ramp_prob
-    if w1 < 1.0:
-        shift = _no_ramp_shift(state.P, state.x_hat)
-        if shift is not None:
-            d, M = shift
-            w0 = 1.0 - w1
-            q = quat_mul(q, quat_from_rotvec(w0 * d[0:3]))
-            q = q / math.sqrt(float(q @ q))
-            P_att = P_att - w0 * M + (w0 * w1) * np.outer(d[0:3], d[0:3])
-            b_g = b_g + w0 * d[3:6]
-    roll, pitch, _ = euler_from_dcm(dcm_from_quat(q))
-    J = roll_pitch_jacobian(q)
-    cov = J @ P_att @ J.T
+    roll, pitch, _ = euler_from_dcm(dcm_from_quat(state.q_P_from_body))
+    J = roll_pitch_jacobian(state.q_P_from_body)
+    cov = J @ state.P[I_ATT, I_ATT] @ J.T
     return AttitudeEstimate(roll_rad=roll, pitch_rad=pitch, cov_roll_pitch_rad2=cov,
-                            gyro_bias_rad_s=b_g, q_P_from_body=q.copy())
-
-
-def _no_ramp_shift(P: np.ndarray, x_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """(d, M): the shift of the attitude error and the gyro bias (6,) when the filter is conditioned on
-    r = 0, d = -P_(x r) P_rr^-1 r_hat, and the attitude variance that conditioning removes (3x3),
-    M = P_(att r) P_rr^-1 P_(r att). None when P_rr is not positive definite."""
-    L = _chol3(P[I_BR, I_BR])
-    if L is None:
-        return None
-    y = _chol3_solve(L, x_hat[19:22])
-    Pxr = P[0:6, I_BR]
-    d = -(Pxr @ y)
-    # P_rr^-1 P_(r att), a column at a time
-    Y = np.column_stack([_chol3_solve(L, P[I_BR, j]) for j in range(3)])
-    M = P[I_ATT, I_BR] @ Y
-    return d, 0.5 * (M + M.T)
+                            gyro_bias_rad_s=state.x_hat[0:3].copy(),
+                            q_P_from_body=state.q_P_from_body.copy())
 
 
 class PolarAttitudeFilter:
