@@ -103,22 +103,18 @@ class AzimuthCheck:
     Reads the sources' outputs only (never truth).
 
     Demonstrated consistency (issue 18 item 3): A's sigma as offered is its own times
-    ``sigma_scale`` = sqrt(max(1, mean of (nu^2 - s_k^2) / s_A^2 against the check source k over the
-    last ``SOURCE_INCONSISTENT_AFTER_S``)), and ``more_certain`` compares that scaled sigma with the
-    check source's. The difference nu = e_A - e_k of two independent errors has the variance
-    var_A + var_k; only A's sigma is in question (B and C test themselves against their own
-    measurements, their own gates: ``consistent``; after its fit window A measures nothing and this
-    comparison is its only innovation), so A's variance is what the difference's mean square leaves
-    once the check source's own variance is taken out: var_A ~ mean(nu^2) - s_k^2, at least A's own
-    (s_A^2: an A that agrees keeps its sigma). A check source whose sigma is conservative (B: NEES
-    ~0.3) takes out more than its error's variance: the estimate errs low, never high. Before
-    (e094442) the scale was the Birge ratio sqrt(mean NIS), which spreads the excess over both
-    sigmas and so gives A only s_A^2 NIS = var_A - s_k^2 (NIS - 1) of it: with s_A = s_k and NIS 4,
-    a scale of 2 where the variance says 2.6. Why: A's sigma after the window carries a
-    one-constant in-run bias at the [imu] prior; its heading drifted faster (synthetic_ahrs_accuracy:
-    A 7 deg off at a 3.0 deg sigma while B, 0.3 deg off, claimed 3.1 deg: NIS 2.4, inside the gate,
-    so A kept superseding B and was published alone, NEES 4.2 over those stretches; with the Birge
-    ratio the published NEES was still 1.55, A alone 2.95)."""
+    ``sigma_scale`` = sqrt(max(1, mean NIS against the check source over the last
+    ``SOURCE_INCONSISTENT_AFTER_S``)), and ``more_certain`` compares that scaled sigma with the check
+    source's. The NIS of two honest sigmas averages 1; a mean above it says the pair disagrees by
+    more than their sigmas allow, and sqrt(NIS) is the smallest scale that makes them consistent
+    (the Birge ratio, the Particle Data Group's scale factor for inconsistent measurements). Only
+    A's sigma is scaled: B and C test themselves against their own measurements (their own gates:
+    ``consistent``), while after its fit window A measures nothing and this comparison is its only
+    innovation. Why: A's sigma after the window carries a one-constant in-run bias at the [imu]
+    prior; its heading drifted faster (synthetic_ahrs_accuracy: A 7 deg off at a 3.0 deg sigma
+    while B, 0.3 deg off, claimed 3.1 deg: NIS 2.4, inside the gate, so A kept superseding B and was
+    published alone, NEES 4.2 over those stretches). An A that agrees within 1 sigma of the
+    difference keeps its own sigma."""
 
     def __init__(self) -> None:
         self.inconsistent, self.bad_since_s, self.good_since_s = False, None, None
@@ -133,20 +129,18 @@ class AzimuthCheck:
         self.certain_flip_since_s = None
         self.compared = False
         self.sigma_scale = 1.0
-        """sqrt(max(1, mean (nu^2 - s_k^2) / s_A^2 against the check source over the last
-        SOURCE_INCONSISTENT_AFTER_S)): the factor on A's sigma as offered (class docstring,
-        'demonstrated consistency')."""
-        self.excess_hist = deque()
-        """(t, (nu^2 - s_k^2) / s_A^2) of each comparison in the window."""
+        """sqrt(max(1, mean NIS against the check source over the last SOURCE_INCONSISTENT_AFTER_S)):
+        the factor on A's sigma as offered (class docstring, 'demonstrated consistency')."""
+        self.nis_hist = deque()
 
     def check(self, heading_rad: float, sigma_rad: float, checked_against, t: float,
               gate_chi2: float) -> tuple[bool, str, dict]:
         cands = [r for r in checked_against if isinstance(r, SourceReading) and r.valid and r.consistent
                  and math.isfinite(r.heading_rad) and math.isfinite(r.sigma_rad) and r.sigma_rad > 0.0]
-        if not cands or not (math.isfinite(heading_rad) and math.isfinite(sigma_rad) and sigma_rad > 0.0):
+        if not cands or not (math.isfinite(heading_rad) and math.isfinite(sigma_rad)):
             self.inconsistent, self.bad_since_s, self.good_since_s, self.more_certain = False, None, None, True
             self.certain_flip_since_s, self.compared, self.sigma_scale = None, False, 1.0
-            self.excess_hist.clear()
+            self.nis_hist.clear()
             return True, "", {}
         k = min(cands, key=lambda r: (r.sigma_rad, r.name))
         corroborated = all(_nis(k.heading_rad, k.sigma_rad, r.heading_rad, r.sigma_rad) <= gate_chi2
@@ -154,8 +148,8 @@ class AzimuthCheck:
         nu = wrap_pi(heading_rad - k.heading_rad)
         var = sigma_rad * sigma_rad + k.sigma_rad * k.sigma_rad
         nis = nu * nu / var
-        hist = self.excess_hist
-        hist.append((t, (nu * nu - k.sigma_rad * k.sigma_rad) / (sigma_rad * sigma_rad)))
+        hist = self.nis_hist
+        hist.append((t, nis))
         while t - hist[0][0] > SOURCE_INCONSISTENT_AFTER_S:
             hist.popleft()
         self.sigma_scale = math.sqrt(max(1.0, sum(x for _, x in hist) / len(hist)))
