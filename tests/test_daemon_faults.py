@@ -28,7 +28,8 @@ def _fly(ap, d, loop, until_s: float) -> int:
 
 
 class _Faulty:
-    """Wraps Pipeline.on_imu: raises on the samples whose FC time is in [t0, t1)."""
+    """Wraps the Pipeline's IMU entry the daemon calls (step_imu, the message path; on the ground
+    it no longer reaches on_imu): raises on the samples whose FC time is in [t0, t1)."""
 
     def __init__(self, on_imu, t0: float, t1: float):
         self.on_imu, self.t0, self.t1, self.raised = on_imu, t0, t1, 0
@@ -44,8 +45,8 @@ def test_a_few_faulting_samples_are_dropped_logged_and_the_daemon_flies_on(tmp_p
     # GIVEN a daemon whose Pipeline raises on three samples (3 IMU samples at 25 Hz from FC 2.0 s)
     ap, d, loop, events = _daemon(tmp_path)
     pipeline = d.pipeline
-    faulty = _Faulty(pipeline.on_imu, 2.0, 2.11)
-    pipeline.on_imu = faulty
+    faulty = _Faulty(pipeline.step_imu, 2.0, 2.11)
+    pipeline.step_imu = faulty
     # WHEN it runs through them
     _fly(ap, d, loop, 2.5)
     assert faulty.raised >= 2
@@ -65,7 +66,7 @@ def test_faults_in_a_row_rebuild_the_pipeline_and_solutions_resume(tmp_path):
     # GIVEN a Pipeline that fails on every sample from FC 2 s on (a broken state)
     ap, d, loop, events = _daemon(tmp_path)
     broken = d.pipeline
-    broken.on_imu = _Faulty(broken.on_imu, 2.0, 1e9)
+    broken.step_imu = _Faulty(broken.step_imu, 2.0, 1e9)
     # WHEN FAULTS_BEFORE_REBUILD samples in a row fail (other inputs between them succeed)
     _fly(ap, d, loop, 2.0 + (FAULTS_BEFORE_REBUILD + 3) / 25.0)
     # THEN the daemon built a fresh Pipeline, said why, and it makes solutions from the next samples
