@@ -30,8 +30,18 @@ REST_S = 5.0
 
 def fly(feed_from_s, feed_s, with_fc=True, rest_s=REST_S, launch_cfg=None, system_status=4, pitot=True):
     """Simulate, feed the samples from ``feed_from_s`` for ``feed_s`` (HEARTBEAT armed at 1 Hz)."""
-    run = simulate(scenario="inclined_rail", seed=3, imu_grade="consumer", imu_rate_hz=RATE_HZ,
-                   duration_s=feed_from_s + feed_s, overrides={"launcher": {"rest_s": rest_s}})
+    return feed_simulated("inclined_rail", 3, RATE_HZ, feed_from_s, feed_from_s + feed_s, with_fc=with_fc,
+                          overrides={"launcher": {"rest_s": rest_s}}, launch_cfg=launch_cfg,
+                          system_status=system_status, pitot=pitot)
+
+
+def feed_simulated(scenario, seed, rate_hz, feed_from_s, duration_s, with_fc=True, overrides=None, launch_cfg=None,
+                   system_status=4, pitot=True):
+    """A simulated flight (consumer IMU) fed to a fresh Pipeline from ``feed_from_s`` to ``duration_s``,
+    as a run that starts there: the FC's HEARTBEAT armed at 1 Hz (``system_status``: ArduPlane's
+    ACTIVE while is_flying()), and with ``with_fc`` its attitude with its EKF's word that it is good."""
+    run = simulate(scenario=scenario, seed=seed, imu_grade="consumer", imu_rate_hz=rate_hz,
+                   duration_s=duration_s, overrides=overrides)
     items = []
     for t, g, a, m in zip(run.time_s.tolist(), run.gyro_rad_s, run.accel_m_s2, run.mag_gauss):
         items.append((t, 2, ImuSample(t, t, g.copy(), a.copy(), m.copy(), "RAW_IMU", 0)))
@@ -44,30 +54,32 @@ def fly(feed_from_s, feed_s, with_fc=True, rest_s=REST_S, launch_cfg=None, syste
                                            float(math.remainder(e[2], 2 * math.pi)), np.zeros(3))))
         # its EKF's word that its attitude is good (2 Hz): without it the FC is no reference
         items += [(t, 3, FcEkfStatus(t, True, True, 0, "EKF_STATUS_REPORT"))
-                  for t in np.arange(feed_from_s, feed_from_s + feed_s, 0.5).tolist()]
-    for t in np.arange(feed_from_s, feed_from_s + feed_s, 1.0).tolist():
+                  for t in np.arange(feed_from_s, duration_s, 0.5).tolist()]
+    for t in np.arange(feed_from_s, duration_s, 1.0).tolist():
         items.append((t, -1, FcHeartbeat(t, 1, 1, "ardupilot", 1, 129, 0, system_status, True)))
     items = sorted((x for x in items if x[0] >= feed_from_s), key=lambda x: (x[0], x[1]))
-    site = scenario_site("inclined_rail")
+    site = scenario_site(scenario)
     s = run.site
     site["site"].update(lat_deg=s["lat_deg"], lon_deg=s["lon_deg"], alt_m=s["alt_m"], decimal_year=s["decimal_year"])
-    p = Pipeline(validate({**site, "mavlink": {"imu_rate_hz": RATE_HZ},
+    p = Pipeline(validate({**site, "mavlink": {"imu_rate_hz": rate_hz},
                            "launch": {**site.get("launch", {}), **(launch_cfg or {})}}))
     events = []
     sols = list(feed_pipeline(p, [it for _t, _o, it in items], events))
     return run, p, sols, events
 
 
-def tilt_errors(run, sols):
-    """(roll err, pitch err, roll sigma, pitch sigma) in deg for every solution with an attitude."""
+def tilt_errors(run, sols, with_time=False):
+    """(roll err, pitch err, roll sigma, pitch sigma) in deg for every solution with an attitude
+    (``with_time``: the solution's FC time first)."""
     out = []
     for s in sols:
         if s.roll_rad is None:
             continue
         k = min(int(np.searchsorted(run.time_s, s.time_fc_s - 1e-9)), len(run.time_s) - 1)
         e = run.truth.euler_rad[k]
-        out.append((math.degrees(math.remainder(s.roll_rad - e[0], 2 * math.pi)), math.degrees(s.pitch_rad - e[1]),
-                    math.degrees(s.roll_sigma_rad), math.degrees(s.pitch_sigma_rad)))
+        out.append(((s.time_fc_s,) if with_time else ()) + (
+            math.degrees(math.remainder(s.roll_rad - e[0], 2 * math.pi)), math.degrees(s.pitch_rad - e[1]),
+            math.degrees(s.roll_sigma_rad), math.degrees(s.pitch_sigma_rad)))
     return np.array(out)
 
 

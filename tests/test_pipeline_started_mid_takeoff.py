@@ -19,21 +19,10 @@ Before the bias prior (C's built-in 0.5 deg/s) the take-off's sustained accelera
 bias and the tilt: seed 0 pitch 7.0 deg 11-21 s after the start (75 % within 3 sigma), roll 3.2 deg;
 seed 1 roll 5.2 deg 51-61 s after it (18 % within 3 sigma). With it: 1.9 / 2.2 and 1.0 / 0.9 deg.
 """
-import math
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "bench"))
-from sitl import feed_pipeline, scenario_site  # noqa: E402
-
-from mavlink_io.samples import FcAttitude, FcEkfStatus, FcHeartbeat, ImuSample, PressureSample  # noqa: E402
-from service.config import validate  # noqa: E402
-from service.pipeline import Pipeline  # noqa: E402
-from sim.offline import simulate  # noqa: E402
+from test_pipeline_started_in_flight import feed_simulated, tilt_errors
 
 SCENARIO = "runway_takeoff"
 RATE_HZ = 50.0
@@ -43,42 +32,7 @@ SETTLE_S = 15.0
 
 
 def fly(seed: int, feed_from_s: float = FEED_FROM_S, duration_s: float = FEED_FROM_S + 60.0, rate_hz: float = RATE_HZ):
-    run = simulate(scenario=SCENARIO, seed=seed, imu_grade="consumer", imu_rate_hz=rate_hz, duration_s=duration_s)
-    items = []
-    for t, g, a, m in zip(run.time_s.tolist(), run.gyro_rad_s, run.accel_m_s2, run.mag_gauss):
-        items.append((t, 2, ImuSample(t, t, g.copy(), a.copy(), m.copy(), "RAW_IMU", 0)))
-    for t, p, d, k in zip(run.baro_time_s.tolist(), run.press_abs_pa.tolist(), run.press_diff_pa.tolist(),
-                          run.temperature_k.tolist()):
-        items.append((t, 1, PressureSample(t, t, p, d, k)))
-    for t, e in zip(run.fc_time_s.tolist(), run.fc_euler_rad):
-        items.append((t, 0, FcAttitude(t, t, float(e[0]), float(e[1]), float(math.remainder(e[2], 2 * math.pi)),
-                                       np.zeros(3))))
-    items += [(t, 3, FcEkfStatus(t, True, True, 0, "EKF_STATUS_REPORT"))
-              for t in np.arange(feed_from_s, duration_s, 0.5).tolist()]
-    # ArduPlane: MAV_STATE_ACTIVE (4) while its is_flying() says so, armed (base mode 129)
-    items += [(t, -1, FcHeartbeat(t, 1, 1, "ardupilot", 1, 129, 0, 4, True))
-              for t in np.arange(feed_from_s, duration_s, 1.0).tolist()]
-    items = sorted((x for x in items if x[0] >= feed_from_s), key=lambda x: (x[0], x[1]))
-    site = scenario_site(SCENARIO)
-    s = run.site
-    site["site"].update(lat_deg=s["lat_deg"], lon_deg=s["lon_deg"], alt_m=s["alt_m"], decimal_year=s["decimal_year"])
-    p = Pipeline(validate({**site, "mavlink": {"imu_rate_hz": rate_hz}}))
-    events = []
-    sols = list(feed_pipeline(p, [it for _t, _o, it in items], events))
-    return run, p, sols, events
-
-
-def tilt_errors(run, sols):
-    """Rows (time s, roll err, pitch err, roll sigma, pitch sigma), deg, for every solution with an attitude."""
-    out = []
-    for s in sols:
-        if s.roll_rad is None:
-            continue
-        k = min(int(np.searchsorted(run.time_s, s.time_fc_s - 1e-9)), len(run.time_s) - 1)
-        e = run.truth.euler_rad[k]
-        out.append((s.time_fc_s, math.degrees(math.remainder(s.roll_rad - e[0], 2 * math.pi)),
-                    math.degrees(s.pitch_rad - e[1]), math.degrees(s.roll_sigma_rad), math.degrees(s.pitch_sigma_rad)))
-    return np.array(out)
+    return feed_simulated(SCENARIO, seed, rate_hz, feed_from_s, duration_s)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -88,7 +42,7 @@ def test_started_on_the_take_off_roll_settles_within_its_sigma(seed):
     assert len(sif) == 1 and p.phase.started_in_flight and p.phase.level is None
     att = [d for k, d in events if k == "attitude" and d.startswith("started in flight")]
     assert len(att) == 1 and "the trusted FC attitude" in att[0] and "gyro bias 0 +- 0.20 deg/s (the FC's calibrated gyro at" in att[0]
-    a = tilt_errors(run, sols)
+    a = tilt_errors(run, sols, with_time=True)
     late = a[a[:, 0] >= FEED_FROM_S + SETTLE_S]
     assert len(late) > 40 * RATE_HZ / 2   # the climb-out and the turn are scored (filter rows at 25-50 Hz)
     roll_max, pitch_max = float(np.abs(late[:, 1]).max()), float(np.abs(late[:, 2]).max())
