@@ -100,21 +100,8 @@ def pass_per_sample(items, cfg, path: str) -> dict:
 def pass_batches(items, cfg, max_rows: int | None) -> dict:
     """One pass of the batch path: CPU per sample (the batches made before the clock starts)."""
     from mavlink_io.samples import ImuSample
-    from service.hot_path import batch_of
-    plan, run = [], []
-    for it in items:
-        if type(it) is ImuSample:
-            run.append(it)
-            if max_rows is not None and len(run) >= max_rows:
-                plan.append(batch_of(run))
-                run = []
-            continue
-        if run:
-            plan.append(batch_of(run))
-            run = []
-        plan.append(it)
-    if run:
-        plan.append(batch_of(run))
+    from service.hot_path import batches_of
+    plan = batches_of(items, max_rows)
     p = _pipeline(cfg, "core")
     others = _handlers(p)
     n = sum(type(it) is ImuSample for it in items)

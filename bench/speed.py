@@ -192,23 +192,9 @@ def _pipeline_batch_case(max_rows: int | None):
 
 
 def _pipeline_batch_pass(run, items, max_rows: int | None):
-    from mavlink_io.samples import ImuSample
-    from service.hot_path import batch_of
+    from service.hot_path import batches_of
     cfg = site_config(run)
-    plan, imu = [], []
-    for it in items:
-        if type(it) is ImuSample:
-            imu.append(it)
-            if max_rows is not None and len(imu) >= max_rows:
-                plan.append(batch_of(imu))
-                imu = []
-            continue
-        if imu:
-            plan.append(batch_of(imu))
-            imu = []
-        plan.append(it)
-    if imu:
-        plan.append(batch_of(imu))
+    plan = batches_of(items, max_rows)
 
     def one_pass():
         p = _core_pipeline(cfg)

@@ -367,6 +367,28 @@ def sample_step(p, s):
     return None
 
 
+def batches_of(items, max_rows: int | None = None) -> list:
+    """``items`` with each run of consecutive ImuSample (at most ``max_rows`` each) as one ImuBatch
+    (``batch_of``), the other items kept in place: the sequence a reader of a single-source IMU
+    stream hands the Pipeline (what the benches feed ``on_imu_batch``)."""
+    from mavlink_io.samples import ImuSample
+    plan, run = [], []
+    for it in items:
+        if type(it) is ImuSample:
+            run.append(it)
+            if max_rows is not None and len(run) >= max_rows:
+                plan.append(batch_of(run))
+                run = []
+            continue
+        if run:
+            plan.append(batch_of(run))
+            run = []
+        plan.append(it)
+    if run:
+        plan.append(batch_of(run))
+    return plan
+
+
 def batch_of(samples: list):
     """Consecutive ImuSample objects of one source as the ImuBatch of their rows (what a replay or a
     test hands ``on_imu_batch``; the link builds its batches from the wire: mavlink_io/imu_batch)."""
