@@ -152,6 +152,45 @@ struct HotInputs {
 
 enum HotStop : int { HS_END = 0, HS_CHECK = 1, HS_PIPELINE = 2 };
 
+// One row of a run: its input check (verdict back to the caller) and the Pipeline's own (finite,
+// time increasing); false: the run stops at this row. hot_run and ground_run share it.
+inline bool row_accepted(const SampleState& h, InputChecks& ic, const HotInputs& in, const double* r, int& verdict,
+                         bool& checked) {
+    const double t = r[0];
+    const double* g = r + 2;
+    const double* acc = r + 5;
+    const double v[6] = {g[0], g[1], g[2], acc[0], acc[1], acc[2]};
+    verdict = ic.step(v, t, in.int16_source);
+    checked = true;
+    if (verdict != IC_OK) return false;
+    if (!(std::isfinite(t) && std::isfinite(g[0]) && std::isfinite(g[1]) && std::isfinite(g[2]) &&
+          std::isfinite(acc[0]) && std::isfinite(acc[1]) && std::isfinite(acc[2])))
+        return false;
+    return !(h.has_last_time && t <= h.last_time_fc_s);
+}
+
+// A quiet sample's times, committed first (on_imu's order).
+inline void commit_times(SampleState& h, double t, double rx, long& handled) {
+    h.last_time_fc_s = t;
+    h.has_last_time = true;
+    ++handled;
+    h.last_rx_s = rx;
+    h.has_last_rx = true;
+}
+
+// A quiet sample's last steps (on_imu's order): the filters' accumulators, then the output attitude
+// turned by the body-frame rate.
+inline void accumulate_and_turn(SampleState& h, const HotInputs& in, const double* g, const double* acc,
+                                const double* m, double t, double rx) {
+    accumulate(h, g, acc, m, t, in.filter_period_s);
+    if (h.out.has) {
+        const double* C = in.C_bs;
+        const double gb[3] = {C[0] * g[0] + C[1] * g[1] + C[2] * g[2], C[3] * g[0] + C[4] * g[1] + C[5] * g[2],
+                              C[6] * g[0] + C[7] * g[1] + C[8] * g[2]};
+        turn_output(h, t, gb, in.out_max_dt_s, rx, g);
+    }
+}
+
 // Rows: IMU_RECORD as float64 (time_fc, time_rx, gyro 3, accel 3, mag 3 (NaN: none), ...), `stride`
 // doubles apart. From row `start`: every quiet sample committed; returns the first row not handled
 // (n: all). `checked`: that row's input check ran, with the verdict `verdict`. `handled`: quiet rows.
@@ -168,15 +207,7 @@ inline long hot_run(SampleState& h, InputChecks& ic, StrapdownState* sd, Azimuth
         const double* g = r + 2;
         const double* acc = r + 5;
         const double* m = r + 8;
-        const double v[6] = {g[0], g[1], g[2], acc[0], acc[1], acc[2]};
-        verdict = ic.step(v, t, in.int16_source);
-        checked = true;
-        if (verdict != IC_OK) return i;
-        // the Pipeline's own: finite, time increasing
-        if (!(std::isfinite(t) && std::isfinite(g[0]) && std::isfinite(g[1]) && std::isfinite(g[2]) &&
-              std::isfinite(acc[0]) && std::isfinite(acc[1]) && std::isfinite(acc[2])))
-            return i;
-        if (h.has_last_time && t <= h.last_time_fc_s) return i;
+        if (!row_accepted(h, ic, in, r, verdict, checked)) return i;
         const bool has_mag = std::isfinite(m[0]) && std::isfinite(m[1]) && std::isfinite(m[2]);
         // method A's step, on copies
         StrapdownState a_sd = a.sd;
@@ -206,11 +237,7 @@ inline long hot_run(SampleState& h, InputChecks& ic, StrapdownState* sd, Azimuth
         }
         if (!(t < h.filter_due_s - due_tol)) return i;  // a filter step
         // quiet: commit, in on_imu's order
-        h.last_time_fc_s = t;
-        h.has_last_time = true;
-        ++handled;
-        h.last_rx_s = rx;
-        h.has_last_rx = true;
+        commit_times(h, t, rx, handled);
         if (a.active) {
             a.sd = a_sd;
             for (int k = 0; k < 36; ++k) a.G[k] = aG[k];
@@ -226,13 +253,7 @@ inline long hot_run(SampleState& h, InputChecks& ic, StrapdownState* sd, Azimuth
             }
         }
         if (sd != nullptr) *sd = p_sd;
-        accumulate(h, g, acc, has_mag ? m : nullptr, t, in.filter_period_s);
-        if (h.out.has) {
-            const double* C = in.C_bs;
-            const double gb[3] = {C[0] * g[0] + C[1] * g[1] + C[2] * g[2], C[3] * g[0] + C[4] * g[1] + C[5] * g[2],
-                                  C[6] * g[0] + C[7] * g[1] + C[8] * g[2]};
-            turn_output(h, t, gb, in.out_max_dt_s, rx, g);
-        }
+        accumulate_and_turn(h, in, g, acc, has_mag ? m : nullptr, t, rx);
     }
     checked = false;
     verdict = 0;
@@ -280,14 +301,7 @@ inline long ground_run(SampleState& h, InputChecks& ic, const GroundInputs& gi, 
         const double* g = r + 2;
         const double* acc = r + 5;
         const double* m = r + 8;
-        const double v[6] = {g[0], g[1], g[2], acc[0], acc[1], acc[2]};
-        verdict = ic.step(v, t, in.int16_source);
-        checked = true;
-        if (verdict != IC_OK) return i;
-        if (!(std::isfinite(t) && std::isfinite(g[0]) && std::isfinite(g[1]) && std::isfinite(g[2]) &&
-              std::isfinite(acc[0]) && std::isfinite(acc[1]) && std::isfinite(acc[2])))
-            return i;
-        if (h.has_last_time && t <= h.last_time_fc_s) return i;
+        if (!row_accepted(h, ic, in, r, verdict, checked)) return i;
         const bool has_mag = std::isfinite(m[0]) && std::isfinite(m[1]) && std::isfinite(m[2]);
         // Pipeline._flight_evidence at t: the air data counts while fresh
         const bool fresh = gi.has_air && std::fabs(t - gi.air_time_s) <= gi.air_max_age_s;
@@ -300,22 +314,12 @@ inline long ground_run(SampleState& h, InputChecks& ic, const GroundInputs& gi, 
         if (!events.empty() || ph.phase != phases::PRE_LAUNCH) return i;
         if (!(t < h.filter_due_s - due_tol)) return i;  // a filter step
         // quiet: commit, in on_imu's order
-        h.last_time_fc_s = t;
-        h.has_last_time = true;
-        ++handled;
-        h.last_rx_s = rx;
-        h.has_last_rx = true;
+        commit_times(h, t, rx, handled);
         const bool block_ended = ph.block_start_s && *ph.block_start_s == t;
         const bool block_passed = ph.block_passed_s && *ph.block_passed_s == t;
         *gi.ph = std::move(ph);
         if (gi.gs != nullptr) ground_step(*gi.gs, g, acc, has_mag ? m : nullptr, t, block_ended, block_passed);
-        accumulate(h, g, acc, has_mag ? m : nullptr, t, in.filter_period_s);
-        if (h.out.has) {
-            const double* C = in.C_bs;
-            const double gb[3] = {C[0] * g[0] + C[1] * g[1] + C[2] * g[2], C[3] * g[0] + C[4] * g[1] + C[5] * g[2],
-                                  C[6] * g[0] + C[7] * g[1] + C[8] * g[2]};
-            turn_output(h, t, gb, in.out_max_dt_s, rx, g);
-        }
+        accumulate_and_turn(h, in, g, acc, has_mag ? m : nullptr, t, rx);
     }
     checked = false;
     verdict = 0;
