@@ -28,11 +28,10 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, os.getcwd())
+sys.path[:0] = [os.getcwd(), str(Path.cwd() / "bench")]
 
 
 def make_items(seconds: float, rate_hz: float) -> tuple[list, dict]:
-    sys.path.insert(0, str(Path.cwd() / "bench"))
     from sitl import pipeline_inputs, scenario_site
     from service.config import validate
     from sim.offline import simulate
@@ -46,16 +45,8 @@ def make_items(seconds: float, rate_hz: float) -> tuple[list, dict]:
 
 
 def _pipeline(cfg, backend: str):
-    from service.pipeline import Pipeline
-    before = os.environ.get("AZIMUTHD_CORE")
-    os.environ["AZIMUTHD_CORE"] = backend
-    try:
-        p = Pipeline(cfg)
-    finally:
-        os.environ.pop("AZIMUTHD_CORE") if before is None else os.environ.update(AZIMUTHD_CORE=before)
-    if p.core.name != backend:
-        raise RuntimeError(f"asked for {backend}, got {p.core.name}: {p.core.why}")
-    return p
+    from speed import pipeline_on
+    return pipeline_on(cfg, backend)
 
 
 def _handlers(p) -> dict:

@@ -34,9 +34,8 @@ def main(argv=None) -> int:
     import bench.speed as sp
     import service.pipeline as P
     from bench.sitl import feed_pipeline, pipeline_inputs
-    from mavlink_io.samples import ImuSample
     from service import core_backend
-    from service.hot_path import batch_of
+    from service.hot_path import batches_of
     run = sp.make_stream(True)
     items = pipeline_inputs(run)
     cfg = sp.site_config(run)
@@ -44,17 +43,7 @@ def main(argv=None) -> int:
     if core.hot_run is None:
         print(f"no hot path in this core: {core.why}")
         return 1
-    plan, imu = [], []
-    for it in items:
-        if type(it) is ImuSample:
-            imu.append(it)
-            continue
-        if imu:
-            plan.append(batch_of(imu))
-            imu = []
-        plan.append(it)
-    if imu:
-        plan.append(batch_of(imu))
+    plan = batches_of(items)
 
     def pipeline(backend):
         P.select_core = lambda: backend

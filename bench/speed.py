@@ -145,18 +145,10 @@ def _pipeline_case(backend: str):
     (service/core_backend.py: AZIMUTHD_CORE, read when a Pipeline is built)."""
     def factory(run, items):
         from bench.sitl import feed_pipeline
-        from service.pipeline import Pipeline
         cfg = site_config(run)
 
         def one_pass():
-            before = os.environ.get("AZIMUTHD_CORE")
-            os.environ["AZIMUTHD_CORE"] = backend
-            try:
-                p = Pipeline(cfg)
-            finally:
-                os.environ.pop("AZIMUTHD_CORE") if before is None else os.environ.update(AZIMUTHD_CORE=before)
-            if p.core.name != backend:
-                raise RuntimeError(f"asked for {backend}, got {p.core.name}: {p.core.why}")
+            p = pipeline_on(cfg, backend)
             for _ in feed_pipeline(p, items):
                 pass
         return one_pass
@@ -167,15 +159,24 @@ case_pipeline = _pipeline_case("core")
 case_pipeline_python = _pipeline_case("python")
 
 
-def _core_pipeline(cfg):
-    """A Pipeline on the compiled core with its hot path (the selection restored after)."""
+def pipeline_on(cfg, backend: str):
+    """A Pipeline on ``backend`` ("core": the compiled core, "python": the reference), the
+    selection (AZIMUTHD_CORE) restored after; an error when that backend is not what it got."""
     from service.pipeline import Pipeline
     before = os.environ.get("AZIMUTHD_CORE")
-    os.environ["AZIMUTHD_CORE"] = "core"
+    os.environ["AZIMUTHD_CORE"] = backend
     try:
         p = Pipeline(cfg)
     finally:
         os.environ.pop("AZIMUTHD_CORE") if before is None else os.environ.update(AZIMUTHD_CORE=before)
+    if p.core.name != backend:
+        raise RuntimeError(f"asked for {backend}, got {p.core.name}: {p.core.why}")
+    return p
+
+
+def _core_pipeline(cfg):
+    """A Pipeline on the compiled core with its hot path."""
+    p = pipeline_on(cfg, "core")
     if p.core.hot_run is None:
         raise RuntimeError(f"no hot path in this core: {p.core.why}")
     return p
