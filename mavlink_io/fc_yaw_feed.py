@@ -12,8 +12,11 @@ EKF2 (a quality below VISO_QUAL_MIN drops the whole sample; a NaN position makes
 so the only safe ArduPilot is one without EKF2: EK2_ENABLE 0. Our yaw is EKF3's when VISO_TYPE > 0,
 EKF3 runs and a source set's EK3_SRCn_YAW is 6 (any set: the active one can be switched in flight).
 
-PX4: EKF2_EV_CTRL bits 0 (horizontal position), 1 (vertical position), 2 (velocity) must be off;
-bit 3 (yaw) on means the FC's yaw comes from us.
+PX4 >= 1.14: EKF2_EV_CTRL bits 0 (horizontal position), 1 (vertical position), 2 (velocity) must be
+off; bit 3 (yaw) on means the FC's yaw comes from us. PX4 <= 1.13 has no EKF2_EV_CTRL: its EKF2_AID_MASK
+bits 3 (external-vision position) and 8 (velocity) must be off and EKF2_HGT_MODE not 3 (vision height);
+bit 4 (external-vision yaw) on means the FC's yaw comes from us (PX4 ecl's fusion_mode masks). A PX4
+that answers EKF2_EV_CTRL is judged on it alone, without waiting for the older names.
 
 Anything else gets the spec-literal profile (NaN position: nothing finite to fuse) and its yaw is of
 unknown origin ([heading] use_fc_yaw = false says it comes from us).
@@ -31,9 +34,13 @@ EK3_POSITION_KINDS = ("POSXY", "VELXY", "POSZ", "VELZ")
 
 ARDUPILOT_PARAMS = ("VISO_TYPE", "EK2_ENABLE", "EK3_ENABLE") + tuple(
     f"EK3_SRC{n}_{k}" for n in EK3_SETS for k in EK3_POSITION_KINDS + ("YAW",))
-PX4_PARAMS = ("EKF2_EV_CTRL",)
+PX4_PARAMS = ("EKF2_EV_CTRL", "EKF2_AID_MASK", "EKF2_HGT_MODE")
 PX4_EV_POSITION_BITS = 0b0111
 PX4_EV_YAW_BIT = 0b1000
+PX4_AID_EV_POSITION_BITS = (1 << 3) | (1 << 8)
+"""EKF2_AID_MASK (PX4 <= 1.13): external-vision position (bit 3) and velocity (bit 8)."""
+PX4_AID_EV_YAW_BIT = 1 << 4
+PX4_HGT_MODE_VISION = 3
 
 
 def params_for(autopilot: str | None) -> tuple[str, ...]:
@@ -64,21 +71,11 @@ def check_fc_yaw_feed(autopilot: str | None, params: dict, missing: set) -> FcYa
     if not wanted:
         return FcYawFeedCheck(True, None, "autopilot not ArduPilot or PX4: ODOMETRY position sent as NaN; "
                                           "set [heading] use_fc_yaw = false if the FC's yaw comes from us")
+    if autopilot == "px4":
+        return _check_px4(params, missing)
     pending = [n for n in wanted if n not in params and n not in missing]
     if pending:
-        return FcYawFeedCheck(None, None, f"reading the FC's parameters ({', '.join(pending)})")
-    if autopilot == "px4":
-        ev = _int(params, "EKF2_EV_CTRL")
-        if ev is None:
-            return FcYawFeedCheck(False, None, "EKF2_EV_CTRL not on this PX4: cannot verify that external-vision "
-                                               "position is off; ODOMETRY not sent")
-        from_us = bool(ev & PX4_EV_YAW_BIT)
-        if ev & PX4_EV_POSITION_BITS:
-            return FcYawFeedCheck(False, from_us, f"EKF2_EV_CTRL {ev} fuses external-vision position/velocity "
-                                                  "(bits 0-2): our placeholder would be fused; set EKF2_EV_CTRL 8 "
-                                                  "(yaw only); ODOMETRY not sent")
-        return FcYawFeedCheck(True, from_us, f"EKF2_EV_CTRL {ev}: " + ("PX4's yaw comes from our ODOMETRY"
-                                                                       if from_us else "our yaw not fused"))
+        return _pending(pending)
     viso = _int(params, "VISO_TYPE")
     if viso is None or viso == 0:
         return FcYawFeedCheck(True, False, ("VISO_TYPE not on this firmware" if viso is None else "VISO_TYPE 0")
@@ -106,3 +103,40 @@ def check_fc_yaw_feed(autopilot: str | None, params: dict, missing: set) -> FcYa
         return FcYawFeedCheck(True, True, "EKF3's yaw comes from our ODOMETRY (VISO_TYPE "
                               f"{viso}, " + ", ".join(f"EK3_SRC{n}_YAW 6" for n in yaw_sets) + ")")
     return FcYawFeedCheck(True, False, "no EK3_SRCn_YAW is 6: EKF3 does not fuse our yaw")
+
+
+def _pending(names) -> FcYawFeedCheck:
+    return FcYawFeedCheck(None, None, f"reading the FC's parameters ({', '.join(names)})")
+
+
+def _check_px4(params: dict, missing: set) -> FcYawFeedCheck:
+    ev = _int(params, "EKF2_EV_CTRL")
+    if ev is not None:                                   # PX4 >= 1.14
+        from_us = bool(ev & PX4_EV_YAW_BIT)
+        if ev & PX4_EV_POSITION_BITS:
+            return FcYawFeedCheck(False, from_us, f"EKF2_EV_CTRL {ev} fuses external-vision position/velocity "
+                                                  "(bits 0-2): our placeholder would be fused; set EKF2_EV_CTRL 8 "
+                                                  "(yaw only); ODOMETRY not sent")
+        return FcYawFeedCheck(True, from_us, f"EKF2_EV_CTRL {ev}: " + ("PX4's yaw comes from our ODOMETRY"
+                                                                       if from_us else "our yaw not fused"))
+    legacy = ("EKF2_AID_MASK", "EKF2_HGT_MODE")
+    pending = [n for n in ("EKF2_EV_CTRL",) + legacy if n not in params and n not in missing]
+    if pending:
+        return _pending(pending)
+    mask, hgt = _int(params, "EKF2_AID_MASK"), _int(params, "EKF2_HGT_MODE")
+    if mask is None or hgt is None:
+        absent = " and ".join(n for n, v in zip(legacy, (mask, hgt)) if v is None)
+        return FcYawFeedCheck(False, None, f"neither EKF2_EV_CTRL nor {absent} on this PX4: cannot verify that "
+                                           "external-vision position is off; ODOMETRY not sent")
+    from_us = bool(mask & PX4_AID_EV_YAW_BIT)
+    if mask & PX4_AID_EV_POSITION_BITS:
+        yaw_only = (mask & ~PX4_AID_EV_POSITION_BITS) | PX4_AID_EV_YAW_BIT
+        return FcYawFeedCheck(False, from_us, f"EKF2_AID_MASK {mask} fuses external-vision position/velocity "
+                                              f"(bits 3, 8): our placeholder would be fused; set EKF2_AID_MASK "
+                                              f"{yaw_only} (vision yaw, no vision position or velocity); "
+                                              "ODOMETRY not sent")
+    if hgt == PX4_HGT_MODE_VISION:
+        return FcYawFeedCheck(False, from_us, "EKF2_HGT_MODE 3 (vision) fuses our placeholder height; set it to "
+                                              "0 (barometer); ODOMETRY not sent")
+    return FcYawFeedCheck(True, from_us, f"EKF2_AID_MASK {mask}, EKF2_HGT_MODE {hgt} (PX4 <= 1.13): "
+                          + ("PX4's yaw comes from our ODOMETRY" if from_us else "our yaw not fused"))

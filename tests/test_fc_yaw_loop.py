@@ -68,6 +68,34 @@ def test_px4_ev_ctrl():
     assert check_fc_yaw_feed("other", {}, set()).placeholder_safe is True  # NaN position there
 
 
+def test_px4_ev_ctrl_decides_without_the_older_names():
+    """A PX4 >= 1.14 answers EKF2_EV_CTRL: the verdict does not wait for EKF2_AID_MASK / EKF2_HGT_MODE,
+    which it will never answer."""
+    c = check_fc_yaw_feed("px4", {"EKF2_EV_CTRL": 8}, set())
+    assert c.placeholder_safe is True and c.fc_yaw_from_us is True
+    assert check_fc_yaw_feed("px4", {}, set()).placeholder_safe is None          # still reading
+
+
+def test_px4_aid_mask_before_1_14():
+    """PX4 <= 1.13 has no EKF2_EV_CTRL: EKF2_AID_MASK bits 3 (vision position) and 8 (vision velocity)
+    must be off, EKF2_HGT_MODE not 3 (vision height); bit 4 (vision yaw) means the FC's yaw is ours."""
+    gone = {"EKF2_EV_CTRL"}
+    waiting = check_fc_yaw_feed("px4", {"EKF2_AID_MASK": 16}, gone)
+    assert waiting.placeholder_safe is None and "EKF2_HGT_MODE" in waiting.reason
+    c = check_fc_yaw_feed("px4", {"EKF2_AID_MASK": 1 | 16, "EKF2_HGT_MODE": 0}, gone)
+    assert c.placeholder_safe is True and c.fc_yaw_from_us is True and "1.13" in c.reason
+    c = check_fc_yaw_feed("px4", {"EKF2_AID_MASK": 1, "EKF2_HGT_MODE": 0}, gone)
+    assert c.placeholder_safe is True and c.fc_yaw_from_us is False
+    c = check_fc_yaw_feed("px4", {"EKF2_AID_MASK": 1 | 8 | 16, "EKF2_HGT_MODE": 0}, gone)   # vision position
+    assert c.placeholder_safe is False and c.fc_yaw_from_us is True and "EKF2_AID_MASK 17" in c.reason
+    c = check_fc_yaw_feed("px4", {"EKF2_AID_MASK": 16 | 256, "EKF2_HGT_MODE": 0}, gone)     # vision velocity
+    assert c.placeholder_safe is False and "EKF2_AID_MASK 16" in c.reason
+    c = check_fc_yaw_feed("px4", {"EKF2_AID_MASK": 16, "EKF2_HGT_MODE": 3}, gone)           # vision height
+    assert c.placeholder_safe is False and "EKF2_HGT_MODE 3" in c.reason
+    c = check_fc_yaw_feed("px4", {}, {"EKF2_EV_CTRL", "EKF2_AID_MASK", "EKF2_HGT_MODE"})
+    assert c.placeholder_safe is False and c.fc_yaw_from_us is None and "cannot verify" in c.reason
+
+
 def test_no_odometry_while_not_allowed():
     from test_outputs_rates import solution
     sched = OutputScheduler()
