@@ -182,7 +182,7 @@ def build_config(args, reader) -> tuple[dict, list[str]]:
 
 def fc_yaw_from_our_odometry(summary) -> str | None:
     """Why the log's FC yaw is ours (its EKF fused azimuthd's ODOMETRY yaw: VISO_TYPE with an
-    EK3_SRCn_YAW 6, PX4's EKF2_EV_CTRL yaw bit), as the daemon decides it live from the same
+    EK3_SRCn_YAW 6, PX4's EKF2_EV_CTRL or, before 1.14, EKF2_AID_MASK yaw bit), as the daemon decides it live from the same
     parameters (mavlink_io/fc_yaw_feed.py); None when the parameters do not say so or are absent."""
     from mavlink_io.fc_yaw_feed import check_fc_yaw_feed, params_for
     params = getattr(summary, "params", None) or {}

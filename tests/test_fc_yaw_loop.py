@@ -181,3 +181,13 @@ def test_param_reader_resends_the_unanswered_and_gives_up_on_unknown_names():
     assert r.values == {"VISO_TYPE": 1.0}
     r.on_value("EK2_ENABLE", 0.0)  # a late or unsolicited PARAM_VALUE still counts
     assert r.missing == set() and r.values["EK2_ENABLE"] == 0.0
+
+
+def test_replay_reads_px4_1_13_parameters():
+    """A ULog of PX4 <= 1.13 whose EKF2_AID_MASK fuses vision yaw: replay excludes the FC's yaw by itself."""
+    from service.logreaders import LogSummary
+    from service.replay import fc_yaw_from_our_odometry
+    why = fc_yaw_from_our_odometry(LogSummary("ulog", "px4", params={"EKF2_AID_MASK": 17.0, "EKF2_HGT_MODE": 0.0}))
+    assert why is not None and "yaw comes from our ODOMETRY" in why
+    assert fc_yaw_from_our_odometry(LogSummary("ulog", "px4", params={"EKF2_AID_MASK": 1.0,
+                                                                      "EKF2_HGT_MODE": 0.0})) is None
