@@ -23,7 +23,9 @@ from estimators import synthetic_ahrs as _b_reference
 from estimators import zero_rate as _zr_reference
 from estimators.strapdown import strapdown_step as _strapdown_step_reference
 from service.input_checks import CoreImuInputChecks, ImuInputChecks
+from service import arbitration_core
 from service import phases_core
+from service.heading_arbitration import arbitrate as _arbitrate_reference
 from service.phases import phase_step as _phase_step_reference
 from service.hot_path import GroundState as _GroundStateReference
 from service.hot_path import SampleState as _SampleStateReference
@@ -86,6 +88,9 @@ class Backend:
     phase_step: Callable = _phase_step_reference
     """The flight phases, one IMU sample (service.phases.phase_step's signature; takes and gives the
     reference's PhaseState or the core's held one)."""
+    arbitrate: Callable = _arbitrate_reference
+    """The heading arbitration (service.heading_arbitration.arbitrate's signature; the state is the
+    reference's ArbitrationState in both, a pure value: service/arbitration_core.py)."""
     sample_state: Callable = _SampleStateReference
     """The Pipeline's per-sample fields (service/hot_path.py SampleState, or the core's twin)."""
     ground_state: Callable = _GroundStateReference
@@ -112,6 +117,15 @@ def _phases_ported() -> bool:
         _say(logging.WARNING, "compiled core without the flight phases (an older build): they run the Python "
                               "reference")
     return phases_core.PHASES_AVAILABLE
+
+
+def _arbitration_ported() -> dict:
+    """The heading arbitration in the core (the Backend's field); one log line when the build predates it."""
+    if not arbitration_core.ARBITRATION_AVAILABLE:
+        _say(logging.WARNING, "compiled core without the heading arbitration (an older build): it runs the Python "
+                              "reference")
+        return {}
+    return dict(arbitrate=arbitration_core.arbitrate)
 
 
 def select(environ=os.environ) -> Backend:
@@ -163,7 +177,7 @@ def select(environ=os.environ) -> Backend:
                               "Python reference")
         return Backend("core", "compiled core (estimators._core), C's heading filter in Python", *ported,
                        **c_attitude)
-    return Backend("core", "compiled core (estimators._core)", *ported, **c_attitude,
+    return Backend("core", "compiled core (estimators._core)", *ported, **c_attitude, **_arbitration_ported(),
                    polar_heading_init=core.polar_heading_init, polar_heading_step=core.polar_heading_step,
                    polar_heading_estimate=core.polar_heading_estimate,
                    polar_heading_attitude=core.polar_heading_attitude,

@@ -61,8 +61,7 @@ from service.hot_path import GroundState as GroundStateReference
 from service.hot_path import (azimuth_take_back, batch_steps, ground_field, ground_step, ground_take_back,
                               sample_field, sample_step)
 from service.input_checks import InputCheckParams
-from service.heading_arbitration import (ArbitrationParams, ArbitrationState, SourceReading,
-                                         arbitrate)
+from service.heading_arbitration import ArbitrationParams, ArbitrationState, SourceReading
 from service.heading_sources import (AzimuthCheck, SyntheticAhrsHealth, azimuth_source, deviation_record, fc_source,
                                      heading_filter_source, superseded, synthetic_ahrs_source)
 from service.phases import (IN_FLIGHT, LAUNCH, PRE_LAUNCH, FlightEvidence, InFlightParams, PhaseParams,
@@ -1216,7 +1215,7 @@ class Pipeline:
         elif abs(math.cos(pitch)) > 1e-3:  # psi_dot = (q sin(phi) + r cos(phi)) / cos(theta)
             heading_rate = (rates_body[1] * math.sin(roll) + rates_body[2] * math.cos(roll)) / math.cos(pitch)
         readings, not_offered = self._readings(t)
-        self.arb, arb_out = arbitrate(self.arb, readings, t, self.arb_params, heading_rate, not_offered)
+        self.arb, arb_out = self.core.arbitrate(self.arb, readings, t, self.arb_params, heading_rate, not_offered)
         self.arb_out = arb_out
         self.aiding = {**arb_out.records, "deviation": self._deviation_record(t)}
         if self.ahrs_params.variant == "b1":
