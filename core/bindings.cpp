@@ -72,6 +72,7 @@ void bind_polar(py::module_& m);           // core/bindings_polar.cpp: method C'
 void bind_polar_heading(py::module_& m);   // core/bindings_polar_heading.cpp: method C's heading filter
 void bind_hot_path(py::module_& m);        // core/bindings_hot_path.cpp: the Pipeline's per-sample hot path
 void bind_phases(py::module_& m);          // core/bindings_phases.cpp: the flight phases
+void bind_fit(py::module_& m);             // core/bindings_fit.cpp: method A's re-solve, method D's RLS
 void bind_arbitration(py::module_& m);     // core/bindings_arbitration.cpp: the heading arbitration
 
 PYBIND11_MODULE(_core, m) {
@@ -83,6 +84,7 @@ PYBIND11_MODULE(_core, m) {
     bind_polar_heading(m);
     bind_hot_path(m);
     bind_phases(m);
+    bind_fit(m);
     bind_arbitration(m);
 
     m.def("strapdown_step",

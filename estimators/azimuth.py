@@ -348,8 +348,9 @@ def _with_checks(state: AzimuthState, u_sf: np.ndarray) -> AzimuthState:
     return replace(state, u_sf=u_sf, cross_check_rad=cross, elevation_check_rad=elev)
 
 
-def _solve(state: AzimuthState, time_s: float) -> AzimuthState:
-    """Re-solve with all kept samples and gate the result."""
+def _solve(state: AzimuthState, time_s: float, fit_psi=af.fit_psi) -> AzimuthState:
+    """Re-solve with all kept samples and gate the result. ``fit_psi``: the solve's implementation
+    (``azimuth_fit.fit_psi`` or the core's twin, estimators.core.fit_psi: the same results)."""
     p = state.params
     recs = state.samples
     n = len(recs)
@@ -365,9 +366,14 @@ def _solve(state: AzimuthState, time_s: float) -> AzimuthState:
     var_white = p.mag_noise_sigma_gauss ** 2 + (2.0 / 3.0) * e2 * p.gyro_arw_rad_sqrt_s ** 2 * tau
     var_drift = (2.0 / 3.0) * e2 * (p.gyro_bias_sigma_rad_s * tau) ** 2 if p.drift_weighting else 0.0
     data = af.FitData(C, h, var_white, 1.0 / (var_white + var_drift), G)
-    fit = af.fit_psi(data, state.C_isf_af, e, p.distortion_model, P_prior=state.P_consider,
-                     estimate_errors=p.estimate_errors)
-    psi_for_div = fit.psi_rad if fit.ok else 0.0
+    fit = fit_psi(data, state.C_isf_af, e, p.distortion_model, P_prior=state.P_consider,
+                  estimate_errors=p.estimate_errors)
+    # the diversity is measured at the fitted psi only where the fit determines it: an unobservable fit's
+    # psi is arbitrary (the same samples in another order give another; the gate rejects it on its
+    # condition number), so there the closed-form 2-D fit of the undistorted model stands in
+    determined = fit.ok and fit.condition_number <= p.gate.max_condition_number
+    psi_for_div = fit.psi_rad if determined else af.psi_closed_form(np.einsum("nji,nj->ni", C @ state.C_isf_af, h),
+                                                                    e, data.weight)
     diversity = af.orientation_diversity_rad(C @ state.C_isf_af, psi_for_div, e)
     # the gate judges what the data determine (white + gyro terms); the levelling-tilt share does
     # not shrink with more samples, it is reported in the sigma instead
@@ -453,10 +459,11 @@ def azimuth_propagate(strapdown: StrapdownState, G_gyro: np.ndarray, C_isf_sf: n
 
 
 def azimuth_step(state: AzimuthState, gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray,
-                 mag_gauss: np.ndarray | None, time_s: float, propagate=azimuth_propagate
+                 mag_gauss: np.ndarray | None, time_s: float, propagate=azimuth_propagate, fit_psi=af.fit_psi
                  ) -> tuple[AzimuthState, AzimuthOutput]:
     """One IMU sample in flight (FC time ``time_s``); ``mag_gauss`` None when there is none.
-    ``propagate``: step 1's implementation (``azimuth_propagate`` or the core's twin)."""
+    ``propagate``: step 1's implementation (``azimuth_propagate`` or the core's twin); ``fit_psi``:
+    the re-solve's (``azimuth_fit.fit_psi`` or estimators.core.fit_psi)."""
     if state.phase == "prelaunch":
         raise ValueError("azimuth_step before azimuth_launch")
     if state.phase == "failed":
@@ -490,7 +497,7 @@ def azimuth_step(state: AzimuthState, gyro_rad_s: np.ndarray, accel_m_s2: np.nda
         st = _with_checks(st, u_new)
     period = p.resolve_period_s if st.solution is not None else p.resolve_period_unsolved_s
     if time_s - st.last_solve_s >= period and len(st.samples) > 0:
-        st = _solve(st, time_s)
+        st = _solve(st, time_s, fit_psi)
     return st, _output(st, C_isf_sf, time_s)
 
 
@@ -613,13 +620,14 @@ class AzimuthEstimator:
 
 # --- solving outside the per-sample step (the daemon runs the fit in a worker process) -------
 
-def azimuth_solve(state: AzimuthState, time_s: float) -> AzimuthState:
+def azimuth_solve(state: AzimuthState, time_s: float, fit_psi=af.fit_psi) -> AzimuthState:
     """Re-solve psi_s (and the distortions) with the samples kept so far and gate the result.
 
     ``azimuth_step`` does this itself every ``resolve_period_s``; a caller that sets that period
     to infinity may instead run this pure function on a snapshot of the state elsewhere (a worker
-    process) and merge the result with ``azimuth_apply_solve``."""
-    return _solve(state, time_s)
+    process) and merge the result with ``azimuth_apply_solve``. ``fit_psi``: the solve's
+    implementation (``azimuth_fit.fit_psi`` or the core's twin, estimators.core.fit_psi)."""
+    return _solve(state, time_s, fit_psi)
 
 
 SOLVE_FIELDS = ("last_solve_s", "last_fit", "last_diversity_rad", "last_gate_reason", "solution", "first_solution")

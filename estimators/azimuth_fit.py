@@ -288,6 +288,16 @@ def consider_jacobian(model: str, theta: np.ndarray, C_sf_from_isf: np.ndarray, 
     return D.reshape(3 * N, K + N_TILT)
 
 
+def _finite_samples(data: FitData) -> np.ndarray:
+    """(N,) whether each sample's field, attitude, variance, weight and G are all finite."""
+    ok = (np.all(np.isfinite(np.asarray(data.h_sf_gauss, float)), axis=1)
+          & np.all(np.isfinite(np.asarray(data.C_sf_from_isf, float)), axis=(1, 2))
+          & np.isfinite(np.asarray(data.var_white_gauss2, float)) & np.isfinite(np.asarray(data.weight, float)))
+    if data.G_gyro is not None:
+        ok &= np.all(np.isfinite(np.asarray(data.G_gyro, float)), axis=(1, 2))
+    return ok
+
+
 def fit_psi(data: FitData, C_isf_af: np.ndarray, e_ned: np.ndarray, model: str = "seed7",
             grid_points: int = 36, max_iterations: int = 20, tol_rad: float = 1e-12,
             P_prior: np.ndarray | None = None, estimate_errors: bool = False) -> FitResult:
@@ -310,6 +320,9 @@ def fit_psi(data: FitData, C_isf_af: np.ndarray, e_ned: np.ndarray, model: str =
                         math.inf, N, 0)
     if 3 * N <= p:
         return _replace_reason(nan_res, f"{N} samples give {3 * N} equations for {p} unknowns")
+    n_bad = N - int(np.count_nonzero(_finite_samples(data)))
+    if n_bad:   # a named reason, not a LinAlgError from deep inside the solve
+        return _replace_reason(nan_res, f"{n_bad} of {N} samples not finite")
     Cfa = data.C_sf_from_isf @ C_isf_af                               # (N,3,3) C_SF<-AF
     U, V, Z = _field_terms(Cfa, e)
     # candidates: closed-form 2-D fit of the undistorted model, and a grid over [0, 2pi)

@@ -949,3 +949,127 @@ GROUND_AVAILABLE = HOT_PATH_AVAILABLE and hasattr(_core, "GroundState")
 """The ground (pre-launch) path in the core (core/ground.hpp: GroundState, hot_run's ground run)."""
 if GROUND_AVAILABLE:
     GroundState = _core.GroundState
+
+
+# --- method A's re-solve (estimators/azimuth_fit.py fit_psi, core/azimuth_fit.hpp) ---------------
+# The stored samples go in as contiguous arrays, the whole solve (profile scan, Gauss-Newton, the
+# covariances, the joint error estimate) runs in one C++ call; the FitResult is built here.
+
+FIT_AVAILABLE = AVAILABLE and hasattr(_core, "azimuth_fit")
+_MODEL_CODE = {"none": 0, "seed7": 1, "full12": 2}
+
+
+def fit_psi(data, C_isf_af: np.ndarray, e_ned: np.ndarray, model: str = "seed7", grid_points: int = 36,
+            max_iterations: int = 20, tol_rad: float = 1e-12, P_prior: np.ndarray | None = None,
+            estimate_errors: bool = False):
+    """estimators.azimuth_fit.fit_psi in the core: the same arguments and the same FitResult."""
+    from estimators import azimuth_fit as _af
+    if model not in _af.MODELS:
+        raise ValueError(f"model must be one of {_af.MODELS}, got {model!r}")
+    h = np.asarray(data.h_sf_gauss, float)
+    N = len(h)
+    p = _af.n_unknowns(model)
+    K = 0 if data.G_gyro is None else data.G_gyro.shape[2]
+    o = _core.azimuth_fit(data.C_sf_from_isf, h, data.var_white_gauss2, data.weight, data.G_gyro, C_isf_af,
+                          e_ned, _MODEL_CODE[model], int(grid_points), int(max_iterations), float(tol_rad),
+                          P_prior, bool(estimate_errors))
+    if not o["ok"]:
+        reason = (f"{N} samples give {3 * N} equations for {p} unknowns" if o["code"] == 1 else
+                  f"{o['n_bad']} of {N} samples not finite" if o["code"] == 3 else "least squares did not converge")
+        return _af.FitResult(False, model, math.nan, np.full(p, math.nan), np.eye(3), np.zeros(3),
+                             np.full((p, p), math.nan), np.zeros((p, K + _af.N_TILT)), math.nan, math.nan,
+                             math.inf, N, 0, reason)
+    theta = o["theta"]
+    psi, A, b = _af.unpack(model, theta)
+    return _af.FitResult(True, model, psi, theta, A, b, o["cov_white"], o["S"], o["s2"], o["residual_rms"],
+                         o["cond"], N, o["iterations"], c_hat=o["c_hat"], P_psi_c=o["P_psi_c"],
+                         psi_sigma_gate_rad=o["psi_sigma_gate"])
+
+
+# --- method D's deviation RLS (estimators/mag_deviation.py, core/mag_deviation.hpp) ---------------
+# The state is held in the core between observations (HeldDeviation); it reads like the reference's
+# DeviationState (coeffs, P, n, resid_sq_sum, n_resid, the coverage counts, to_dict), so the
+# reference's functions, the daemon's file and the tests read it unchanged.
+
+DEVIATION_AVAILABLE = AVAILABLE and hasattr(_core, "Deviation")
+
+
+class HeldDeviation:
+    """A DeviationState held in the core. Not a pure value: ``deviation_step`` steps a copy (the
+    reference's step returns a new state, the caller's old one stays as it was)."""
+
+    __slots__ = ("_c",)
+
+    def __init__(self, state):
+        if isinstance(state, HeldDeviation):
+            self._c = state._c.copy()
+            return
+        for name in ("heading_counts", "roll_counts", "pitch_counts"):
+            if getattr(state, name) is None:
+                raise ValueError(f"deviation state without {name}")
+        self._c = _core.Deviation(state.coeffs, state.P, int(state.n), state.resid_sq_sum, int(state.n_resid),
+                                  state.heading_counts, state.roll_counts, state.pitch_counts)
+
+    coeffs = property(lambda self: self._c.coeffs)
+    P = property(lambda self: self._c.P)
+    n = property(lambda self: self._c.n)
+    resid_sq_sum = property(lambda self: self._c.resid_sq_sum)
+    n_resid = property(lambda self: self._c.n_resid)
+    heading_counts = property(lambda self: self._c.heading_counts)
+    roll_counts = property(lambda self: self._c.roll_counts)
+    pitch_counts = property(lambda self: self._c.pitch_counts)
+
+    def to_state(self):
+        from estimators.mag_deviation import DeviationState
+        return DeviationState(self.coeffs, self.P, int(self.n), self.resid_sq_sum, int(self.n_resid),
+                              self.heading_counts, self.roll_counts, self.pitch_counts)
+
+    def to_dict(self) -> dict:
+        return self.to_state().to_dict()
+
+
+def deviation_step(state, mag_body_gauss, field_ned_gauss, heading_rad: float, roll_rad: float, pitch_rad: float,
+                   params=None):
+    """estimators.mag_deviation.deviation_step in the core: takes the reference's state or a held one,
+    returns (a held state, DeviationDiag) with the reference's numbers and reasons."""
+    from estimators import mag_deviation as _dv
+    params = _dv.DeviationParams() if params is None else params
+    m = np.asarray(mag_body_gauss, float)
+    F = np.asarray(field_ned_gauss, float)
+    if m.shape != (3,) or F.shape != (3,):
+        raise ValueError("mag_body_gauss and field_ned_gauss must have shape (3,)")
+    new = HeldDeviation(state)
+    code, e = new._c.step(m, F, float(heading_rad), float(roll_rad), float(pitch_rad), params.forgetting_factor,
+                          params.roll_limit_rad, params.pitch_limit_rad, params.heading_bins, params.roll_bins,
+                          params.pitch_bins)
+    if code == 1:
+        return state, _dv.DeviationDiag(False, reason="non-finite input")
+    if code == 2:
+        return state, _dv.DeviationDiag(False, reason="outside the calibration roll/pitch limits")
+    return new, _dv.DeviationDiag(True, residual_gauss=e)
+
+
+def corrected_mag(state, mag_body_gauss, heading_rad: float, roll_rad: float, pitch_rad: float) -> np.ndarray:
+    """estimators.mag_deviation.corrected_mag (a held state in the core; the reference's in the reference)."""
+    if not isinstance(state, HeldDeviation):
+        from estimators import mag_deviation as _dv
+        return _dv.corrected_mag(state, mag_body_gauss, heading_rad, roll_rad, pitch_rad)
+    return state._c.corrected(np.asarray(mag_body_gauss, float), float(heading_rad), float(roll_rad),
+                              float(pitch_rad))
+
+
+def residual_sigma_gauss(state) -> np.ndarray:
+    """estimators.mag_deviation.residual_sigma_gauss (either state)."""
+    if not isinstance(state, HeldDeviation):
+        from estimators import mag_deviation as _dv
+        return _dv.residual_sigma_gauss(state)
+    return state._c.residual_sigma()
+
+
+def deviation_coverage(state, params=None):
+    """estimators.mag_deviation.deviation_coverage (either state)."""
+    from estimators import mag_deviation as _dv
+    params = _dv.DeviationParams() if params is None else params
+    if not isinstance(state, HeldDeviation):
+        return _dv.deviation_coverage(state, params)
+    return _dv.Coverage(*state._c.coverage(params.min_samples_per_bin))

@@ -15,6 +15,8 @@ from typing import Callable
 
 from estimators import core
 from estimators import azimuth as _a_reference
+from estimators import azimuth_fit as _af_reference
+from estimators import mag_deviation as _dv_reference
 from estimators import mag_disturbance as _md_reference
 from estimators import mag_usability as _mu_reference
 from estimators import polar_attitude as _c_reference
@@ -99,6 +101,17 @@ class Backend:
     hot_run: Callable | None = None
     """The per-sample hot path behind Pipeline.on_imu_batch (estimators._core.hot_run; None: on_imu
     takes every sample)."""
+    azimuth_fit_psi: Callable = _af_reference.fit_psi
+    """Method A's re-solve (estimators.azimuth_fit.fit_psi's signature; the solver runs it)."""
+    deviation_step: Callable = _dv_reference.deviation_step
+    """Method D's RLS step (estimators.mag_deviation.deviation_step's signature) ..."""
+    deviation_corrected_mag: Callable = _dv_reference.corrected_mag
+    """... its corrected field (corrected_mag's signature) ..."""
+    deviation_residual_sigma_gauss: Callable = _dv_reference.residual_sigma_gauss
+    """... its residual sigma (residual_sigma_gauss's signature) ..."""
+    deviation_coverage: Callable = _dv_reference.deviation_coverage
+    """... and its coverage (deviation_coverage's signature). The four take the reference's
+    DeviationState or the core's held one (estimators/core.py HeldDeviation, which reads like it)."""
     synthetic_ahrs_takeoff: Callable = core.synthetic_ahrs_takeoff
     """Method B at the take-off (estimators.synthetic_ahrs.synthetic_ahrs_takeoff's signature):
     estimators.core's, which takes either state (the reference's record: the reference itself)."""
@@ -185,4 +198,8 @@ def select(environ=os.environ) -> Backend:
                    heading_zero_rate_update=core.heading_zero_rate_update,
                    **(dict(phase_step=phases_core.phase_step) if _phases_ported() else {}),
                    **(dict(sample_state=core.SampleState, hot_run=core.hot_run) if core.HOT_PATH_AVAILABLE else {}),
-                   **(dict(ground_state=core.GroundState) if core.GROUND_AVAILABLE and _phases_ported() else {}))
+                   **(dict(ground_state=core.GroundState) if core.GROUND_AVAILABLE and _phases_ported() else {}),
+                   **(dict(azimuth_fit_psi=core.fit_psi) if core.FIT_AVAILABLE else {}),
+                   **(dict(deviation_step=core.deviation_step, deviation_corrected_mag=core.corrected_mag,
+                           deviation_residual_sigma_gauss=core.residual_sigma_gauss,
+                           deviation_coverage=core.deviation_coverage) if core.DEVIATION_AVAILABLE else {}))

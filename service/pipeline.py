@@ -38,8 +38,8 @@ from estimators.declination import (DeclinationParams, RestState, estimate_decli
                                     rest_accumulate)
 from estimators.geomag import EarthField, earth_field, field_from_vector
 from estimators.levelling import LevellingParams, LevellingState
-from estimators.mag_deviation import (DeviationParams, DeviationState, corrected_mag, deviation_coverage,
-                                      deviation_init, deviation_step, residual_sigma_gauss)
+from estimators.mag_deviation import (DeviationParams, DeviationState, deviation_coverage, deviation_init,
+                                      residual_sigma_gauss)
 from estimators.mag_error_kf import Kf1State
 from estimators.mag_disturbance import MagDisturbanceState, mag_disturbance_params_for_field
 from estimators.mag_usability import MagUsabilityState, mag_usability_params_for_field
@@ -901,7 +901,7 @@ class Pipeline:
             if result is not None:
                 self.azimuth = azimuth_apply_solve(self.azimuth, result)
             if t >= self._next_solve_s and self.azimuth.phase == "flight" and self.azimuth.samples \
-                    and self.solver.submit(self.azimuth, t):
+                    and self.solver.submit(self.azimuth, t, self.core.azimuth_fit_psi):
                 # the result (at once from an inline solver) applies from the next sample on
                 self._next_solve_s = t + self.solve_period_s[0 if self.azimuth.solution is not None else 1]
             if out.status != self._azimuth_status:  # one event per status change, the reason with it
@@ -1057,11 +1057,11 @@ class Pipeline:
         less that hard-iron estimate. Not after a re-learnt hard iron (D's A_i are the old one)."""
         if self.deviation is None or not self.deviation_apply:
             return mag_hard_iron_corrected_body_gauss
-        use = (deviation_coverage(self.deviation, self.deviation_params).overall >= self.deviation_min_coverage
-               and not self._deviation_hard_iron_changed)
+        cover = self.core.deviation_coverage(self.deviation, self.deviation_params)
+        use = cover.overall >= self.deviation_min_coverage and not self._deviation_hard_iron_changed
         if use != self._deviation_in_use:
             self._deviation_in_use = use
-            cov = deviation_coverage(self.deviation, self.deviation_params)
+            cov = cover
             self._event("deviation", f"compensation {'applied' if use else 'not applied'}: " + (
                         "the hard iron was re-learnt (a magnet attached?) since its calibration"
                         if self._deviation_hard_iron_changed else
@@ -1076,7 +1076,8 @@ class Pipeline:
         att = self.core.polar_attitude_estimate(self.polar_att)
         if att is None:
             return mag_hard_iron_corrected_body_gauss
-        return corrected_mag(self.deviation, mag_measured_body_gauss, h.heading_rad, att.roll_rad, att.pitch_rad)
+        return self.core.deviation_corrected_mag(self.deviation, mag_measured_body_gauss, h.heading_rad, att.roll_rad,
+                                                 att.pitch_rad)
 
     def _deviation_learn(self, sol: NavSolution, mag_body_gauss: np.ndarray, t: float) -> None:
         """Calibration manoeuvre (METHODS.md D): one RLS update at DEVIATION_PERIOD_S against a
@@ -1096,9 +1097,10 @@ class Pipeline:
                 or sol.heading_sigma_rad > DEVIATION_MAX_REF_SIGMA_RAD:
             return
         self._deviation_last_s = t
-        self.deviation, _ = deviation_step(self.deviation, mag_body_gauss, self.field.e_ned_gauss,
-                                           sol.heading_rad, sol.roll_rad, sol.pitch_rad, self.deviation_params)
-        cov = deviation_coverage(self.deviation, self.deviation_params).overall
+        self.deviation, _ = self.core.deviation_step(self.deviation, mag_body_gauss, self.field.e_ned_gauss,
+                                                     sol.heading_rad, sol.roll_rad, sol.pitch_rad,
+                                                     self.deviation_params)
+        cov = self.core.deviation_coverage(self.deviation, self.deviation_params).overall
         if cov >= self._deviation_coverage_reported + 0.25:
             self._deviation_coverage_reported = cov
             self._event("deviation", f"calibration manoeuvre coverage {cov:.2f}")

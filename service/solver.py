@@ -54,9 +54,14 @@ def _new_pool() -> cf.ProcessPoolExecutor:
                                   initializer=_die_with_daemon, initargs=(os.getpid(),))
 
 
-def _solve_job(state, time_s):
+def _solve_job(state, time_s, fit_psi=None):
+    """``fit_psi``: the solve's implementation (the Pipeline's backend: estimators.azimuth_fit.fit_psi or
+    estimators.core.fit_psi, module functions, so a worker process unpickles them by name); None: the
+    reference."""
     from estimators.azimuth import azimuth_solve, azimuth_solve_result
-    return azimuth_solve_result(azimuth_solve(state, time_s))
+    if fit_psi is None:
+        return azimuth_solve_result(azimuth_solve(state, time_s))
+    return azimuth_solve_result(azimuth_solve(state, time_s, fit_psi))
 
 
 class InlineSolver:
@@ -69,8 +74,8 @@ class InlineSolver:
     def busy(self) -> bool:
         return False
 
-    def submit(self, state, time_s: float) -> bool:
-        self._result = _solve_job(state, time_s)
+    def submit(self, state, time_s: float, fit_psi=None) -> bool:
+        self._result = _solve_job(state, time_s, fit_psi)
         return True
 
     def poll(self):
@@ -98,13 +103,13 @@ class BackgroundSolver:
     def busy(self) -> bool:
         return self._future is not None and not self._future.done()
 
-    def submit(self, state, time_s: float) -> bool:
+    def submit(self, state, time_s: float, fit_psi=None) -> bool:
         if self._pool is None:  # the worker could not be restarted: inline from now on
-            return self._inline.submit(state, time_s)
+            return self._inline.submit(state, time_s, fit_psi)
         if self.busy():
             return False
         try:
-            self._future = self._pool.submit(_solve_job, state, time_s)
+            self._future = self._pool.submit(_solve_job, state, time_s, fit_psi)
         except (RuntimeError, cf.process.BrokenProcessPool) as exc:
             self._restart(exc)
             return False

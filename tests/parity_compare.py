@@ -11,9 +11,9 @@ numbers, strings) and lists (path, why) for every leaf that is not equal in this
 - a vector or a matrix that is not a covariance: max |a - b| <= RTOL max(max |a|, max |b|) (the
   max norm of the array: quaternions, biases, direction cosines);
 - a covariance (a square 2-D array whose name is ``P``, starts with ``P_`` or holds ``cov``): per
-  element |a_ij - b_ij| <= RTOL sqrt(|a_ii a_jj|). The core's matrix products sum in another order
-  than numpy's BLAS: an element that is 0 in exact arithmetic comes out ~1e-21 there, which no
-  relative measure of the element itself can take;
+  element |a_ij - b_ij| <= RTOL sqrt(|a_ii a_jj|), or both NaN (a failed fit's). The core's matrix
+  products sum in another order than numpy's BLAS: an element that is 0 in exact arithmetic comes out
+  ~1e-21 there, which no relative measure of the element itself can take;
 - anything else (bools, ints, strings, None, types): identical (numpy scalars count as the Python
   ones: references hold some flags as numpy.bool_).
 """
@@ -69,8 +69,8 @@ def _walk(a, b, path: str, rtol: float, bad: list) -> None:
             bad.append((path, f"shape {x.shape} vs {y.shape}"))
         elif x.ndim == 2 and x.shape[0] == x.shape[1] and _is_cov(path):
             scale = np.sqrt(np.abs(np.outer(np.diag(x), np.diag(x))))
-            over = np.abs(x - y) - rtol * scale
-            if not np.all(over <= 0.0):   # NaN fails too
+            over = np.where(np.isnan(x) & np.isnan(y), 0.0, np.abs(x - y) - rtol * scale)
+            if not np.all(over <= 0.0):   # NaN fails too, unless both are (as a float)
                 i, j = np.unravel_index(int(np.nanargmax(np.where(np.isnan(over), np.inf, over))), x.shape)
                 bad.append((path, f"covariance [{i}, {j}] {x[i, j]!r} vs {y[i, j]!r}: off by "
                                   f"{abs(x[i, j] - y[i, j]):.3g} > {rtol:g} sqrt(P_ii P_jj) = {rtol * scale[i, j]:.3g}"))
