@@ -265,9 +265,10 @@ def _clock(seconds: float) -> str:
 
 
 def _guarded(reader):
-    """The reader's items; a parser's exception on a damaged log becomes LogError (one line, exit 2)."""
+    """The reader's items, its runs of IMU samples as ImuBatch where it gives them so; a parser's
+    exception on a damaged log becomes LogError (one line, exit 2)."""
     from service.logreaders import LogError, one_line
-    it = iter(reader.items())
+    it = iter(reader.items(imu_batches=True))
     while True:
         try:
             item = next(it)
@@ -290,6 +291,7 @@ other items is usually far shorter)."""
 def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = REF_MAX_AGE_S,
                out_period_s: float = 0.0, progress: bool | None = False) -> ReplayResult:
     """Feed every item of ``reader`` to a fresh Pipeline; write the CSV; return the rows."""
+    from mavlink_io.imu_batch import IMU_RECORD, ImuBatch
     from mavlink_io.link import LinkEvent
     from mavlink_io.samples import (FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, ImuSample,
                                     PressureSample)
@@ -364,43 +366,95 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
                              *aiding.csv_row(pipe.aiding)])
 
     pending: list = []
-    """Consecutive IMU samples of one source not fed yet: one Pipeline.on_imu_batch (the daemon's
-    batch path; the compiled core takes the quiet ones in C++), cut at every other item."""
+    """The run of IMU samples not fed yet, consecutive and of one source: ImuSample objects (a reader
+    that yields them) or IMU_RECORD arrays (the ImuBatch rows of a reader that yields batches). One
+    Pipeline.imu_batch_steps per run (the daemon's batch path; the compiled core takes the quiet
+    samples in C++), cut at every other item, at a change of source and at IMU_BATCH_MAX samples."""
+    run_n = 0
+    run_src = None
 
     def feed_imu() -> None:
-        nonlocal t_pipe
-        run = pending[:]
+        nonlocal t_pipe, run_n
+        n_run = run_n
+        if type(pending[0]) is ImuSample:
+            samples = pending[:]
+            batch = batch_of(samples)
+            t_fc = [s.time_fc_s for s in samples]
+        else:   # rows: on_imu gets an ImuSample built from a row only for the samples it handles
+            samples = None
+            # rows joined as bytes (np.concatenate of structured arrays costs ~15 us a row)
+            rec = pending[0] if len(pending) == 1 else np.frombuffer(
+                bytearray().join([r.tobytes() for r in pending]), IMU_RECORD)
+            batch = ImuBatch(rec, run_src)
+            t_fc = rec["time_fc_s"].tolist()
+            span = cnt["imu_time_span_s"]
+            lo, hi = span
+            for t in t_fc:   # as sample by sample: a NaN time changes neither
+                lo, hi = min(lo, t), max(hi, t)
+            span[0], span[1] = lo, hi
+            cnt["imu_with_mag"] += sum(m == m for m in rec["mag_gauss"][:, 0].tolist())   # NaN: none
         pending.clear()
+        run_n = 0
         # events the other items raised since the last sample: on_imu's drain gave them the next
         # sample's time, this batch's first
         before = pipe.drain_events()
         t0 = perf()
-        for i, sol in pipe.imu_batch_steps(batch_of(run), run):
+        for i, sol in pipe.imu_batch_steps(batch, samples):
             t_pipe += perf() - t0
             if before:
-                res.events += [(run[0].time_fc_s, *ev) for ev in before]
+                res.events += [(t_fc[0], *ev) for ev in before]
                 before = []
-            t = run[i].time_fc_s
             for ev in pipe.drain_events():
-                res.events.append((t, *ev))
+                res.events.append((t_fc[i], *ev))
             if sol is not None:
                 row(sol)
             t0 = perf()
         t_pipe += perf() - t0
-        res.events += [(run[0].time_fc_s, *ev) for ev in before]
+        res.events += [(t_fc[0], *ev) for ev in before]
         n = cnt["imu"]
-        if n // 256 != (n - len(run)) // 256:
-            prog.update(reader.progress(), run[-1].time_fc_s, n)
+        if n // 256 != (n - n_run) // 256:
+            prog.update(reader.progress(), t_fc[-1], n)
+
+    def take_rows(b) -> None:
+        """An ImuBatch's rows into the run (cut at IMU_BATCH_MAX as sample by sample; feed_imu counts
+        their magnetometers and times)."""
+        nonlocal run_n, run_src
+        rec = b.records
+        n = len(rec)
+        if not n:
+            return
+        if pending and (b.source != run_src or type(pending[0]) is ImuSample):
+            feed_imu()
+        run_src = b.source
+        cnt["imu"] += n
+        imu_sources[b.source] = imu_sources.get(b.source, 0) + n
+        i = 0
+        while i < n:
+            if run_n >= IMU_BATCH_MAX:
+                feed_imu()
+            k = min(n - i, IMU_BATCH_MAX - run_n)
+            pending.append(rec if k == n else rec[i:i + k])
+            run_n += k
+            i += k
 
     try:
         for item in _guarded(reader):
             cls = type(item)
+            if cls is ImuBatch and not len(item):
+                continue
             if identity_due:
                 identity_due = False
-                pipe.on_fc_identity(ident.mav_type, ident.autopilot, ident.params, item.time_rx_s, ident.source)
+                t_rx = float(item.records["time_rx_s"][0]) if cls is ImuBatch else item.time_rx_s
+                pipe.on_fc_identity(ident.mav_type, ident.autopilot, ident.params, t_rx, ident.source)
+            if cls is ImuBatch:
+                take_rows(item)
+                continue
             if cls is ImuSample:
-                if pending and (item.source != pending[0].source or len(pending) >= IMU_BATCH_MAX):
+                if pending and (item.source != run_src or run_n >= IMU_BATCH_MAX
+                                or type(pending[0]) is not ImuSample):
                     feed_imu()
+                run_src = item.source
+                run_n += 1
                 cnt["imu"] += 1
                 cnt["imu_with_mag"] += item.mag_gauss is not None
                 imu_sources[item.source] = imu_sources.get(item.source, 0) + 1

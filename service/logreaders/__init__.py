@@ -21,6 +21,11 @@ Common interface (duck-typed, see ``LogReader``); bad input raises :class:`LogEr
 message naming the file and the problem, in one line (a damaged or truncated file is read up to
 the damage and says so in ``summary.notes``; a reader never lets a parser's exception out).
 
+``items(imu_batches=True)`` may give a run of consecutive IMU samples as one
+``mavlink_io.imu_batch.ImuBatch`` (IMU_RECORD rows: the same values as the ImuSamples it stands
+for; the tlog reader passes on its link's batches, the ULog reader decodes its whole log into rows,
+the DataFlash reader gives ImuSamples either way): what ``azimuthd replay`` hands the Pipeline.
+
 Readers also yield ``FcFlightState`` (the FC's own armed / landed state from the log's records),
 the Pipeline's phase evidence; ``takeoff_times_s()`` gives the log's own take-off times from the
 same records, a reference for scoring only (the Pipeline never sees it).
@@ -79,7 +84,7 @@ class LogReader(Protocol):
 
     def site(self) -> LogSite | None: ...
     def decimal_year(self) -> float | None: ...
-    def items(self) -> Iterator: ...
+    def items(self, imu_batches: bool = False) -> Iterator: ...
     def progress(self) -> float: ...
     def takeoff_times_s(self) -> list[float]: ...
 

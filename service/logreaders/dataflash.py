@@ -314,7 +314,9 @@ class DataflashReader:
 
     # --- the second pass: the samples --------------------------------------------------------------
 
-    def items(self) -> Iterator:
+    def items(self, imu_batches: bool = False) -> Iterator:
+        """The samples in log order; one ImuSample per IMU record, ``imu_batches`` or not (the records
+        are walked one by one: a run of them as an ImuBatch would save nothing)."""
         s = self.summary
         use = self._use
         by_msg = {msg: (kind, inst) for kind, (msg, inst) in use.items() if kind != "GPS"}

@@ -56,8 +56,9 @@ class TlogLogReader:
         if first is None:
             raise LogError(f"{self.path}: not a MAVLink telemetry log (no timestamped MAVLink frame "
                            "in its first 4 KiB)")
+        self._first_t_s = first[0]  # the whole log's first record too (TlogReader stops at a cut one)
 
-    # --- site and date: a pre-scan that stops at the first GNSS fix -----------------------------
+    # --- site: a pre-scan that stops at the first GNSS fix; date: the first record ---------------
 
     def _scan(self) -> None:
         if self._scanned:
@@ -69,9 +70,7 @@ class TlogLogReader:
         parser = mavlink2.MAVLink(None)
         parser.robust_parsing = True
         fix_seen = [False]
-        for t_s, frame in TlogReader(self._data):
-            if self._first_t_s is None:
-                self._first_t_s = t_s
+        for _t_s, frame in TlogReader(self._data):
             if _msgid(frame) not in _SITE_IDS:
                 continue
             try:
@@ -89,7 +88,8 @@ class TlogLogReader:
         return self._site
 
     def decimal_year(self) -> float | None:
-        self._scan()
+        """The date of the log's first record (read when the reader was opened: a replay told its site
+        never scans the log for one)."""
         return None if self._first_t_s is None else decimal_year_from_unix(self._first_t_s)
 
     # --- replay --------------------------------------------------------------------------------
@@ -97,7 +97,9 @@ class TlogLogReader:
     def progress(self) -> float:
         return min(1.0, self._consumed / self._size) if self._size else 1.0
 
-    def items(self) -> Iterator:
+    def items(self, imu_batches: bool = False) -> Iterator:
+        """The link's items in log order. ``imu_batches``: each frame's IMU samples as the link's
+        ImuBatch (a replay feeds them to the Pipeline as rows), else one ImuSample each."""
         from mavlink_io.imu_batch import ImuBatch
         from mavlink_io.link import LinkConfig, MavlinkLink
         from mavlink_io.samples import FcFlightState, FcHeartbeat, ImuSample
@@ -120,6 +122,7 @@ class TlogLogReader:
         track = FlightStateTrack()
         link_states = False  # the link decodes EXTENDED_SYS_STATE itself: no second copy from here
         last_imu = None
+        """(time_fc_s, time_rx_s) of the last IMU sample."""
         n_states = 0
         for t_s, frame in reader:
             clock_s[0] = t_s
@@ -128,15 +131,20 @@ class TlogLogReader:
             for item in link.feed(frame, t_s):
                 cls = type(item)
                 if cls is ImuBatch:
-                    for last_imu in item.samples():
-                        yield last_imu
+                    if not len(item):
+                        continue
+                    last_imu = item.records[-1:].tolist()[0][:2]
+                    if imu_batches:
+                        yield item
+                    else:
+                        yield from item.samples()
                     continue
                 if cls is FcHeartbeat:
                     self._vehicle_type = item.vehicle_type
                     if (item.system_id, item.component_id) == (link.target_system, link.target_component):
                         track.update(self._fc_time(last_imu, t_s), armed=bool(item.armed))
                 elif cls is ImuSample:
-                    last_imu = item
+                    last_imu = (item.time_fc_s, item.time_rx_s)
                 elif cls is FcFlightState:
                     link_states = True
                     if item.landed is not None:
@@ -178,7 +186,7 @@ class TlogLogReader:
     @staticmethod
     def _fc_time(last_imu, t_rx_s: float) -> float | None:
         """FC time at receive time ``t_rx_s``: the last IMU sample's FC time plus the receive time since."""
-        return None if last_imu is None else last_imu.time_fc_s + (t_rx_s - last_imu.time_rx_s)
+        return None if last_imu is None else last_imu[0] + (t_rx_s - last_imu[1])
 
     def takeoff_times_s(self) -> list[float]:
         """The log's own take-offs (FC time s) from EXTENDED_SYS_STATE and HEARTBEAT: for scoring only.

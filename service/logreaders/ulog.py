@@ -62,6 +62,7 @@ from typing import Iterator
 
 import numpy as np
 
+from mavlink_io.imu_batch import IMU_RECORD, ImuBatch
 from mavlink_io.samples import FcAttitude, FcEkfStatus, FcFlightState, ImuSample, PressureSample
 from service.logreaders import (FcIdentity, FlightStateTrack, LogError, LogSite, LogSummary, decimal_year_from_unix,
                                 one_line)
@@ -128,7 +129,8 @@ def truncated_tail_bytes(data: bytes) -> int:
 
 
 class UlogReader:
-    """``items()`` yields ImuSample, PressureSample, FcAttitude and FcFlightState in FC-time order."""
+    """``items()`` yields ImuSample (``items(imu_batches=True)``: ImuBatch runs), PressureSample,
+    FcAttitude, FcEkfStatus and FcFlightState in FC-time order."""
 
     def __init__(self, path: Path):
         self.path = Path(path)
@@ -437,7 +439,17 @@ class UlogReader:
                                   for k in ("vel_test_ratio", "pos_test_ratio", "hgt_test_ratio", "mag_test_ratio")])
         return self._time_s(es), np.asarray(flags, np.int64), ratios
 
-    def items(self) -> Iterator:
+    def items(self, imu_batches: bool = False) -> Iterator:
+        """The samples in FC-time order. ``imu_batches``: each run of IMU samples between two other
+        items as one ImuBatch (IMU_RECORD rows, decoded for the whole log at once), else one
+        ImuSample each (the same values)."""
+        if not imu_batches:
+            for item in self.items(imu_batches=True):
+                if type(item) is ImuBatch:
+                    yield from item.samples()
+                else:
+                    yield item
+            return
         try:
             streams = (*self._imu(), *self._mag(), *self._baro(), *self._diff_pressure(), *self._attitude(),
                        *self._status(), *self._flight_states())
@@ -472,62 +484,79 @@ class UlogReader:
         all_i = np.concatenate([np.arange(len(p[0])) for p in parts])
         order = np.lexsort((all_k, all_t))
         self._total = len(order)
-        t_imu_l = t_imu.tolist()
-        finite_imu = np.all(np.isfinite(gyro), axis=1) & np.all(np.isfinite(accel), axis=1)
+        kinds, idx = all_k[order], all_i[order]
+        # the IMU samples in merged order, the finite ones as IMU_RECORD rows (NaN magnetometer: none held)
+        is_imu = kinds == _IMU
+        pos = idx[is_imu]
+        finite = (np.all(np.isfinite(gyro), axis=1) & np.all(np.isfinite(accel), axis=1))[pos]
+        pos_ok = pos[finite]
+        rows = np.zeros(len(pos_ok), dtype=IMU_RECORD)
+        f8 = rows.view(np.float64).reshape(len(pos_ok), IMU_RECORD.itemsize // 8)
+        f8[:, 0] = f8[:, 1] = t_imu[pos_ok]
+        f8[:, 2:5] = gyro[pos_ok]
+        f8[:, 5:8] = accel[pos_ok]
+        held = mag_idx[pos_ok]
+        with_mag = held >= 0
+        f8[:, 8:11] = np.nan
+        if with_mag.any():
+            f8[with_mag, 8:11] = mag[held[with_mag]]
+        # an IMU run at merged positions [a, b) is rows[ok_before[imu_before[a]] : ok_before[imu_before[b]]]
+        imu_before = np.concatenate(([0], np.cumsum(is_imu))).tolist()
+        ok_before = np.concatenate(([0], np.cumsum(finite))).tolist()
+        cuts = (np.flatnonzero(kinds[1:] != kinds[:-1]) + 1).tolist()
         last_gyro = None
-        bad = 0
-        counts = {"imu": 0, "imu_with_mag": 0, "pressure": 0, "pressure_with_diff": 0, "attitude": 0,
-                  "flight_state": 0, "estimator_status": 0}
-        for n, e in enumerate(order.tolist()):
-            self._done = n
-            kind, i = all_k[e], int(all_i[e])
-            if kind == _IMU:
-                if not finite_imu[i]:
-                    bad += 1
-                    continue
-                m = mag_idx[i]
-                mg = mag[m] if m >= 0 else None
-                counts["imu"] += 1
-                counts["imu_with_mag"] += mg is not None
-                last_gyro = gyro[i]
-                yield ImuSample(t_imu_l[i], t_imu_l[i], gyro[i], accel[i], mg, imu_src, 0)
-            elif kind == _PRESS:
-                t, pa = float(t_baro[i]), float(p_abs[i])
-                if not (math.isfinite(pa) and pa > 0.0):
-                    continue
-                diff = None
-                if dp_idx is not None and dp_idx[i] >= 0 and math.isfinite(dp[dp_idx[i]]):
-                    diff = float(dp[dp_idx[i]])
-                counts["pressure"] += 1
-                counts["pressure_with_diff"] += diff is not None
-                tk = float(temp_k[i])
-                yield PressureSample(t, t, pa, diff, tk if math.isfinite(tk) else None, "vehicle_air_data")
-            elif kind == _ATT:
-                qi = q[i]
-                if not np.all(np.isfinite(qi)) or not qi @ qi > 0.5:
-                    continue
-                roll, pitch, yaw = euler_from_quat(qi / math.sqrt(qi @ qi))
-                yaw = math.remainder(yaw, 2 * math.pi)
-                if rates is not None:
-                    w = rates[i]
-                elif last_gyro is not None:
-                    w = last_gyro
+        counts = {"imu": len(pos_ok), "imu_with_mag": int(np.count_nonzero(with_mag)), "pressure": 0,
+                  "pressure_with_diff": 0, "attitude": 0, "flight_state": 0, "estimator_status": 0}
+        bad = len(pos) - len(pos_ok)
+        kinds_l, idx_l = kinds.tolist(), idx.tolist()
+        for a, b in zip([0] + cuts, cuts + [len(order)]) if len(order) else ():
+            self._done = a
+            if kinds_l[a] == _IMU:
+                r0, r1 = ok_before[imu_before[a]], ok_before[imu_before[b]]
+                if r1 > r0:
+                    last_gyro = gyro[pos_ok[r1 - 1]]
+                    yield ImuBatch(rows[r0:r1], imu_src)
+                continue
+            for n in range(a, b):
+                self._done = n
+                kind, i = kinds_l[n], idx_l[n]
+                if kind == _PRESS:
+                    t, pa = float(t_baro[i]), float(p_abs[i])
+                    if not (math.isfinite(pa) and pa > 0.0):
+                        continue
+                    diff = None
+                    if dp_idx is not None and dp_idx[i] >= 0 and math.isfinite(dp[dp_idx[i]]):
+                        diff = float(dp[dp_idx[i]])
+                    counts["pressure"] += 1
+                    counts["pressure_with_diff"] += diff is not None
+                    tk = float(temp_k[i])
+                    yield PressureSample(t, t, pa, diff, tk if math.isfinite(tk) else None, "vehicle_air_data")
+                elif kind == _ATT:
+                    qi = q[i]
+                    if not np.all(np.isfinite(qi)) or not qi @ qi > 0.5:
+                        continue
+                    roll, pitch, yaw = euler_from_quat(qi / math.sqrt(qi @ qi))
+                    yaw = math.remainder(yaw, 2 * math.pi)
+                    if rates is not None:
+                        w = rates[i]
+                    elif last_gyro is not None:
+                        w = last_gyro
+                    else:
+                        w = np.full(3, math.nan)
+                    counts["attitude"] += 1
+                    t = float(t_att[i])
+                    yield FcAttitude(t, t, roll, pitch, yaw, w)
+                elif kind == _STATUS:
+                    f = int(es_flags[i])
+                    t = float(t_es[i])
+                    counts["estimator_status"] += 1
+                    yield FcEkfStatus(t, bool(f & _EST_ATTITUDE), bool(f & _EST_POS_HORIZ_ABS), f, "estimator_status",
+                                      t, *(float(r) for r in es_ratios[i]))
                 else:
-                    w = np.full(3, math.nan)
-                counts["attitude"] += 1
-                t = float(t_att[i])
-                yield FcAttitude(t, t, roll, pitch, yaw, w)
-            elif kind == _STATUS:
-                f = int(es_flags[i])
-                t = float(t_es[i])
-                counts["estimator_status"] += 1
-                yield FcEkfStatus(t, bool(f & _EST_ATTITUDE), bool(f & _EST_POS_HORIZ_ABS), f, "estimator_status", t,
-                                  *(float(r) for r in es_ratios[i]))
-            else:
-                armed, landed = states[i]
-                counts["flight_state"] += 1
-                t = float(t_st[i])
-                yield FcFlightState(t, t, armed, landed, "vehicle_status/vehicle_land_detected")
+                    armed, landed = states[i]
+                    counts["flight_state"] += 1
+                    t = float(t_st[i])
+                    yield FcFlightState(t, t, armed, landed, "vehicle_status/vehicle_land_detected")
         self._done = self._total
         s.counts = counts
         if bad:
