@@ -9,14 +9,26 @@ import sys
 # switches (measured much slower on a busy 2-core machine). Set before numpy is imported.
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
-from importlib.metadata import PackageNotFoundError, version
 
 
 def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version  # ~50 ms of imports: only for --version
     try:
         return version("azimuthd")
     except PackageNotFoundError:
         return "unknown"
+
+
+class _VersionAction(argparse.Action):
+    """argparse's "version" action with the version looked up only when asked for."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                 help="show program's version number and exit"):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"azimuthd {_version()}")
+        parser.exit()
 
 
 DEFAULT_TTY_STATUS_INTERVAL_S = 1.0
@@ -155,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         prog="azimuthd",
         description="GNSS-denied heading and attitude for UAVs, as a MAVLink companion-computer service.",
         epilog="Run 'azimuthd COMMAND --help' for a command's options.")
-    ap.add_argument("--version", action="version", version=f"azimuthd {_version()}")
+    ap.add_argument("--version", action=_VersionAction)
     ap.add_argument("command", choices=sorted(COMMANDS), metavar="COMMAND",
                     help="; ".join(f"{k}: {v[1]}" for k, v in COMMANDS.items()))
     if not argv or argv[0] in ("-h", "--help", "--version"):
