@@ -500,8 +500,8 @@ def orientation_diversity_rad(C_sf_from_af: np.ndarray, psi_rad: float, e_ned: n
     """
     m = C_sf_from_af @ (r3(psi_rad) @ np.asarray(e_ned, float))
     u = m / np.linalg.norm(m, axis=1)[:, None]
-    d = np.clip(u @ u.T, -1.0, 1.0)
-    return float(math.acos(float(d.min())))
+    # the smallest cosine, then clipped (the same number as clipping all N^2 first: clip is monotonic)
+    return float(math.acos(min(1.0, max(-1.0, float(np.min(u @ u.T))))))
 
 
 # --- the gate -------------------------------------------------------------------------------
