@@ -2,15 +2,19 @@
 // The Python face (service/arbitration_core.py) keeps the reference's signature
 // (service/heading_arbitration.py arbitrate): it checks time_s as the reference does, converts the
 // reference's params once (ArbitrationParams), and turns what comes back into the reference's
-// ArbitrationState, ArbitrationOutput, ArbitrationEvent and aiding records, worded as the reference
-// words them. Here the reference's ArbitrationState and SourceReadings are read as they stand; a
-// value the step does not take as it stands (a number that is not a Python float or a small int, a
-// name or group that is not a str, two readings of one name, sources that are not a tuple, a
-// sequence that is not a list or tuple) gives None, untouched, and the Python face runs the
-// reference on it, which answers as it answers.
+// ArbitrationState, ArbitrationOutput, ArbitrationEvent and aiding records. The aiding records whose
+// code the core chose are made here (tuple.__new__ of the record type the face hands in, as
+// AidingRecord._make makes them), worded as the reference words them (printf's %.Nf: correctly
+// rounded, as Python's format); a record whose code is the caller's (a reading not valid or
+// inconsistent) is worded and checked by the face. The reference's ArbitrationState and
+// SourceReadings are read as they stand; a value the step does not take as it stands (a number that
+// is not a Python float or a small int, a name or group that is not a str, two readings of one name,
+// sources that are not a tuple, a sequence that is not a list or tuple) gives None, untouched, and
+// the Python face runs the reference on it, which answers as it answers.
 #include <pybind11/pybind11.h>
 
 #include <cmath>
+#include <cstdio>
 #include <string>
 #include <vector>
 
@@ -148,8 +152,14 @@ bool group_bit(const std::string& g, std::vector<std::string>& table, std::uint6
     return true;
 }
 
+// what an aiding record takes from a reading as it stands (the reference passes these objects on)
+struct ReadingObjects {
+    py::object name, heading, sigma, time, s_innov, s_var, s_ratio;
+    std::vector<std::string> groups;  // r.groups: the group names in order, the empty ones left out
+};
+
 // the SourceReadings as they stand; false: not ones the step takes
-bool readings_from(PyObject* seq, std::vector<Reading>& rs) {
+bool readings_from(PyObject* seq, std::vector<Reading>& rs, std::vector<ReadingObjects>& objs) {
     static PyObject* const k_name = key("name");
     static PyObject* const k_heading = key("heading_rad");
     static PyObject* const k_sigma = key("sigma_rad");
@@ -157,9 +167,13 @@ bool readings_from(PyObject* seq, std::vector<Reading>& rs) {
     static PyObject* const k_time = key("time_s");
     static PyObject* const k_group = key("group");
     static PyObject* const k_consistent = key("consistent");
+    static PyObject* const k_s_innov = key("source_innovation_rad");
+    static PyObject* const k_s_var = key("source_innovation_variance_rad2");
+    static PyObject* const k_s_ratio = key("source_test_ratio");
     if (!(PyList_Check(seq) || PyTuple_Check(seq))) return false;
     const Py_ssize_t n = PySequence_Fast_GET_SIZE(seq);
     rs.resize(static_cast<std::size_t>(n));
+    objs.resize(static_cast<std::size_t>(n));
     std::vector<std::string> groups;
     std::string g;
     for (Py_ssize_t i = 0; i < n; ++i) {
@@ -168,6 +182,16 @@ bool readings_from(PyObject* seq, std::vector<Reading>& rs) {
         py::object name = attr(o, k_name), h = attr(o, k_heading), s = attr(o, k_sigma), v = attr(o, k_valid),
                    t = attr(o, k_time), gr = attr(o, k_group), c = attr(o, k_consistent);
         if (!name || !h || !s || !v || !t || !gr || !c) return false;
+        ReadingObjects& ob = objs[static_cast<std::size_t>(i)];
+        ob.s_innov = attr(o, k_s_innov);
+        ob.s_var = attr(o, k_s_var);
+        ob.s_ratio = attr(o, k_s_ratio);
+        if (!ob.s_innov || !ob.s_var || !ob.s_ratio) return false;
+        ob.name = name;
+        ob.heading = h;
+        ob.sigma = s;
+        ob.time = t;
+        ob.groups.clear();
         if (!as_str(name.ptr(), r.name) || !as_num(h.ptr(), r.heading_rad) || !as_num(s.ptr(), r.sigma_rad) ||
             !as_num(t.ptr(), r.time_s) || !as_truth(v.ptr(), r.valid) || !as_truth(c.ptr(), r.consistent))
             return false;
@@ -177,17 +201,72 @@ bool readings_from(PyObject* seq, std::vector<Reading>& rs) {
         PyObject* go = gr.ptr();
         if (PyUnicode_Check(go)) {
             if (!as_str(go, g)) return false;
-            if (!g.empty() && !group_bit(g, groups, r.groups)) return false;
+            if (!g.empty()) {
+                if (!group_bit(g, groups, r.groups)) return false;
+                ob.groups.push_back(g);
+            }
         } else if (PyTuple_Check(go)) {
             for (Py_ssize_t j = 0; j < PyTuple_GET_SIZE(go); ++j) {
                 if (!as_str(PyTuple_GET_ITEM(go, j), g)) return false;
-                if (!g.empty() && !group_bit(g, groups, r.groups)) return false;
+                if (!g.empty()) {
+                    if (!group_bit(g, groups, r.groups)) return false;
+                    ob.groups.push_back(g);
+                }
             }
         } else {
             return false;
         }
     }
     return true;
+}
+
+// Python's format(x, spec) of a float for a printf spec of fixed digits: printf's digits (correctly
+// rounded, as Python's), Python's words for the non-finite ("nan" whatever its sign bit, "inf")
+std::string fmt(const char* spec, double x) {
+    if (std::isnan(x)) return "nan";
+    if (std::isinf(x)) return x > 0 ? "inf" : "-inf";
+    const int n = std::snprintf(nullptr, 0, spec, x);
+    std::string out(static_cast<std::size_t>(n) + 1, '\0');
+    std::snprintf(&out[0], out.size(), spec, x);
+    out.resize(static_cast<std::size_t>(n));
+    return out;
+}
+
+constexpr double RAD_TO_DEG = 180.0 / PI;  // math.degrees: x * (180 / pi)
+
+// (code, detail) of a reading not fused whose words are the core's (the reference's _records); false:
+// its code is the caller's (not valid, inconsistent) or there is none: worded by the Python face
+bool worded(const Per& v, const Reading& r, const ReadingObjects& ob, double time_s, py::object& code,
+            py::object& detail) {
+    static const py::str c_gated("gated_out"), c_corr("correlated"), c_nonfinite("non_finite"),
+        c_sigma("sigma_out_of_range"), c_stale("stale"), d_nonfinite("non-finite");
+    switch (v.why) {
+        case GATED_OUT:
+            code = c_gated;
+            detail = py::str("gated out (NIS " + fmt("%.1f", v.nis) + ")");
+            return true;
+        case CORRELATED: {
+            std::string g;
+            for (std::size_t k = 0; k < ob.groups.size(); ++k) g += (k ? "+" : "") + ob.groups[k];
+            code = c_corr;
+            detail = py::str("correlated with a better source (group " + g + ")");
+            return true;
+        }
+        case NON_FINITE:
+            code = c_nonfinite;
+            detail = d_nonfinite;
+            return true;
+        case SIGMA_RANGE:
+            code = c_sigma;
+            detail = py::str("sigma " + fmt("%.1f", r.sigma_rad * RAD_TO_DEG) + " deg out of range");
+            return true;
+        case STALE:
+            code = c_stale;
+            detail = py::str("stale (" + fmt("%.2f", time_s - r.time_s) + " s)");
+            return true;
+        default:
+            return false;
+    }
 }
 
 py::tuple str_tuple(const std::vector<std::string>& v) {
@@ -214,14 +293,19 @@ void bind_arbitration(py::module_& m) {
 
     m.def(
         "arbitrate",
-        [](const Params& p, const py::handle& state, const py::handle& readings, double time_s,
-           const py::handle& rate, const py::handle& not_offered) -> py::object {
+        [](const Params& p, const py::handle& state, const py::handle& readings, const py::object& time,
+           const py::handle& rate, const py::handle& not_offered, const py::handle& record_type) -> py::object {
             static PyObject* const k_source = key("source");
             State st;
             std::vector<Reading> rs;
+            std::vector<ReadingObjects> objs;
             bool has_rate = !rate.is_none();
             double r = 0.0;
-            if (!state_from(state.ptr(), st) || !readings_from(readings.ptr(), rs) ||
+            if (!PyFloat_Check(time.ptr()) || !PyType_Check(record_type.ptr()) ||
+                !PyType_IsSubtype(reinterpret_cast<PyTypeObject*>(record_type.ptr()), &PyTuple_Type))
+                return py::none();
+            const double time_s = PyFloat_AS_DOUBLE(time.ptr());
+            if (!state_from(state.ptr(), st) || !readings_from(readings.ptr(), rs, objs) ||
                 (has_rate && !as_num(rate.ptr(), r)))
                 return py::none();
             PyObject* no = not_offered.ptr();
@@ -236,12 +320,29 @@ void bind_arbitration(py::module_& m) {
             Output out;
             if (!step(st, rs, time_s, p, has_rate, r, next, out)) return py::none();
 
+            // per reading its AidingRecord (tuple.__new__(record_type, values): the record's own checks
+            // hold by construction), or, where the code is the caller's, the numbers for the Python face
+            static const py::str empty("");
             py::tuple per(rs.size());
+            py::object code, detail;
             for (std::size_t i = 0; i < rs.size(); ++i) {
                 const Per& v = out.per[i];
                 const double ratio = v.innov_var > 0.0 ? v.innov * v.innov / v.innov_var / p.gate_chi2 : NAN;
-                per[i] = py::make_tuple(v.candidate, v.used, v.why, v.nis, v.innov, v.innov_var, ratio,
-                                        last_fused(next, rs[i].name));
+                const double last = last_fused(next, rs[i].name);
+                const ReadingObjects& ob = objs[i];
+                if (v.used || worded(v, rs[i], ob, time_s, code, detail)) {
+                    if (v.used) code = detail = empty;
+                    py::tuple values = py::make_tuple(ob.name, time, code, detail, v.candidate, v.used, last,
+                                                      ob.heading, ob.sigma, v.innov, v.innov_var, ratio, ob.s_innov,
+                                                      ob.s_var, ob.s_ratio);
+                    py::tuple args = py::make_tuple(values);
+                    PyObject* rec = PyTuple_Type.tp_new(reinterpret_cast<PyTypeObject*>(record_type.ptr()),
+                                                        args.ptr(), nullptr);
+                    if (!rec) throw py::error_already_set();
+                    per[i] = py::reinterpret_steal<py::object>(rec);
+                } else {
+                    per[i] = py::make_tuple(v.candidate, v.used, v.why, v.nis, v.innov, v.innov_var, ratio, last);
+                }
             }
             py::tuple no_last(no_names.size());
             for (std::size_t i = 0; i < no_names.size(); ++i) no_last[i] = py::float_(last_fused(next, no_names[i]));
@@ -268,11 +369,12 @@ void bind_arbitration(py::module_& m) {
                 out.offset_rad, events, per, no_last);
         },
         py::arg("params"), py::arg("state"), py::arg("readings"), py::arg("time_s"), py::arg("heading_rate_rad_s"),
-        py::arg("not_offered"),
+        py::arg("not_offered"), py::arg("record_type"),
         "One step of service.heading_arbitration.arbitrate (time_s checked finite by the caller): None (a value "
         "the core does not take as it stands: the reference answers it) or ((fused_rad, fused_var_rad2, "
         "offset_rad, sources or None = the old, gated_since_s, last_fused_s or None = the old), kind 0 fused / 1 "
         "coast / 2 none, heading_rad or None, sigma_rad, fused names or None, offset_rad, events ((kind, to, "
-        "jump_rad, dt_s), ...), per reading (candidate, used, why, nis, innovation, its variance, test ratio, "
-        "time last fused), per not-offered source its time last fused).");
+        "jump_rad, dt_s), ...), per reading its record_type (service.aiding.AidingRecord) or, where its code is "
+        "the caller's (not valid, inconsistent), (candidate, used, why, nis, innovation, its variance, test "
+        "ratio, time last fused), per not-offered source its time last fused).");
 }

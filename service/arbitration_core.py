@@ -23,7 +23,7 @@ from service.heading_arbitration import ArbitrationEvent, ArbitrationOutput, Arb
 ARBITRATION_AVAILABLE = AVAILABLE and hasattr(_core, "arbitrate")
 
 # core/heading_arbitration.hpp Why, EventKind, OutKind
-(_NONE, _NOT_VALID, _INCONSISTENT, _NON_FINITE, _SIGMA_RANGE, _STALE, _GATED_OUT, _CORRELATED) = range(8)
+_NOT_VALID, _INCONSISTENT = 1, 2
 _EVENT_KIND = ("lost", "majority", "reset", "acquired", "source_change", "reset")
 _FUSED, _COAST, _NO_SOURCE = range(3)
 _NAN = math.nan
@@ -41,23 +41,15 @@ def _core_params(params: ArbitrationParams):
     return _params_seen[1]
 
 
-def _why(why: int, r, nis: float, time_s) -> tuple[str, str]:
-    """(code, detail) of a reading not fused, as the reference words them."""
-    if why == _GATED_OUT:
-        return "gated_out", f"gated out (NIS {nis:.1f})"
-    if why == _CORRELATED:
-        return "correlated", f"correlated with a better source (group {'+'.join(r.groups)})"
+def _why(why: int, r) -> tuple[str, str]:
+    """(code, detail) of a reading whose code is the caller's (not valid, inconsistent), as the
+    reference words them; ("", "") for a candidate with no reason (the record refuses it, as the
+    reference's does). The core words the others (core/bindings_arbitration.cpp)."""
     if why == _NOT_VALID:
         return r.why_code or "not_valid", f"not valid: {r.why_not}" if r.why_not else "not valid"
     if why == _INCONSISTENT:
         return (r.why_code or "inconsistent",
                 f"inconsistent: {r.why_not}" if r.why_not else "inconsistent with its own measurements")
-    if why == _NON_FINITE:
-        return "non_finite", "non-finite"
-    if why == _SIGMA_RANGE:
-        return "sigma_out_of_range", f"sigma {math.degrees(r.sigma_rad):.1f} deg out of range"
-    if why == _STALE:
-        return "stale", f"stale ({time_s - r.time_s:.2f} s)"
     return "", ""
 
 
@@ -82,24 +74,21 @@ def _event(e: tuple, state: ArbitrationState, time_s, params: ArbitrationParams)
 
 
 _make_record = AidingRecord._make
-"""An AidingRecord built without its checks (a tenth of the cost): for the records whose code the core
-chose (a code of WHY_NOT, "" exactly when fused). A code the caller gave (a reading's ``why_code``, a
-NotOffered's ``why_not``) goes through AidingRecord's checks, which refuse it as the reference's do."""
+"""An AidingRecord built without its checks (a tenth of the cost), for a code the caller gave (a
+reading's ``why_code``, a NotOffered's ``why_not``) that is one of WHY_NOT (not "": none of these is
+fused): a code that is not goes through AidingRecord's checks, which refuse it as the reference's do."""
 
 
 def _record(r, time_s, p: tuple) -> AidingRecord:
+    """The record of a reading whose code is the caller's (``why_code``): one that is not of WHY_NOT
+    (or none) goes through AidingRecord's checks."""
     candidate, used, why, nis, innov, innov_var, ratio, last = p
-    if used:
-        code = detail = ""
-    else:
-        code, detail = _why(why, r, nis, time_s)
-        if (why == _NOT_VALID or why == _INCONSISTENT or why == _NONE) and not (code and code.__class__ is str and code in WHY_NOT):
-            return AidingRecord(r.name, time_s, code, detail, candidate, used, last, r.heading_rad, r.sigma_rad,
-                                innov, innov_var, ratio, r.source_innovation_rad, r.source_innovation_variance_rad2,
-                                r.source_test_ratio)
-    return _make_record((r.name, time_s, code, detail, candidate, used, last, r.heading_rad, r.sigma_rad, innov,
-                         innov_var, ratio, r.source_innovation_rad, r.source_innovation_variance_rad2,
-                         r.source_test_ratio))
+    code, detail = _why(why, r)
+    values = (r.name, time_s, code, detail, candidate, used, last, r.heading_rad, r.sigma_rad, innov, innov_var, ratio,
+              r.source_innovation_rad, r.source_innovation_variance_rad2, r.source_test_ratio)
+    if code and code.__class__ is str and code in WHY_NOT:
+        return _make_record(values)
+    return AidingRecord(*values)
 
 
 def _not_offered_record(n, time_s, last: float) -> AidingRecord:
@@ -126,7 +115,8 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
     if not math.isfinite(time_s):
         raise ValueError(f"time_s must be finite, got {time_s}")
     cp = _core_params(params) if isinstance(time_s, float) else None
-    res = None if cp is None else _core.arbitrate(cp, state, readings, time_s, heading_rate_rad_s, not_offered)
+    res = None if cp is None else _core.arbitrate(cp, state, readings, time_s, heading_rate_rad_s, not_offered,
+                                                  AidingRecord)
     if res is None:   # a value the core does not take as it stands: the reference answers it
         return _ha.arbitrate(state, readings, time_s, params, heading_rate_rad_s, not_offered)
     (fused, var, offset, sources, gated_since, last), kind, heading, sigma, names, out_offset, events, per, no_last = res
@@ -134,7 +124,7 @@ def arbitrate(state: ArbitrationState, readings: list, time_s: float,
     for n, t_last in zip(not_offered, no_last):
         records[n.source] = _not_offered_record(n, time_s, t_last)
     for r, p in zip(readings, per):
-        records[r.name] = _record(r, time_s, p)
+        records[r.name] = p if p.__class__ is AidingRecord else _record(r, time_s, p)
     evs = tuple(_event(e, state, time_s, params) for e in events) if events else ()
     if kind == _FUSED:
         st = _frozen(ArbitrationState, time_s=time_s, fused_rad=fused, fused_var_rad2=var, offset_rad=offset,
