@@ -292,12 +292,14 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
                out_period_s: float = 0.0, progress: bool | None = False) -> ReplayResult:
     """Feed every item of ``reader`` to a fresh Pipeline; write the CSV; return the rows."""
     from mavlink_io.imu_batch import IMU_RECORD, ImuBatch
-    from mavlink_io.link import LinkEvent
     from mavlink_io.samples import (FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, ImuSample,
                                     PressureSample)
     from service.pipeline import Pipeline
 
     pipe = Pipeline(cfg)
+    link_event = None   # only a telemetry log's link gives LinkEvents: a .bin or .ulg replay never imports it
+    if getattr(reader.summary, "kind", None) == "tlog":
+        from mavlink_io.link_config import LinkEvent as link_event
     if hasattr(reader, "estimator_status") and reader.estimator_status is None:
         pipe.fc_sends_no_status("the log records no FC estimator status")
     # what the daemon's dispatch hands the Pipeline (service/daemon.py Daemon.dispatch)
@@ -465,6 +467,7 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
                 continue
             if pending:
                 feed_imu()
+            t0 = perf()   # the Pipeline's time includes its other inputs (FC attitude, pressure, ...)
             if cls is FcAttitude:
                 cnt["attitude"] += 1
                 ref = item
@@ -475,7 +478,7 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
                     cnt["pressure_with_diff"] += 1
                     cnt["pressure_diff_nonzero"] += item.press_diff_pa != 0.0
                 pipe.on_pressure(item)
-            elif cls is LinkEvent:
+            elif cls is link_event:
                 res.events.append((None, f"link.{item.kind}", item.detail))
                 if item.kind == "fc_reboot":
                     pipe.on_fc_reboot()
@@ -485,6 +488,7 @@ def run_replay(reader, cfg: dict, csv_path: Path | None, ref_max_age_s: float = 
                 fn = handlers.get(cls)
                 if fn is not None:
                     fn(item)
+            t_pipe += perf() - t0
         if pending:
             feed_imu()
     except BaseException:
