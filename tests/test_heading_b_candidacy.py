@@ -139,3 +139,36 @@ def test_given_a_restarted_b_clock_then_its_old_imu_time_is_not_counted():
     # the FC clock restarted: B's time and counters are from the new start
     assert h.check(_b(0.5, 0, True, integrated_s=0.5), 100.5)[:2] == (True, True)
     assert math.isfinite(h.imu_hist[0][0]) and len(h.imu_hist) == 1
+
+
+def test_the_held_count_is_the_windows_own_count():
+    # GIVEN a seeded walk of B's outputs: intervals integrated or held across (a slow input, a gap), the
+    # same time again, a restarted clock, THEN after every check the held count SyntheticAhrsHealth
+    # keeps equals the count over its window, and the verdict is the one that count gives
+    import random
+    from service.heading_sources import B_MAX_NOT_INTEGRATED_SHARE, B_MIN_HELD_INTERVALS
+    rng = random.Random(5)
+    h = SyntheticAhrsHealth()
+    t = integ = held = 0.0
+    seen = set()
+    for k in range(4000):
+        r = rng.random()
+        if r < 0.01:
+            t, integ, held = 0.0, 0.0, 0.0                         # a new B (a restarted clock)
+        elif r < 0.05:
+            pass                                                  # the same B time again
+        elif r < 0.45:
+            t += 0.37
+            held += 0.37                                          # too long to integrate: held across
+        else:
+            t += 0.02
+            integ += 0.02
+        b = SimpleNamespace(time_s=t, air_fused=k, mag_fused=0, mag_gated=0, reference_trusted=True,
+                            imu_integrated_s=integ, imu_not_integrated_s=held)
+        has_ref, _, _, code = h.check(b, 1000.0 + 0.02 * k)
+        n = sum(x[1] for x in h.imu_hist)
+        assert h.n_held == n, k
+        slow = n >= B_MIN_HELD_INTERVALS and n > B_MAX_NOT_INTEGRATED_SHARE * len(h.imu_hist)
+        assert (code == "no_propagation") == slow and has_ref == (not slow), k
+        seen.add(code)
+    assert seen == {"", "no_propagation"}, seen
