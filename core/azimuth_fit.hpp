@@ -688,5 +688,37 @@ inline Result fit_psi(const Samples& d, const double* C_isf_af, const double* e,
     return res;
 }
 
+// Largest angle between the predicted Earth-field directions in SF over the samples
+// (azimuth_fit.orientation_diversity_rad): m_i = C_SF<-AF,i R3(psi) e, u_i = m_i / |m_i|, the smallest
+// cosine over all pairs (the diagonal too, as the reference's N x N product), clipped as Python's
+// max(-1, min(1, .)) clips (a NaN becomes -1, as there), then acos. O(N^2) multiply-adds, no N x N array.
+inline double orientation_diversity(const double* C_sf_from_af, int N, double psi, const double* e) {
+    const double c = std::cos(psi), s = std::sin(psi);
+    const double Re[3] = {c * e[0] + s * e[1], -s * e[0] + c * e[1], e[2]};
+    std::vector<double> u(3 * static_cast<size_t>(N));
+    for (int n = 0; n < N; ++n) {
+        double m[3];
+        mat3_vec(&C_sf_from_af[9 * n], Re, m);
+        const double norm = std::sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
+        for (int i = 0; i < 3; ++i) u[3 * n + i] = m[i] / norm;
+    }
+    double dmin = INFINITY;
+    bool nan_seen = false;
+    for (int i = 0; i < N && !nan_seen; ++i) {
+        const double* ui = &u[3 * i];
+        for (int j = i; j < N; ++j) {
+            const double* uj = &u[3 * j];
+            const double d = ui[0] * uj[0] + ui[1] * uj[1] + ui[2] * uj[2];
+            if (std::isnan(d)) { nan_seen = true; break; }
+            if (d < dmin) dmin = d;
+        }
+    }
+    if (N == 0) throw std::invalid_argument("orientation diversity of no samples");
+    double v = nan_seen ? NAN : dmin;
+    v = v > -1.0 ? v : -1.0;
+    v = v < 1.0 ? v : 1.0;
+    return std::acos(v);
+}
+
 }  // namespace fit
 }  // namespace azimuthd

@@ -127,6 +127,18 @@ void bind_fit(py::module_& m) {
           py::arg("max_iterations"), py::arg("tol_rad"), py::arg("P_prior"), py::arg("estimate_errors"),
           "Method A's re-solve over the stored samples (estimators/azimuth_fit.py fit_psi's numbers as a dict).");
 
+    m.def("orientation_diversity",
+          [](const ArrayF& C_sf_from_af, double psi_rad, const ArrayF& e_ned) {
+              if (C_sf_from_af.ndim() != 3 || C_sf_from_af.shape(1) != 3 || C_sf_from_af.shape(2) != 3)
+                  throw std::invalid_argument("C_sf_from_af must have shape (N, 3, 3)");
+              need_shape(e_ned, {3}, "e_ned");
+              const int N = static_cast<int>(C_sf_from_af.shape(0));
+              py::gil_scoped_release nogil;
+              return fit::orientation_diversity(C_sf_from_af.data(), N, psi_rad, e_ned.data());
+          },
+          py::arg("C_sf_from_af"), py::arg("psi_rad"), py::arg("e_ned"),
+          "Largest angle between the predicted field directions in SF (azimuth_fit.orientation_diversity_rad).");
+
     py::class_<Deviation>(m, "Deviation", "Method D's RLS state (core/mag_deviation.hpp).")
         .def(py::init([](const ArrayF& coeffs, const ArrayF& P, std::int64_t n, const ArrayF& resid_sq_sum,
                          std::int64_t n_resid, const ArrayI& hc, const ArrayI& rc, const ArrayI& pc) {

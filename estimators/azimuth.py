@@ -348,9 +348,10 @@ def _with_checks(state: AzimuthState, u_sf: np.ndarray) -> AzimuthState:
     return replace(state, u_sf=u_sf, cross_check_rad=cross, elevation_check_rad=elev)
 
 
-def _solve(state: AzimuthState, time_s: float, fit_psi=af.fit_psi) -> AzimuthState:
-    """Re-solve with all kept samples and gate the result. ``fit_psi``: the solve's implementation
-    (``azimuth_fit.fit_psi`` or the core's twin, estimators.core.fit_psi: the same results)."""
+def _solve(state: AzimuthState, time_s: float, fit_psi=af.fit_psi,
+           orientation_diversity=af.orientation_diversity_rad) -> AzimuthState:
+    """Re-solve with all kept samples and gate the result. ``fit_psi``, ``orientation_diversity``: the
+    solve's implementations (``azimuth_fit``'s or the core's twins in estimators.core: the same results)."""
     p = state.params
     recs = state.samples
     n = len(recs)
@@ -374,7 +375,7 @@ def _solve(state: AzimuthState, time_s: float, fit_psi=af.fit_psi) -> AzimuthSta
     determined = fit.ok and fit.condition_number <= p.gate.max_condition_number
     psi_for_div = fit.psi_rad if determined else af.psi_closed_form(np.einsum("nji,nj->ni", C @ state.C_isf_af, h),
                                                                     e, data.weight)
-    diversity = af.orientation_diversity_rad(C @ state.C_isf_af, psi_for_div, e)
+    diversity = orientation_diversity(C @ state.C_isf_af, psi_for_div, e)
     # the gate judges what the data determine (white + gyro terms); the levelling-tilt share does
     # not shrink with more samples, it is reported in the sigma instead
     ok = fit.ok and fit.P_psi_c[0, 0] > 0.0 and math.isfinite(fit.psi_sigma_gate_rad)
@@ -459,11 +460,11 @@ def azimuth_propagate(strapdown: StrapdownState, G_gyro: np.ndarray, C_isf_sf: n
 
 
 def azimuth_step(state: AzimuthState, gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray,
-                 mag_gauss: np.ndarray | None, time_s: float, propagate=azimuth_propagate, fit_psi=af.fit_psi
-                 ) -> tuple[AzimuthState, AzimuthOutput]:
+                 mag_gauss: np.ndarray | None, time_s: float, propagate=azimuth_propagate, fit_psi=af.fit_psi,
+                 orientation_diversity=af.orientation_diversity_rad) -> tuple[AzimuthState, AzimuthOutput]:
     """One IMU sample in flight (FC time ``time_s``); ``mag_gauss`` None when there is none.
-    ``propagate``: step 1's implementation (``azimuth_propagate`` or the core's twin); ``fit_psi``:
-    the re-solve's (``azimuth_fit.fit_psi`` or estimators.core.fit_psi)."""
+    ``propagate``: step 1's implementation (``azimuth_propagate`` or the core's twin); ``fit_psi`` and
+    ``orientation_diversity``: the re-solve's (``azimuth_fit``'s or estimators.core's)."""
     if state.phase == "prelaunch":
         raise ValueError("azimuth_step before azimuth_launch")
     if state.phase == "failed":
@@ -497,7 +498,7 @@ def azimuth_step(state: AzimuthState, gyro_rad_s: np.ndarray, accel_m_s2: np.nda
         st = _with_checks(st, u_new)
     period = p.resolve_period_s if st.solution is not None else p.resolve_period_unsolved_s
     if time_s - st.last_solve_s >= period and len(st.samples) > 0:
-        st = _solve(st, time_s, fit_psi)
+        st = _solve(st, time_s, fit_psi, orientation_diversity)
     return st, _output(st, C_isf_sf, time_s)
 
 
@@ -620,14 +621,15 @@ class AzimuthEstimator:
 
 # --- solving outside the per-sample step (the daemon runs the fit in a worker process) -------
 
-def azimuth_solve(state: AzimuthState, time_s: float, fit_psi=af.fit_psi) -> AzimuthState:
+def azimuth_solve(state: AzimuthState, time_s: float, fit_psi=af.fit_psi,
+                  orientation_diversity=af.orientation_diversity_rad) -> AzimuthState:
     """Re-solve psi_s (and the distortions) with the samples kept so far and gate the result.
 
     ``azimuth_step`` does this itself every ``resolve_period_s``; a caller that sets that period
     to infinity may instead run this pure function on a snapshot of the state elsewhere (a worker
-    process) and merge the result with ``azimuth_apply_solve``. ``fit_psi``: the solve's
-    implementation (``azimuth_fit.fit_psi`` or the core's twin, estimators.core.fit_psi)."""
-    return _solve(state, time_s, fit_psi)
+    process) and merge the result with ``azimuth_apply_solve``. ``fit_psi``, ``orientation_diversity``:
+    the solve's implementations (``azimuth_fit``'s or the core's twins in estimators.core)."""
+    return _solve(state, time_s, fit_psi, orientation_diversity)
 
 
 SOLVE_FIELDS = ("last_solve_s", "last_fit", "last_diversity_rad", "last_gate_reason", "solution", "first_solution")

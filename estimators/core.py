@@ -986,6 +986,15 @@ def fit_psi(data, C_isf_af: np.ndarray, e_ned: np.ndarray, model: str = "seed7",
                          psi_sigma_gate_rad=o["psi_sigma_gate"])
 
 
+DIVERSITY_AVAILABLE = AVAILABLE and hasattr(_core, "orientation_diversity")
+
+
+def orientation_diversity_rad(C_sf_from_af: np.ndarray, psi_rad: float, e_ned: np.ndarray) -> float:
+    """estimators.azimuth_fit.orientation_diversity_rad in the core: the same number from one O(N^2) C++
+    loop, without the reference's N x N array (at A's 1500 samples it cost more than the core's fit)."""
+    return _core.orientation_diversity(C_sf_from_af, float(psi_rad), e_ned)
+
+
 # --- method D's deviation RLS (estimators/mag_deviation.py, core/mag_deviation.hpp) ---------------
 # The state is held in the core between observations (HeldDeviation); it reads like the reference's
 # DeviationState (coeffs, P, n, resid_sq_sum, n_resid, the coverage counts, to_dict), so the

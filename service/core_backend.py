@@ -102,7 +102,9 @@ class Backend:
     """The per-sample hot path behind Pipeline.on_imu_batch (estimators._core.hot_run; None: on_imu
     takes every sample)."""
     azimuth_fit_psi: Callable = _af_reference.fit_psi
-    """Method A's re-solve (estimators.azimuth_fit.fit_psi's signature; the solver runs it)."""
+    """Method A's re-solve (estimators.azimuth_fit.fit_psi's signature; the solver runs it) ..."""
+    azimuth_orientation_diversity: Callable = _af_reference.orientation_diversity_rad
+    """... and its orientation diversity (estimators.azimuth_fit.orientation_diversity_rad's signature)."""
     deviation_step: Callable = _dv_reference.deviation_step
     """Method D's RLS step (estimators.mag_deviation.deviation_step's signature) ..."""
     deviation_corrected_mag: Callable = _dv_reference.corrected_mag
@@ -200,6 +202,8 @@ def select(environ=os.environ) -> Backend:
                    **(dict(sample_state=core.SampleState, hot_run=core.hot_run) if core.HOT_PATH_AVAILABLE else {}),
                    **(dict(ground_state=core.GroundState) if core.GROUND_AVAILABLE and _phases_ported() else {}),
                    **(dict(azimuth_fit_psi=core.fit_psi) if core.FIT_AVAILABLE else {}),
+                   **(dict(azimuth_orientation_diversity=core.orientation_diversity_rad)
+                      if core.DIVERSITY_AVAILABLE else {}),
                    **(dict(deviation_step=core.deviation_step, deviation_corrected_mag=core.corrected_mag,
                            deviation_residual_sigma_gauss=core.residual_sigma_gauss,
                            deviation_coverage=core.deviation_coverage) if core.DEVIATION_AVAILABLE else {}))

@@ -901,7 +901,8 @@ class Pipeline:
             if result is not None:
                 self.azimuth = azimuth_apply_solve(self.azimuth, result)
             if t >= self._next_solve_s and self.azimuth.phase == "flight" and self.azimuth.samples \
-                    and self.solver.submit(self.azimuth, t, self.core.azimuth_fit_psi):
+                    and self.solver.submit(self.azimuth, t, self.core.azimuth_fit_psi,
+                                           self.core.azimuth_orientation_diversity):
                 # the result (at once from an inline solver) applies from the next sample on
                 self._next_solve_s = t + self.solve_period_s[0 if self.azimuth.solution is not None else 1]
             if out.status != self._azimuth_status:  # one event per status change, the reason with it

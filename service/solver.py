@@ -54,14 +54,12 @@ def _new_pool() -> cf.ProcessPoolExecutor:
                                   initializer=_die_with_daemon, initargs=(os.getpid(),))
 
 
-def _solve_job(state, time_s, fit_psi=None):
-    """``fit_psi``: the solve's implementation (the Pipeline's backend: estimators.azimuth_fit.fit_psi or
-    estimators.core.fit_psi, module functions, so a worker process unpickles them by name); None: the
-    reference."""
+def _solve_job(state, time_s, *kernels):
+    """``kernels``: the solve's implementations, (fit_psi, orientation_diversity) of the Pipeline's backend
+    (estimators.azimuth_fit's or estimators.core's: module functions, so a worker process unpickles them
+    by name); none given: the reference."""
     from estimators.azimuth import azimuth_solve, azimuth_solve_result
-    if fit_psi is None:
-        return azimuth_solve_result(azimuth_solve(state, time_s))
-    return azimuth_solve_result(azimuth_solve(state, time_s, fit_psi))
+    return azimuth_solve_result(azimuth_solve(state, time_s, *kernels))
 
 
 class InlineSolver:
@@ -74,8 +72,8 @@ class InlineSolver:
     def busy(self) -> bool:
         return False
 
-    def submit(self, state, time_s: float, fit_psi=None) -> bool:
-        self._result = _solve_job(state, time_s, fit_psi)
+    def submit(self, state, time_s: float, *kernels) -> bool:
+        self._result = _solve_job(state, time_s, *kernels)
         return True
 
     def poll(self):
@@ -103,13 +101,13 @@ class BackgroundSolver:
     def busy(self) -> bool:
         return self._future is not None and not self._future.done()
 
-    def submit(self, state, time_s: float, fit_psi=None) -> bool:
+    def submit(self, state, time_s: float, *kernels) -> bool:
         if self._pool is None:  # the worker could not be restarted: inline from now on
-            return self._inline.submit(state, time_s, fit_psi)
+            return self._inline.submit(state, time_s, *kernels)
         if self.busy():
             return False
         try:
-            self._future = self._pool.submit(_solve_job, state, time_s, fit_psi)
+            self._future = self._pool.submit(_solve_job, state, time_s, *kernels)
         except (RuntimeError, cf.process.BrokenProcessPool) as exc:
             self._restart(exc)
             return False

@@ -170,10 +170,10 @@ def _recorded_states(fly, every: int = 2) -> list:
     seen = []
 
     class Recording(InlineSolver):
-        def submit(self, state, time_s, fit_psi=None):
+        def submit(self, state, time_s, *kernels):
             if len(state.samples) >= state.params.gate.min_samples:
                 seen.append((state, time_s))
-            return super().submit(state, time_s, fit_psi)
+            return super().submit(state, time_s, *kernels)
 
     fly(Recording)
     return seen[::every] + seen[-1:] if seen else []
@@ -184,7 +184,7 @@ def _same_solves(states) -> tuple[int, int]:
     at_rtol = accepted = 0
     for st, t in states:
         a = az.azimuth_solve_result(az.azimuth_solve(st, t))
-        b = az.azimuth_solve_result(az.azimuth_solve(st, t, core.fit_psi))
+        b = az.azimuth_solve_result(az.azimuth_solve(st, t, core.fit_psi, core.orientation_diversity_rad))
         own = _floor(a, az.azimuth_solve_result(az.azimuth_solve(st, t, _reversed_reference)))
         if math.isinf(own):   # unobservable: the reference's own verdict text moves with the sample order
             assert (a["last_fit"].ok, _masked(a["last_gate_reason"])) == (b["last_fit"].ok,
@@ -254,3 +254,26 @@ def test_real_log_solves_equal(monkeypatch, log):
     if not states:
         pytest.skip(f"{log}: method A never had samples to re-solve on it (no launch it could use)")
     _same_solves(states)
+
+
+def test_orientation_diversity_equal():
+    """The diversity the gate reads: the core's O(N^2) loop against the reference's N x N product."""
+    data, Cia, e, _ = _synthetic(N=400)
+    C = data.C_sf_from_isf @ Cia
+    for n in (1, 2, 30, 400):
+        for psi in (0.0, 1.3, 5.9):
+            a, b = af.orientation_diversity_rad(C[:n], psi, e), core.orientation_diversity_rad(C[:n], psi, e)
+            assert differences(a, b, "diversity_rad") == [], (n, psi, a, b)
+    assert af.orientation_diversity_rad(C, 1.3, e) > math.radians(60.0)
+    # one attitude throughout: 0 up to acos's resolution at 1 (sqrt(2 eps) = 2.1e-8 rad) in both
+    one, _, _, _ = _synthetic(N=50, turn=False)
+    C1 = one.C_sf_from_isf @ Cia
+    assert af.orientation_diversity_rad(C1, 1.3, e) < 3e-8 and core.orientation_diversity_rad(C1, 1.3, e) < 3e-8
+    # a NaN attitude: the reference's min is NaN, which max(-1, .) turns into -1: pi in both
+    Cn = C[:10].copy()
+    Cn[3, 0, 0] = math.nan
+    assert af.orientation_diversity_rad(Cn, 1.3, e) == core.orientation_diversity_rad(Cn, 1.3, e) == math.pi
+    with pytest.raises(ValueError):
+        core.orientation_diversity_rad(C[:0], 1.3, e)
+    with pytest.raises(ValueError):
+        af.orientation_diversity_rad(C[:0], 1.3, e)

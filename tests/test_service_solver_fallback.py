@@ -23,7 +23,7 @@ def test_worker_unavailable_at_start_falls_back_to_inline(monkeypatch, caplog):
 
 def test_worker_that_cannot_be_restarted_goes_inline(monkeypatch, caplog):
     calls = []
-    monkeypatch.setattr(solver_mod, "_solve_job", lambda state, t, fit_psi=None: calls.append((state, t)) or ("solved", t))
+    monkeypatch.setattr(solver_mod, "_solve_job", lambda state, t, *kernels: calls.append((state, t)) or ("solved", t))
     s = solver_mod.BackgroundSolver()
     try:
         monkeypatch.setattr(cf, "ProcessPoolExecutor", _NoPool)
