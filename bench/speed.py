@@ -378,6 +378,86 @@ def case_azimuth(run, items):
     return one_pass
 
 
+_RESOLVES: dict = {}
+"""What the re-solve cases timed: {"n": re-solves per pass, "n_imu": IMU samples of the stream}."""
+
+
+def _recorded_resolves(run, items) -> list:
+    """(state, time) of every re-solve the core Pipeline hands its solver on the stream (not timed)."""
+    from service.solver import InlineSolver
+    seen = []
+
+    class Recording(InlineSolver):
+        def submit(self, state, time_s, *kernels):
+            seen.append((state, time_s))
+            return super().submit(state, time_s, *kernels)
+
+    from bench.sitl import feed_pipeline
+    from service.pipeline import Pipeline
+    for _ in feed_pipeline(Pipeline(site_config(run), solver=Recording()), items):
+        pass
+    _RESOLVES.update(n=len(seen), n_imu=len(run.time_s))
+    return seen
+
+
+def _resolve_case(fit_name: str):
+    """Method A's re-solves (estimators.azimuth.azimuth_solve) of the states the Pipeline solved on this
+    stream, with the reference's fit and diversity (estimators.azimuth_fit) or the core's (estimators.core);
+    reported per IMU sample of the stream (the JSON also has ms per re-solve)."""
+    def factory(run, items):
+        from estimators import azimuth_fit, core
+        from estimators.azimuth import azimuth_solve
+        kernels = (core.fit_psi, core.orientation_diversity_rad) if fit_name == "core" else \
+            (azimuth_fit.fit_psi, azimuth_fit.orientation_diversity_rad)
+        if fit_name == "core" and not (core.FIT_AVAILABLE and core.DIVERSITY_AVAILABLE):
+            raise RuntimeError("compiled core without method A's re-solve")
+        states = _recorded_resolves(run, items)
+
+        def one_pass():
+            for st, t in states:
+                azimuth_solve(st, t, *kernels)
+        return one_pass
+    return factory
+
+
+case_resolve_python = _resolve_case("python")
+case_resolve_core = _resolve_case("core")
+
+
+def _deviation_case(backend: str):
+    """Method D as the Pipeline calls it with D applied and learning: per IMU sample its coverage, the
+    corrected field and the residual sigma; at 10 Hz an RLS step (heading, roll and pitch sweep)."""
+    def factory(run, items):
+        from estimators import core
+        from estimators import mag_deviation as dv
+        fns = (core.deviation_step, core.corrected_mag, core.residual_sigma_gauss, core.deviation_coverage) \
+            if backend == "core" else (dv.deviation_step, dv.corrected_mag, dv.residual_sigma_gauss,
+                                       dv.deviation_coverage)
+        if backend == "core" and not core.DEVIATION_AVAILABLE:
+            raise RuntimeError("compiled core without method D's RLS")
+        step, corrected, sigma, coverage = fns
+        params = dv.DeviationParams()
+        field = np.array([0.21, 0.01, 0.43])
+        m = list(run.mag_gauss)
+        every = max(1, int(round(RATE_HZ / 10.0)))
+
+        def one_pass():
+            st = dv.deviation_init(params)
+            for k, mk in enumerate(m):
+                psi, roll, pitch = 0.01 * k % 6.283, 0.4 * math.sin(1e-3 * k), 0.3 * math.sin(7e-4 * k)
+                if k % every == 0:
+                    st, _ = step(st, mk, field, psi, roll, pitch, params)
+                coverage(st, params)
+                corrected(st, mk, psi, roll, pitch)
+                sigma(st)
+        return one_pass
+    return factory
+
+
+case_deviation_python = _deviation_case("python")
+case_deviation_core = _deviation_case("core")
+
+
 def b_events(items) -> list:
     """Method B's events from the link's items, as the Pipeline hands them over (IMU, air data, FC attitude)."""
     from estimators.synthetic_ahrs import AirEvent, FcAttitudeEvent, ImuEvent
@@ -564,6 +644,10 @@ CASES = [
     ("rest accumulator, core, per-sample drop-in", "ours", case_levelling_core_step),
     ("rest accumulator, core, batch (N x 3 arrays)", "ours", case_levelling_core_batch),
     ("method A azimuth (estimators.azimuth)", "ours", case_azimuth),
+    ("method A re-solves (estimators.azimuth_fit.fit_psi)", "ours", case_resolve_python),
+    ("method A re-solves, core (estimators.core.fit_psi)", "ours", case_resolve_core),
+    ("method D deviation (estimators.mag_deviation)", "ours", case_deviation_python),
+    ("method D deviation, core (held state)", "ours", case_deviation_core),
     ("method B synthetic AHRS (estimators.synthetic_ahrs)", "ours", case_synthetic_ahrs),
     ("polar attitude (estimators.polar_attitude)", "ours", case_polar_attitude),
     ("polar attitude, core, per sample (held state)", "ours", case_polar_attitude_core),
@@ -773,9 +857,18 @@ def ported_figures(rows: list[dict]) -> dict:
         "polar_heading_core_held_us_per_sample": "polar heading, core, per sample (held state)",
         "phases_python_us_per_sample": "phases: levelling + launch detection",
         "phases_core_held_us_per_sample": "phases, core, per sample (held state)",
+        "azimuth_fit_python_us_per_sample": "method A re-solves (estimators.azimuth_fit.fit_psi)",
+        "azimuth_fit_core_held_us_per_sample": "method A re-solves, core (estimators.core.fit_psi)",
+        "deviation_python_us_per_sample": "method D deviation (estimators.mag_deviation)",
+        "deviation_core_held_us_per_sample": "method D deviation, core (held state)",
     }
     out = {k: us.get(v, math.nan) for k, v in pick.items()}
-    for part in ("strapdown", "levelling", "polar_attitude", "polar_heading", "phases"):
+    if _RESOLVES.get("n"):   # per re-solve (ms): the cost a worker process or an inline solve pays at once
+        for form in ("python", "core_held"):
+            out[f"azimuth_fit_{form}_ms_per_resolve"] = \
+                out[f"azimuth_fit_{form}_us_per_sample"] * _RESOLVES["n_imu"] / _RESOLVES["n"] / 1e3
+        out["azimuth_fit_resolves"] = _RESOLVES["n"]
+    for part in ("strapdown", "levelling", "polar_attitude", "polar_heading", "phases", "azimuth_fit", "deviation"):
         base = out[f"{part}_python_us_per_sample"]
         for form in ("core_held", "core_step", "core_batch"):
             k = f"{part}_{form}_us_per_sample"
