@@ -11,6 +11,7 @@
 #include <string>
 
 #include "hot_path.hpp"
+#include "mag_disturbance.hpp"
 
 namespace py = pybind11;
 using namespace azimuthd;
@@ -139,6 +140,139 @@ py::tuple sample_state_get(const SampleState& h) {
                           h.has_acc_mag ? py::object(give(h.acc_mag, 3)) : py::object(py::none()), out_get(h),
                           give(h.out_bias_body, 3), opt_float(h.has_out_sample, h.out_rx_s),
                           h.has_out_sample ? py::object(give(h.out_gyro, 3)) : py::object(py::none()));
+}
+
+
+// --- the bound hot path (service/hot_path.py sample_step / batch_steps) ----------------------------
+// One Python number as a double (false: not a number; the sample then goes to on_imu, which says why).
+bool read_num(PyObject* o, double& v) {
+    if (PyFloat_CheckExact(o)) {
+        v = PyFloat_AS_DOUBLE(o);
+        return true;
+    }
+    v = PyFloat_AsDouble(o);
+    if (v == -1.0 && PyErr_Occurred()) {
+        PyErr_Clear();
+        return false;
+    }
+    return true;
+}
+
+using ArrayExact = py::array_t<double, py::array::c_style>;
+
+// Three doubles from a float64 (3,) array (what the link's ImuSample carries); false for anything
+// else (the sample then goes to on_imu: the reference handles every other form)
+bool read3(const py::handle& o, double out[3]) {
+    if (!ArrayExact::check_(o)) return false;
+    auto a = py::reinterpret_borrow<ArrayExact>(o);
+    if (a.ndim() != 1 || a.shape(0) != 3) return false;
+    const double* d = a.data();
+    out[0] = d[0];
+    out[1] = d[1];
+    out[2] = d[2];
+    return true;
+}
+
+// Three doubles from any array-like (take's conversion when it is not a float64 (3,) array)
+void take3(const py::handle& o, double out[3], const char* name) {
+    if (!read3(o, out)) take(o, out, 3, name);
+}
+
+// An ImuSample's fields as one IMU_RECORD row (time_fc, time_rx, gyro, accel, mag (NaN: none)) and
+// whether its source carries int16 raw counts (service/input_checks.py _INT16_SOURCES); false: not
+// numbers in the link's form (on_imu takes it).
+bool sample_row(const py::handle& s, double r[11], bool& int16) {
+    static const py::str k_t("time_fc_s"), k_rx("time_rx_s"), k_g("gyro_rad_s"), k_a("accel_m_s2"),
+        k_m("mag_gauss"), k_src("source");
+    PyObject* o = s.ptr();
+    py::object t = py::reinterpret_steal<py::object>(PyObject_GetAttr(o, k_t.ptr()));
+    py::object rx = py::reinterpret_steal<py::object>(PyObject_GetAttr(o, k_rx.ptr()));
+    py::object g = py::reinterpret_steal<py::object>(PyObject_GetAttr(o, k_g.ptr()));
+    py::object a = py::reinterpret_steal<py::object>(PyObject_GetAttr(o, k_a.ptr()));
+    py::object m = py::reinterpret_steal<py::object>(PyObject_GetAttr(o, k_m.ptr()));
+    py::object src = py::reinterpret_steal<py::object>(PyObject_GetAttr(o, k_src.ptr()));
+    if (!t || !rx || !g || !a || !m || !src) {
+        PyErr_Clear();
+        return false;
+    }
+    if (!read_num(t.ptr(), r[0]) || !read_num(rx.ptr(), r[1]) || !read3(g, r + 2) || !read3(a, r + 5)) return false;
+    if (m.is_none()) {
+        r[8] = r[9] = r[10] = NAN;
+    } else if (!read3(m, r + 8)) {
+        return false;
+    }
+    int16 = PyUnicode_Check(src.ptr()) && (PyUnicode_CompareWithASCIIString(src.ptr(), "RAW_IMU") == 0 ||
+                                           PyUnicode_CompareWithASCIIString(src.ptr(), "SCALED_IMU") == 0);
+    return true;
+}
+
+// A Pipeline's hot path with what stays fixed bound once: its per-sample state, its input checks,
+// C_body_from_sensor, the two integration limits and the filter period (fixed from the Pipeline's
+// config). A call passes what the Pipeline replaces between samples: its strapdown, method A's run,
+// the gyro bias (and on the ground the phases, their params, the ground state and the evidence).
+struct BoundHotPath {
+    py::object state_ref, checks_ref;  // kept alive
+    SampleState* h = nullptr;
+    InputChecks* ic = nullptr;
+    HotInputs in{};
+};
+
+// HP_QUIET: the sample was quiet and is committed; HP_UNREAD: not read (not in the link's form, its
+// input check not run: on_imu takes it); else the input checks' verdict on it (it stopped the run).
+enum : int { HP_QUIET = -1, HP_UNREAD = -2 };
+
+GroundInputs ground_inputs(const py::object& phase_state, const py::object& phase_params, const py::object& ground,
+                           const py::object& evidence) {
+    GroundInputs gi;
+    gi.ph = phase_state.cast<phases::State*>();
+    gi.pp = phase_params.cast<const phases::Params*>();
+    gi.gs = ground.is_none() ? nullptr : ground.cast<GroundState*>();
+    if (gi.ph == nullptr || gi.pp == nullptr)
+        throw std::invalid_argument("phases, phase_params: the held _core.Phases and its _core.PhaseParams expected");
+    if (gi.ph->phase != phases::PRE_LAUNCH) throw std::invalid_argument("phases: a ground run starts in phase pre-launch");
+    if (gi.gs != nullptr && !gi.gs->a_held)
+        throw std::invalid_argument("ground: method A's pre-launch part is not held there");
+    py::tuple e = evidence.cast<py::tuple>();
+    if (e.size() != 8)
+        throw std::invalid_argument("evidence: (armed, fc_reports_flying, fc_landed, has_air, air_time_s, "
+                                    "air_max_age_s, airspeed_m_s, alt_rate_m_s) expected");
+    gi.armed = e[0].cast<int>();
+    gi.fc_reports_flying = e[1].cast<int>();
+    gi.fc_landed = e[2].cast<int>();
+    gi.has_air = e[3].cast<bool>();
+    gi.air_time_s = e[4].cast<double>();
+    gi.air_max_age_s = e[5].cast<double>();
+    gi.airspeed_m_s = e[6].cast<double>();
+    gi.alt_rate_m_s = e[7].cast<double>();
+    return gi;
+}
+
+
+// service/pipeline.py Pipeline._mag_hard_iron_residual with the hard iron's covariance P read from
+// the held MagDisturbance (no array built): with C = C_P_from_body and the levelled field
+// m = C m_body, H^2 = m_x^2 + m_y^2, g = [m_y, -m_x, 0] / H^2, the heading-equivalent sigma
+// s_eq = sqrt(H^2 g^T C P C^T g) (evaluated left to right, as numpy does), and with it the
+// uncompensated soft iron: hypot(s_eq, soft_iron |m_body|). Not given (false) without a P or a
+// horizontal field.
+bool mag_hard_iron_residual(const MagDisturbance& md, const Q4& q, const V3& mb, double soft_iron, double& out) {
+    if (!md.has_P) return false;
+    const M3 C = dcm_from_quat(q);
+    double m[3];
+    for (int i = 0; i < 3; ++i) m[i] = C[3 * i] * mb[0] + C[3 * i + 1] * mb[1] + C[3 * i + 2] * mb[2];
+    const double H2 = std::pow(m[0], 2.0) + std::pow(m[1], 2.0);
+    if (H2 <= 0.0) return false;
+    const double g[3] = {m[1] / H2, -m[0] / H2, 0.0 / H2};
+    double u[3], v[3], w[3];
+    for (int j = 0; j < 3; ++j) u[j] = g[0] * C[j] + g[1] * C[3 + j] + g[2] * C[6 + j];             // g C
+    for (int j = 0; j < 3; ++j) v[j] = u[0] * md.P[j] + u[1] * md.P[3 + j] + u[2] * md.P[6 + j];   // (g C) P
+    for (int j = 0; j < 3; ++j) w[j] = v[0] * C[3 * j] + v[1] * C[3 * j + 1] + v[2] * C[3 * j + 2];  // ... C^T
+    const double x = w[0] * g[0] + w[1] * g[1] + w[2] * g[2];
+    const double arg = H2 * x;
+    if (arg < 0.0) throw py::value_error("math domain error");  // math.sqrt's
+    const double s_eq = std::sqrt(arg);
+    const double n = std::sqrt(mb[0] * mb[0] + mb[1] * mb[1] + mb[2] * mb[2]);
+    out = std::hypot(s_eq, soft_iron * n);
+    return true;
 }
 
 }  // namespace
@@ -336,6 +470,129 @@ void bind_hot_path(py::module_& m) {
             return g;
         }));
 
+    py::class_<BoundHotPath>(m, "HotPath",
+                             "A Pipeline's hot path with its fixed inputs bound once (service/hot_path.py): the "
+                             "per-sample state, the input checks, C_body_from_sensor, the strapdown's and the output "
+                             "attitude's max_dt_s and the filter period. `flight`/`ground` take one ImuSample, "
+                             "`run`/`run_ground` a batch's rows, as hot_run does with every argument.")
+        .def(py::init([](const py::object& state, const py::object& checks, const py::object& C_bs,
+                         double strapdown_max_dt_s, double out_max_dt_s, double filter_period_s) {
+                 BoundHotPath b;
+                 b.h = state.cast<SampleState*>();   // None casts to nullptr: refused
+                 b.ic = checks.cast<InputChecks*>();
+                 if (b.h == nullptr) throw std::invalid_argument("state: a _core.SampleState expected");
+                 if (b.ic == nullptr) throw std::invalid_argument("checks: a _core.InputChecks expected");
+                 b.state_ref = state;
+                 b.checks_ref = checks;
+                 take(C_bs, b.in.C_bs, 9, "C_body_from_sensor");
+                 if (!(std::isfinite(strapdown_max_dt_s) && std::isfinite(out_max_dt_s) && filter_period_s > 0.0 &&
+                       std::isfinite(filter_period_s)))
+                     throw std::invalid_argument("HotPath: finite max_dt_s and a positive filter period expected");
+                 b.in.strapdown_max_dt_s = strapdown_max_dt_s;
+                 b.in.out_max_dt_s = out_max_dt_s;
+                 b.in.filter_period_s = filter_period_s;
+                 return b;
+             }),
+             py::arg("state"), py::arg("checks"), py::arg("C_body_from_sensor"), py::arg("strapdown_max_dt_s"),
+             py::arg("out_max_dt_s"), py::arg("filter_period_s"))
+        .def("flight",
+             [](BoundHotPath& b, const py::handle& sample, const py::object& strapdown, AzimuthRun& a,
+                const py::handle& gyro_bias) {
+                 double r[11];
+                 bool int16 = false;
+                 if (!sample_row(sample, r, int16)) return static_cast<int>(HP_UNREAD);
+                 StrapdownState* sd = strapdown.is_none() ? nullptr : strapdown.cast<StrapdownState*>();
+                 HotInputs in = b.in;
+                 take3(gyro_bias, in.gyro_bias, "gyro_bias_rad_s");
+                 in.int16_source = int16;
+                 int verdict = 0;
+                 bool checked = false;
+                 long handled = 0;
+                 const long stop = hot_run(*b.h, *b.ic, sd, a, in, r, 1, 11, 0, verdict, checked, handled);
+                 return stop == 1 ? static_cast<int>(HP_QUIET) : verdict;
+             },
+             py::arg("sample"), py::arg("strapdown"), py::arg("azimuth"), py::arg("gyro_bias_rad_s"),
+             "One ImuSample in flight (hot_run on its row): HOT_QUIET (-1) taken; HOT_UNREAD (-2) not in the "
+             "link's form, unchecked (on_imu takes it); else its input-check verdict (on_imu takes it with that).")
+        .def("ground",
+             [](BoundHotPath& b, const py::handle& sample, const py::object& phase_state, const py::object& phase_params,
+                const py::object& ground, const py::object& evidence, const py::handle& gyro_bias) {
+                 double r[11];
+                 bool int16 = false;
+                 if (!sample_row(sample, r, int16)) return static_cast<int>(HP_UNREAD);
+                 const GroundInputs gi = ground_inputs(phase_state, phase_params, ground, evidence);
+                 HotInputs in = b.in;
+                 take3(gyro_bias, in.gyro_bias, "gyro_bias_rad_s");
+                 in.int16_source = int16;
+                 int verdict = 0;
+                 bool checked = false;
+                 long handled = 0;
+                 const long stop = ground_run(*b.h, *b.ic, gi, in, r, 1, 11, 0, verdict, checked, handled);
+                 return stop == 1 ? static_cast<int>(HP_QUIET) : verdict;
+             },
+             py::arg("sample"), py::arg("phases"), py::arg("phase_params"), py::arg("ground"), py::arg("evidence"),
+             py::arg("gyro_bias_rad_s"), "One ImuSample on the ground (ground_run on its row); `flight`'s codes.")
+        .def("run",
+             [](BoundHotPath& b, const ArrayC& rows, long start, const py::object& strapdown, AzimuthRun& a,
+                const py::handle& gyro_bias, bool int16_source) {
+                 if (rows.ndim() != 2 || rows.shape(1) < 11)
+                     throw std::invalid_argument("rows: IMU_RECORD rows as an (N, >= 11) float64 block expected");
+                 const long n = static_cast<long>(rows.shape(0));
+                 if (start < 0 || start > n) throw std::invalid_argument("start: outside the rows");
+                 StrapdownState* sd = strapdown.is_none() ? nullptr : strapdown.cast<StrapdownState*>();
+                 HotInputs in = b.in;
+                 take3(gyro_bias, in.gyro_bias, "gyro_bias_rad_s");
+                 in.int16_source = int16_source;
+                 int verdict = 0;
+                 bool checked = false;
+                 long handled = 0;
+                 const long stop = hot_run(*b.h, *b.ic, sd, a, in, rows.data(), n, static_cast<long>(rows.shape(1)),
+                                           start, verdict, checked, handled);
+                 return py::make_tuple(stop, verdict, checked, handled);
+             },
+             py::arg("rows"), py::arg("start"), py::arg("strapdown"), py::arg("azimuth"), py::arg("gyro_bias_rad_s"),
+             py::arg("int16_source"), "hot_run's flight run with the bound inputs: (stop, verdict, checked, handled).")
+        .def("run_ground",
+             [](BoundHotPath& b, const ArrayC& rows, long start, const py::object& phase_state,
+                const py::object& phase_params, const py::object& ground, const py::object& evidence,
+                const py::handle& gyro_bias, bool int16_source) {
+                 if (rows.ndim() != 2 || rows.shape(1) < 11)
+                     throw std::invalid_argument("rows: IMU_RECORD rows as an (N, >= 11) float64 block expected");
+                 const long n = static_cast<long>(rows.shape(0));
+                 if (start < 0 || start > n) throw std::invalid_argument("start: outside the rows");
+                 const GroundInputs gi = ground_inputs(phase_state, phase_params, ground, evidence);
+                 HotInputs in = b.in;
+                 take3(gyro_bias, in.gyro_bias, "gyro_bias_rad_s");
+                 in.int16_source = int16_source;
+                 int verdict = 0;
+                 bool checked = false;
+                 long handled = 0;
+                 const long stop = ground_run(*b.h, *b.ic, gi, in, rows.data(), n, static_cast<long>(rows.shape(1)),
+                                              start, verdict, checked, handled);
+                 return py::make_tuple(stop, verdict, checked, handled);
+             },
+             py::arg("rows"), py::arg("start"), py::arg("phases"), py::arg("phase_params"), py::arg("ground"),
+             py::arg("evidence"), py::arg("gyro_bias_rad_s"), py::arg("int16_source"),
+             "hot_run's ground run with the bound inputs: (stop, verdict, checked, handled).");
+    m.def("mag_hard_iron_residual",
+          [](const MagDisturbance& md, const py::handle& mag_body, const py::handle& q_P_from_body,
+             double soft_iron) -> py::object {
+              V3 mb;
+              Q4 q;
+              take3(mag_body, mb.data(), "mag_body_gauss");
+              take(q_P_from_body, q.data(), 4, "q_P_from_body");
+              double out = 0.0;
+              if (!mag_hard_iron_residual(md, q, mb, soft_iron, out)) return py::none();
+              return py::float_(out);
+          },
+          py::arg("mag_disturbance"), py::arg("mag_body_gauss"), py::arg("q_P_from_body"), py::arg("soft_iron"),
+          "service/pipeline.py Pipeline._mag_hard_iron_residual's twin on the held _core.MagDisturbance: the "
+          "per-axis sigma (gauss) the learnt hard iron leaves in the heading plus the uncompensated soft iron; "
+          "None without the hard iron's covariance or a horizontal field.");
+
+    m.attr("HOT_QUIET") = static_cast<int>(HP_QUIET);
+    m.attr("HOT_UNREAD") = static_cast<int>(HP_UNREAD);
+
     m.attr("HOT_STOP_END") = static_cast<int>(HS_END);
     m.def("hot_run",
           [](SampleState& h, InputChecks& ic, py::object strapdown, AzimuthRun& a, const ArrayC& rows, long start,
@@ -362,26 +619,7 @@ void bind_hot_path(py::module_& m) {
                   stop = hot_run(h, ic, sd, a, in, rows.data(), n, static_cast<long>(rows.shape(1)), start, verdict,
                                  checked, handled);
               } else {  // the ground run
-                  GroundInputs gi;
-                  gi.ph = phase_state.cast<phases::State*>();
-                  gi.pp = phase_params.cast<const phases::Params*>();
-                  gi.gs = ground.is_none() ? nullptr : ground.cast<GroundState*>();
-                  if (gi.ph->phase != phases::PRE_LAUNCH)
-                      throw std::invalid_argument("phases: a ground run starts in phase pre-launch");
-                  if (gi.gs != nullptr && !gi.gs->a_held)
-                      throw std::invalid_argument("ground: method A's pre-launch part is not held there");
-                  py::tuple e = evidence.cast<py::tuple>();
-                  if (e.size() != 8)
-                      throw std::invalid_argument("evidence: (armed, fc_reports_flying, fc_landed, has_air, air_time_s, "
-                                                  "air_max_age_s, airspeed_m_s, alt_rate_m_s) expected");
-                  gi.armed = e[0].cast<int>();
-                  gi.fc_reports_flying = e[1].cast<int>();
-                  gi.fc_landed = e[2].cast<int>();
-                  gi.has_air = e[3].cast<bool>();
-                  gi.air_time_s = e[4].cast<double>();
-                  gi.air_max_age_s = e[5].cast<double>();
-                  gi.airspeed_m_s = e[6].cast<double>();
-                  gi.alt_rate_m_s = e[7].cast<double>();
+                  const GroundInputs gi = ground_inputs(phase_state, phase_params, ground, evidence);
                   stop = ground_run(h, ic, gi, in, rows.data(), n, static_cast<long>(rows.shape(1)), start, verdict,
                                     checked, handled);
               }

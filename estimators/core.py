@@ -478,11 +478,12 @@ def mag_usability_step(state: _mu.MagUsabilityState | HeldMagUsability, time_s: 
     """estimators.mag_usability.mag_usability_step with the state held in the core (a
     MagUsabilityState is taken in on the first call); the same results."""
     m = np.asarray(mag_body_gauss, float)
-    if m.shape != (3,) or not np.all(np.isfinite(m)) or not math.isfinite(time_s):
+    ml = m.tolist() if m.shape == (3,) else ()   # the finiteness test on Python floats
+    if not (ml and all(map(math.isfinite, ml))) or not math.isfinite(time_s):
         raise ValueError(f"mag_body_gauss must be 3 finite values and time_s finite, got {mag_body_gauss!r}, {time_s!r}")
     if not isinstance(state, HeldMagUsability):
         state = HeldMagUsability(state)
-    mx, my, mz = m.tolist()
+    mx, my, mz = ml
     tilt = roll_rad is not None and pitch_rad is not None and math.isfinite(roll_rad) and math.isfinite(pitch_rad)
     known, ok, wx, wy, wz = _gyro3(gyro_body_rad_s)
     has_hi = hard_iron_gauss is not None
@@ -573,8 +574,9 @@ def mag_disturbance_step(state: _md.MagDisturbanceState | HeldMagDisturbance, ti
     (ValueError, the reference's message) leaves the state as it was."""
     m = np.asarray(mag_body_gauss, float)
     q = np.asarray(q_P_from_body, float)
-    if m.shape != (3,) or q.shape != (4,) or not (np.all(np.isfinite(m)) and np.all(np.isfinite(q))
-                                                  and math.isfinite(time_s)):
+    # the finiteness test on Python floats (np.all(np.isfinite(...)) costs more than the step)
+    ml, ql = (m.tolist(), q.tolist()) if m.shape == (3,) and q.shape == (4,) else ((), ())
+    if not (ml and all(map(math.isfinite, ml)) and all(map(math.isfinite, ql)) and math.isfinite(time_s)):
         raise ValueError(f"mag_body_gauss (3), q_P_from_body (4) and time_s must be finite, got "
                          f"{mag_body_gauss!r}, {q_P_from_body!r}, {time_s!r}")
     if not isinstance(state, HeldMagDisturbance):
@@ -582,8 +584,8 @@ def mag_disturbance_step(state: _md.MagDisturbanceState | HeldMagDisturbance, ti
     t = float(time_s)
     if state._t is not None and t - state._t < 0.0:
         raise ValueError(f"time_s must not decrease ({state._t} -> {t})")
-    mx, my, mz = m.tolist()
-    qw, qx, qy, qz = q.tolist()
+    mx, my, mz = ml
+    qw, qx, qy, qz = ql
     v = state._c.step(state._p(params), t, mx, my, mz, qw, qx, qy, qz)
     state._t = state._c.time_s   # the last new sample's (a held repeat is dated at its first appearance)
     return state, _md.MagDisturbanceVerdict(*v)
@@ -945,6 +947,19 @@ if HOT_PATH_AVAILABLE:
     SampleState = _core.SampleState
     AzimuthRun = _core.AzimuthRun
     hot_run = _core.hot_run
+    if hasattr(_core, "HotPath"):   # hot_run with the Pipeline's fixed inputs bound once (service/hot_path.py)
+        HotPath, HOT_QUIET, HOT_UNREAD = _core.HotPath, _core.HOT_QUIET, _core.HOT_UNREAD
+
+
+def mag_hard_iron_residual(state, mag_body_gauss, q_P_from_body, soft_iron: float) -> float | None:
+    """service/pipeline.py Pipeline._mag_hard_iron_residual on a MagDisturbance state held in the
+    core (HeldMagDisturbance: the hard iron's covariance read there, core/bindings_hot_path.cpp): the
+    same figure to rounding, None without that covariance or a horizontal field. The caller checks
+    MAG_HARD_IRON_RESIDUAL_AVAILABLE (an older build: the reference runs)."""
+    return _core.mag_hard_iron_residual(state._c, mag_body_gauss, q_P_from_body, soft_iron)
+
+
+MAG_HARD_IRON_RESIDUAL_AVAILABLE = AVAILABLE and hasattr(_core, "mag_hard_iron_residual")
 GROUND_AVAILABLE = HOT_PATH_AVAILABLE and hasattr(_core, "GroundState")
 """The ground (pre-launch) path in the core (core/ground.hpp: GroundState, hot_run's ground run)."""
 if GROUND_AVAILABLE:

@@ -166,6 +166,8 @@ class Pipeline:
     # holds method A's delay line on the ground)
     rest = ground_field("rest", "Rest data of consecutive still blocks (what method E uses at launch).")
     _rest_candidate = ground_field("rest_candidate")
+    _hot_bound = None
+    """The bound hot path's holder (service/hot_path.py _bound), made at the first quiet sample."""
 
     def __init__(self, cfg: dict, kf1_learn: Kf1State | None = None, kf1_applied: Kf1State | None = None,
                  solver=None, deviation: DeviationState | None = None):
@@ -1005,8 +1007,15 @@ class Pipeline:
         g = [m_y, -m_x, 0] / H^2 (levelled field m), so its heading variance is
         g^T C_PB P_b C_BP g = s_eq^2 / H^2 with s_eq = H sqrt(g^T C_PB P_b C_BP g); plus the
         uncompensated soft iron (polar_heading's ``uncalibrated_soft_iron`` of |m|)."""
-        P = self.mag_dist.P_hard_iron
-        if mag_body_gauss is None or P is None or att is None:
+        if mag_body_gauss is None or att is None:
+            return None
+        md = self.mag_dist
+        if type(md) is core_facade.HeldMagDisturbance and core_facade.MAG_HARD_IRON_RESIDUAL_AVAILABLE:
+            # the core's twin on the held state (estimators/core.py; parity: tests/test_core_hot_path.py)
+            return core_facade.mag_hard_iron_residual(md, mag_body_gauss, att.q_P_from_body,
+                                                      self.polar_hdg_params.uncalibrated_soft_iron)
+        P = md.P_hard_iron
+        if P is None:
             return None
         C = dcm_from_quat(att.q_P_from_body)
         m = C @ mag_body_gauss
