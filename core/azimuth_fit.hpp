@@ -124,9 +124,56 @@ struct LinAlgError : std::runtime_error {
     using std::runtime_error::runtime_error;
 };
 
+// Inverse of a symmetric positive definite S by Cholesky (S = L L^T, inv = L^-T L^-1); false when a
+// pivot is not positive or a number is not finite. cond1: ||S||_1 ||inv||_1 (>= the 2-norm condition).
+inline bool chol_inverse(const Mat& S, Mat& inv, double& cond1) {
+    const int n = S.r;
+    Mat L(n, n), Li(n, n);
+    for (int j = 0; j < n; ++j) {
+        double sjj = S(j, j);
+        for (int k = 0; k < j; ++k) sjj -= L(j, k) * L(j, k);
+        if (!(sjj > 0.0) || !std::isfinite(sjj)) return false;
+        L(j, j) = std::sqrt(sjj);
+        for (int i = j + 1; i < n; ++i) {
+            double sij = S(i, j);
+            for (int k = 0; k < j; ++k) sij -= L(i, k) * L(j, k);
+            L(i, j) = sij / L(j, j);
+        }
+    }
+    for (int j = 0; j < n; ++j) {
+        Li(j, j) = 1.0 / L(j, j);
+        for (int i = j + 1; i < n; ++i) {
+            double acc = 0.0;
+            for (int k = j; k < i; ++k) acc += L(i, k) * Li(k, j);
+            Li(i, j) = -acc / L(i, i);
+        }
+    }
+    inv = Mat(n, n);
+    for (int i = 0; i < n; ++i)
+        for (int j = i; j < n; ++j) {
+            double acc = 0.0;
+            for (int k = j; k < n; ++k) acc += Li(k, i) * Li(k, j);
+            inv(i, j) = inv(j, i) = acc;
+        }
+    double nS = 0.0, nI = 0.0;
+    for (int j = 0; j < n; ++j) {
+        double cs = 0.0, ci = 0.0;
+        for (int i = 0; i < n; ++i) {
+            cs += std::fabs(S(i, j));
+            ci += std::fabs(inv(i, j));
+        }
+        nS = std::max(nS, cs);
+        nI = std::max(nI, ci);
+    }
+    cond1 = nS * nI;
+    return std::isfinite(cond1);
+}
+
 // estimators/azimuth_fit.py _inv_spd: Jacobi scaling, the inverse while cond < 1e13, else the
-// pseudo-inverse with rcond 1e-13 (an unobservable direction). A non-finite matrix: numpy's SVD
-// does not converge; here the same LinAlgError.
+// pseudo-inverse with rcond 1e-13 (an unobservable direction). The inverse by Cholesky where its
+// 1-norm condition (an upper bound of the 2-norm one the reference tests) is below 1e13; otherwise
+// the eigen-decomposition decides as the reference does. A non-finite matrix: numpy's SVD does not
+// converge; here the same LinAlgError.
 inline Mat inv_spd(const Mat& H) {
     const int n = H.r;
     std::vector<double> d(n);
@@ -139,6 +186,15 @@ inline Mat inv_spd(const Mat& H) {
         for (int j = 0; j < n; ++j) Hs(i, j) = H(i, j) / (d[i] * d[j]);
     for (int i = 0; i < n; ++i)
         for (int j = i + 1; j < n; ++j) Hs(i, j) = Hs(j, i) = 0.5 * (Hs(i, j) + Hs(j, i));
+    {
+        Mat R;
+        double cond1 = INFINITY;
+        if (chol_inverse(Hs, R, cond1) && cond1 < 1e13) {
+            for (int i = 0; i < n; ++i)
+                for (int j = 0; j < n; ++j) R(i, j) = R(i, j) / (d[i] * d[j]);
+            return R;
+        }
+    }
     std::vector<double> lam;
     Mat Q;
     if (!eig_sym(Hs, lam, Q)) throw LinAlgError("SVD did not converge");
