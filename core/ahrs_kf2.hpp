@@ -86,7 +86,7 @@ inline Kf2 kf2_init(const Q4& q_in, const Kf2Params& p, double sigma_tilt, doubl
 // (roll, pitch, heading) and their covariance T P_gamma T^T
 inline void kf2_euler_and_cov(const Kf2& s, V3& e, M3& cov) {
     e = euler_from_dcm(dcm_from_quat(s.q_nav_from_body));
-    const M3 T = euler_rate_matrix(e[0], e[1], true);
+    const M3 T = euler_rate_matrix_reported(e[0], e[1]);
     cov = mm<3, 3, 3>(mm<3, 3, 3>(T, block3(s.P, 0, 0)), tr<3, 3>(T));
 }
 

@@ -212,6 +212,13 @@ inline M3 euler_rate_matrix(double roll, double pitch, bool np_scalar = false) {
     return {1.0, sp * tt, cp * tt, 0.0, cp, -sp, 0.0, sp / ct, cp / ct};
 }
 
+// T for reporting an Euler covariance at any pitch (euler_kinematics.euler_rate_matrix_reported):
+// within the singular margin the pitch is taken at twice the margin from 90 deg
+inline M3 euler_rate_matrix_reported(double roll, double pitch) {
+    const double bound = 0.5 * PI_ - 2.0 * 1e-6;
+    return euler_rate_matrix(roll, std::copysign(std::min(std::fabs(pitch), bound), pitch));
+}
+
 // W = T^-1: omega_body = W euler_dot
 inline M3 body_rate_matrix(double roll, double pitch) {
     const double sp = std::sin(roll), cp = std::cos(roll), st = std::sin(pitch), ct = std::cos(pitch);

@@ -450,7 +450,7 @@ inline AhrsOut ahrs_output(const Ahrs& s, const AhrsParams& p) {
     // consider parameters' share [T S_gamma P_c S_gamma^T T^T]_33 (synthetic_ahrs module docstring)
     double var_h = cov[8] + std::pow(s.ref_heading_sens * p.fc_sigma_yaw_rad, 2);
     if (p.consider_mag_errors && s.kf2.has_S) {
-        const M3 T = euler_rate_matrix(e[0], e[1]);
+        const M3 T = euler_rate_matrix_reported(e[0], e[1]);
         std::array<double, NC> h{};  // row 3 of T S_gamma
         for (int j = 0; j < NC; ++j)
             h[j] = (T[6] * s.kf2.S[0 * NC + j] + T[7] * s.kf2.S[1 * NC + j]) + T[8] * s.kf2.S[2 * NC + j];

@@ -76,7 +76,7 @@ from estimators.kalman import kf_predict, kf_update
 from estimators.mag_error_kf import error_jacobian
 from estimators.records import fast_replace
 
-from estimators.euler_kinematics import body_rate_matrix, euler_rate_matrix
+from estimators.euler_kinematics import body_rate_matrix, euler_rate_matrix, euler_rate_matrix_reported
 from estimators.rotations import (dcm_from_quat, euler_from_dcm, quat_from_euler, quat_from_rotvec,
                                   quat_mul, skew, wrap_pi)
 
@@ -209,9 +209,10 @@ def _gamma_cov_from_euler_sigmas(q: np.ndarray, sigma_tilt: float, sigma_heading
 
 
 def kf2_euler_and_cov(state: Kf2State) -> tuple[np.ndarray, np.ndarray]:
-    """(roll, pitch, heading) in rad (heading [0, 2pi)) and their 3x3 covariance T P_gamma T^T."""
+    """(roll, pitch, heading) in rad (heading [0, 2pi)) and their 3x3 covariance T P_gamma T^T
+    (at |pitch| = 90 deg roll and heading sigma are huge, not an error: euler_rate_matrix_reported)."""
     e = np.array(euler_from_dcm(dcm_from_quat(state.q_nav_from_body)))
-    T = euler_rate_matrix(e[0], e[1])
+    T = euler_rate_matrix_reported(e[0], e[1])
     return e, T @ state.P[0:3, 0:3] @ T.T
 
 
@@ -364,7 +365,7 @@ def kf2_consider_euler_cov(state: Kf2State, P_c: np.ndarray) -> np.ndarray:
     if state.consider_sens is None:
         return np.zeros((3, 3))
     e = euler_from_dcm(dcm_from_quat(state.q_nav_from_body))
-    A = euler_rate_matrix(e[0], e[1]) @ state.consider_sens[0:3, :]
+    A = euler_rate_matrix_reported(e[0], e[1]) @ state.consider_sens[0:3, :]
     return A @ P_c @ A.T
 
 

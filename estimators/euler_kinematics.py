@@ -45,6 +45,16 @@ def euler_rate_matrix(roll_rad: float, pitch_rad: float) -> np.ndarray:
     return np.array([[1.0, sp * tt, cp * tt], [0.0, cp, -sp], [0.0, sp / ct, cp / ct]])
 
 
+def euler_rate_matrix_reported(roll_rad: float, pitch_rad: float) -> np.ndarray:
+    """T for REPORTING an Euler covariance (T P_gamma T^T), defined at any pitch: within the
+    singular margin the pitch is taken at twice the margin from 90 deg, so roll and heading sigma
+    are the limit from outside it (tan(90 deg - 2e-6 rad) = 5e5 times the body-frame sigma where
+    P does not correlate them): not separable there, and their sigma says so, continuously with
+    the pitch just outside. Never a measurement Jacobian (those stay singular and say so)."""
+    bound = 0.5 * math.pi - 2.0 * PITCH_SINGULAR_MARGIN_RAD
+    return euler_rate_matrix(roll_rad, math.copysign(min(abs(pitch_rad), bound), pitch_rad))
+
+
 def body_rate_matrix(roll_rad: float, pitch_rad: float) -> np.ndarray:
     """W(phi, theta) = T^-1: omega_body = W @ euler_dot (defined at any pitch)."""
     sp, cp = math.sin(roll_rad), math.cos(roll_rad)

@@ -179,29 +179,37 @@ def test_b_deep_copy_of_held_state_continues_as_the_unbroken_run(recorded):
 
 
 def test_b_refused_event_leaves_the_held_state_unchanged():
-    # GIVEN a trusted FC and one IMU sample, WHEN the FC's first attitude says pitch 90 deg (KF2
-    # starts there, then its Euler covariance is singular: the reference refuses the event with a
-    # ValueError and keeps its state), THEN the core refuses it with the same message and holds the
-    # state from before the event; the next (level) attitude then starts KF2 in both alike
+    # GIVEN a trusted FC, one IMU sample and the FC's first attitude at pitch 90 deg (a vertical
+    # launcher: KF2 starts there and reports it; test_ahrs_gimbal_lock),
+    # WHEN the FC's next attitude is fused while B is still at 90 deg (the update's Jacobian T is
+    # singular: the reference refuses the event with a ValueError and keeps its state), THEN the
+    # core refuses it with the same message and holds the state from before the event; the next IMU
+    # sample (the vehicle turns off 90 deg) and FC attitude are then taken in both alike
     params = SyntheticAhrsParams(field_nav_gauss=(0.2, 0.0, 0.4))
     st_ref = st_core = ref.synthetic_ahrs_init(params)
+    bad: list = []
     for ev in (ref.FcStatusEvent(0.0, system_status=4, attitude_ok=True, horiz_pos_ok=True),
-               ImuEvent(0.0, np.zeros(3), np.array([0.2, 0.0, 0.4]))):
-        st_ref, _ = ref.synthetic_ahrs_step(st_ref, ev, params)
-        st_core, _ = core.synthetic_ahrs_step(st_core, ev, params)
+               ImuEvent(0.0, np.zeros(3), np.array([0.2, 0.0, 0.4])),
+               FcAttitudeEvent(0.0, np.array([0.0, math.pi / 2, 0.0]))):
+        st_ref, out_ref = ref.synthetic_ahrs_step(st_ref, ev, params)
+        st_core, out_core = core.synthetic_ahrs_step(st_core, ev, params)
+    assert out_ref.valid and math.isfinite(out_ref.heading_sigma_rad) and out_ref.pitch_sigma_rad < 1.0
+    _differs(out_ref, out_core, "output at 90 deg", bad)
+    imu = ImuEvent(0.1, np.zeros(3), np.array([0.2, 0.0, 0.4]))   # still at rest: B stays at 90 deg
+    st_ref, _ = ref.synthetic_ahrs_step(st_ref, imu, params)
+    st_core, _ = core.synthetic_ahrs_step(st_core, imu, params)
     before = st_core.to_state()
-    bad_event = FcAttitudeEvent(0.0, np.array([0.0, math.pi / 2, 0.0]))
+    bad_event = FcAttitudeEvent(0.1, np.array([0.0, math.pi / 2, 0.0]))   # due: ref_update_interval_s
     with pytest.raises(ValueError) as e_ref:
         ref.synthetic_ahrs_step(st_ref, bad_event, params)
     with pytest.raises(ValueError) as e_core:
         core.synthetic_ahrs_step(st_core, bad_event, params)
     assert str(e_core.value) == str(e_ref.value) and "singular" in str(e_ref.value)
-    assert st_core.to_state().kf2 is None
-    bad: list = []
     _differs(before, st_core.to_state(), "after refusal", bad)
-    good = FcAttitudeEvent(0.02, np.array([0.01, 0.02, 0.3]))
-    st_ref, out_ref = ref.synthetic_ahrs_step(st_ref, good, params)
-    st_core, out_core = core.synthetic_ahrs_step(st_core, good, params)
+    for ev in (ImuEvent(0.12, np.array([0.0, -0.5, 0.0]), np.array([0.2, 0.0, 0.4])),
+               FcAttitudeEvent(0.12, np.array([0.0, math.pi / 2 - 0.01, 0.0]))):
+        st_ref, out_ref = ref.synthetic_ahrs_step(st_ref, ev, params)
+        st_core, out_core = core.synthetic_ahrs_step(st_core, ev, params)
     assert out_ref.valid
     _differs(out_ref, out_core, "next output", bad)
     _differs(st_ref, st_core.to_state(), "next state", bad)
