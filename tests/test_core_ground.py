@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from sitl import pipeline_inputs, scenario_site  # noqa: E402
 from parity_compare import differences  # noqa: E402
 from pipeline_recording import fly, run_with_backend  # noqa: E402
-from test_core_hot_path import feed_batches  # noqa: E402
+from test_core_hot_path import feed_batches, python_with_core_fit  # noqa: E402
 
 from estimators import core as ec  # noqa: E402
 from estimators.azimuth import azimuth_prelaunch_step  # noqa: E402
@@ -58,7 +58,7 @@ DATA = ROOT.parent / "shared" / "data"
 def _backends():
     core = core_backend.select({"AZIMUTHD_CORE": "core"})
     assert core.ground_state is ec.GroundState
-    return core_backend.select({"AZIMUTHD_CORE": "python"}), core, dataclasses.replace(core, hot_run=None)
+    return python_with_core_fit(core), core, dataclasses.replace(core, hot_run=None)
 
 
 def _site_cfg(run, launch=None) -> dict:

@@ -162,9 +162,21 @@ def _compare(a: dict, b: dict, rtol: float = 1e-9, innovations: bool = False) ->
     return bad
 
 
+def python_with_core_fit(core):
+    """The Python reference backend with method A's fit kernels taken from ``core``: these tests
+    are about the hot path (who sees which sample), not the fit. A's fit has its own parity test
+    (tests/test_core_azimuth_fit.py): equal to 1e-9 on every solve the gate can accept; on an
+    ill-conditioned one the gate rejects (this flight's gap-disabled A solves at condition 6.5e5)
+    the reference does not reproduce itself to 1e-9 (samples reversed: 1e-6 at 8e4), so there it is
+    held to 10x that, and a whole-Pipeline compare at 1e-9 would be comparing two LAPACKs."""
+    python = core_backend.select({"AZIMUTHD_CORE": "python"})
+    return dataclasses.replace(python, azimuth_fit_psi=core.azimuth_fit_psi,
+                               azimuth_orientation_diversity=core.azimuth_orientation_diversity)
+
+
 def _backends():
     core = core_backend.select({"AZIMUTHD_CORE": "core"})
-    return core_backend.select({"AZIMUTHD_CORE": "python"}), core, dataclasses.replace(core, hot_run=None)
+    return python_with_core_fit(core), core, dataclasses.replace(core, hot_run=None)
 
 
 def test_hot_path_equals_python_reference(flight):
