@@ -217,6 +217,14 @@ struct BoundHotPath {
     HotInputs in{};
 };
 
+// the bound inputs with this call's gyro bias and source form
+HotInputs call_inputs(const BoundHotPath& b, const py::handle& gyro_bias, bool int16_source) {
+    HotInputs in = b.in;
+    take3(gyro_bias, in.gyro_bias, "gyro_bias_rad_s");
+    in.int16_source = int16_source;
+    return in;
+}
+
 // HP_QUIET: the sample was quiet and is committed; HP_UNREAD: not read (not in the link's form, its
 // input check not run: on_imu takes it); else the input checks' verdict on it (it stopped the run).
 enum : int { HP_QUIET = -1, HP_UNREAD = -2 };
@@ -502,9 +510,7 @@ void bind_hot_path(py::module_& m) {
                  bool int16 = false;
                  if (!sample_row(sample, r, int16)) return static_cast<int>(HP_UNREAD);
                  StrapdownState* sd = strapdown.is_none() ? nullptr : strapdown.cast<StrapdownState*>();
-                 HotInputs in = b.in;
-                 take3(gyro_bias, in.gyro_bias, "gyro_bias_rad_s");
-                 in.int16_source = int16;
+                 HotInputs in = call_inputs(b, gyro_bias, int16);
                  int verdict = 0;
                  bool checked = false;
                  long handled = 0;
@@ -521,9 +527,7 @@ void bind_hot_path(py::module_& m) {
                  bool int16 = false;
                  if (!sample_row(sample, r, int16)) return static_cast<int>(HP_UNREAD);
                  const GroundInputs gi = ground_inputs(phase_state, phase_params, ground, evidence);
-                 HotInputs in = b.in;
-                 take3(gyro_bias, in.gyro_bias, "gyro_bias_rad_s");
-                 in.int16_source = int16;
+                 HotInputs in = call_inputs(b, gyro_bias, int16);
                  int verdict = 0;
                  bool checked = false;
                  long handled = 0;
@@ -540,9 +544,7 @@ void bind_hot_path(py::module_& m) {
                  const long n = static_cast<long>(rows.shape(0));
                  if (start < 0 || start > n) throw std::invalid_argument("start: outside the rows");
                  StrapdownState* sd = strapdown.is_none() ? nullptr : strapdown.cast<StrapdownState*>();
-                 HotInputs in = b.in;
-                 take3(gyro_bias, in.gyro_bias, "gyro_bias_rad_s");
-                 in.int16_source = int16_source;
+                 HotInputs in = call_inputs(b, gyro_bias, int16_source);
                  int verdict = 0;
                  bool checked = false;
                  long handled = 0;
@@ -561,9 +563,7 @@ void bind_hot_path(py::module_& m) {
                  const long n = static_cast<long>(rows.shape(0));
                  if (start < 0 || start > n) throw std::invalid_argument("start: outside the rows");
                  const GroundInputs gi = ground_inputs(phase_state, phase_params, ground, evidence);
-                 HotInputs in = b.in;
-                 take3(gyro_bias, in.gyro_bias, "gyro_bias_rad_s");
-                 in.int16_source = int16_source;
+                 HotInputs in = call_inputs(b, gyro_bias, int16_source);
                  int verdict = 0;
                  bool checked = false;
                  long handled = 0;
