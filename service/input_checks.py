@@ -254,7 +254,10 @@ class CoreImuInputChecks:
         self._say.counts = self.counts
 
     def check(self, s: ImuSample) -> Verdict:
-        (gx, gy, gz), (ax, ay, az) = s.gyro_rad_s.tolist(), s.accel_m_s2.tolist()
+        g, a = s.gyro_rad_s, s.accel_m_s2
+        if type(g) is not np.ndarray or type(a) is not np.ndarray:   # lists, tuples: as the reference takes them
+            g, a = np.asarray(g, dtype=float), np.asarray(a, dtype=float)
+        (gx, gy, gz), (ax, ay, az) = g.tolist(), a.tolist()
         r = self._c.step(gx, gy, gz, ax, ay, az, s.time_fc_s, s.source in _INT16_SOURCES)
         return _OK if r == 0 else self._words(r, s)
 

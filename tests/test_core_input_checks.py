@@ -123,3 +123,15 @@ def test_the_pipeline_on_the_core_backend_uses_the_core_checks(monkeypatch):
     assert isinstance(Pipeline(cfg).input_checks, CoreImuInputChecks)
     monkeypatch.setenv("AZIMUTHD_CORE", "python")
     assert type(Pipeline(cfg).input_checks) is ImuInputChecks
+
+
+def test_core_takes_list_valued_samples_as_the_reference():
+    """An ImuSample whose gyro / accel are lists (a caller that is not the link): the core's checks read
+    them as the reference does (they raised AttributeError on .tolist()), NaN included."""
+    samples = [_with(s, gyro_rad_s=s.gyro_rad_s.tolist(), accel_m_s2=tuple(s.accel_m_s2.tolist()))
+               for s in _faulted()[:1500]]
+    assert any(not np.all(np.isfinite(s.gyro_rad_s)) or not np.all(np.isfinite(s.accel_m_s2)) for s in samples)
+    params = InputCheckParams(report_interval_s=2.0)
+    ref, cor = ImuInputChecks(params), CoreImuInputChecks(params)
+    assert _verdicts(ref, samples) == _verdicts(cor, samples)
+    assert ref.counts == cor.counts
