@@ -377,6 +377,19 @@ inline std::vector<double> lstsq_sym(const Mat& Nm, const Mat& rhs, int col) {
     return x;
 }
 
+// the weighted normal equations of the affine model h_n = A m_n + b (FULL12): X = [m_n^T 1] per row,
+// XtWX (4x4) += w_n x x^T and XtWh (4x3) += w_n x h_n^T (azimuth_fit's lstsq of the same rows)
+inline void affine_normal_equations(const double* m, const double* h, const double* w, int N, Mat& XtWX, Mat& XtWh) {
+    for (int n = 0; n < N; ++n) {
+        const double x[4] = {m[3 * n], m[3 * n + 1], m[3 * n + 2], 1.0};
+        for (int i = 0; i < 4; ++i) {
+            const double xw = x[i] * w[n];
+            for (int j = 0; j < 4; ++j) XtWX(i, j) += xw * x[j];
+            for (int j = 0; j < 3; ++j) XtWh(i, j) += xw * h[3 * n + j];
+        }
+    }
+}
+
 // profile cost c(psi) of one candidate (azimuth_fit._profile_costs); physical: the distortion keeps
 // the field's handedness
 inline double profile_cost(int model, double psi, const std::vector<double>& U, const std::vector<double>& V,
@@ -422,14 +435,7 @@ inline double profile_cost(int model, double psi, const std::vector<double>& U, 
         return cost;
     }
     Mat XtWX(4, 4), XtWh(4, 3);
-    for (int n = 0; n < N; ++n) {
-        const double x[4] = {m[3 * n], m[3 * n + 1], m[3 * n + 2], 1.0};
-        for (int i = 0; i < 4; ++i) {
-            const double xw = x[i] * w[n];
-            for (int j = 0; j < 4; ++j) XtWX(i, j) += xw * x[j];
-            for (int j = 0; j < 3; ++j) XtWh(i, j) += xw * h[3 * n + j];
-        }
-    }
+    affine_normal_equations(m.data(), h, w, N, XtWX, XtWh);
     Mat Pinv;
     if (!pinv_sym(XtWX, 1e-15, Pinv)) throw LinAlgError("SVD did not converge");
     const Mat beta = matmul(Pinv, XtWh);  // (4, 3): rows 0-2 = A^T, row 3 = b
@@ -540,14 +546,7 @@ inline Result fit_psi(const Samples& d, const double* C_isf_af, const double* e,
             }
         } else if (model == FULL12) {
             Mat XtWX(4, 4), XtWh(4, 3);
-            for (int n = 0; n < N; ++n) {
-                const double x[4] = {m0[3 * n], m0[3 * n + 1], m0[3 * n + 2], 1.0};
-                for (int i = 0; i < 4; ++i) {
-                    const double xw = x[i] * w[n];
-                    for (int j = 0; j < 4; ++j) XtWX(i, j) += xw * x[j];
-                    for (int j = 0; j < 3; ++j) XtWh(i, j) += xw * h[3 * n + j];
-                }
-            }
+            affine_normal_equations(m0.data(), h, w, N, XtWX, XtWh);
             for (int j = 0; j < 3; ++j) {  // beta[:, j] -> A row j, b_j
                 const std::vector<double> sol = lstsq_sym(XtWX, XtWh, j);
                 for (int k = 0; k < 3; ++k) theta[1 + 3 * j + k] = sol[k];

@@ -69,6 +69,20 @@ struct State {
     std::vector<std::pair<std::string, double>> last_fused_s;  // as the reference holds it (sorted)
 };
 
+// the state after a step that holds a fused (or coasted) heading
+inline State held_state(double time_s, double fused_rad, double var_rad2, double offset_rad,
+                        const std::vector<std::string>& sources) {
+    State s;
+    s.has_time = true;
+    s.time_s = time_s;
+    s.has_fused = true;
+    s.fused_rad = fused_rad;
+    s.fused_var_rad2 = var_rad2;
+    s.offset_rad = offset_rad;
+    s.sources = sources;
+    return s;
+}
+
 // heading_arbitration.SourceReading, the fields the rule reads
 struct Reading {
     std::string name;
@@ -379,14 +393,7 @@ inline bool step(const State& st, const std::vector<Reading>& rs, double time_s,
         }
         if (time_s - gated_since < p.reinit_after_s && !discredited) {
             // coast on the propagated reference
-            next = State{};
-            next.has_time = true;
-            next.time_s = time_s;
-            next.has_fused = true;
-            next.fused_rad = ref;
-            next.fused_var_rad2 = ref_var;
-            next.offset_rad = bleed(st.offset_rad, dt, p);
-            next.sources = st.sources;
+            next = held_state(time_s, ref, ref_var, bleed(st.offset_rad, dt, p), st.sources);
             next.has_gated_since = true;
             next.gated_since_s = gated_since;
             next.last_fused_s = st.last_fused_s;
@@ -446,14 +453,7 @@ inline bool step(const State& st, const std::vector<Reading>& rs, double time_s,
     std::map<std::string, double> last;
     for (const auto& kv : st.last_fused_s) last[kv.first] = kv.second;
     for (const std::string& n : names) last[n] = time_s;
-    next = State{};
-    next.has_time = true;
-    next.time_s = time_s;
-    next.has_fused = true;
-    next.fused_rad = fused;
-    next.fused_var_rad2 = var;
-    next.offset_rad = offset;
-    next.sources = names;
+    next = held_state(time_s, fused, var, offset, names);
     next.last_fused_s.assign(last.begin(), last.end());
     out.kind = FUSED;
     out.heading_rad = wrap_2pi(fused + offset);
