@@ -58,6 +58,7 @@ _SMALL_BATCH = 8
 tiny arrays cost more than that (CPU at load 10: 18 us vs 114 us for 1 row; 44 vs 132 for 4;
 numpy wins from ~12 rows: 184 vs 656 us for 64)."""
 _WIRE_UNPACK = struct.Struct("<Q9hB").unpack_from   # time_usec, acc, gyro, mag, id
+_array = np.array
 _NAN = float("nan")
 
 
@@ -103,9 +104,12 @@ def raw_imu_sample(payload: bytes, time_fc_s: float, time_rx_s: float) -> ImuSam
     same factor), without a pymavlink message object. A cut payload's missing bytes are zeros."""
     _t, a0, a1, a2, g0, g1, g2, m0, m1, m2, imu_id = _WIRE_UNPACK(
         payload if len(payload) == _WIRE_SIZE else payload[:_WIRE_SIZE].ljust(_WIRE_SIZE, b"\0"))
-    mag = None if m0 == 0 and m1 == 0 and m2 == 0 else np.array((m0, m1, m2), dtype=float) * MGAUSS_TO_GAUSS
-    return ImuSample(time_fc_s, time_rx_s, np.array((g0, g1, g2), dtype=float) * MRAD_TO_RAD,
-                     np.array((a0, a1, a2), dtype=float) * MG_TO_M_S2, mag, "RAW_IMU", imu_id)
+    # float(int16) * factor in Python is the float64 product numpy forms (int -> float64 exact): the same
+    # bits with one array per vector instead of an int array, a float copy and a product (17 -> 6.5 us)
+    mag = None if m0 == 0 and m1 == 0 and m2 == 0 else \
+        _array((m0 * MGAUSS_TO_GAUSS, m1 * MGAUSS_TO_GAUSS, m2 * MGAUSS_TO_GAUSS))
+    return ImuSample(time_fc_s, time_rx_s, _array((g0 * MRAD_TO_RAD, g1 * MRAD_TO_RAD, g2 * MRAD_TO_RAD)),
+                     _array((a0 * MG_TO_M_S2, a1 * MG_TO_M_S2, a2 * MG_TO_M_S2)), mag, "RAW_IMU", imu_id)
 
 
 @dataclass(frozen=True, slots=True)
