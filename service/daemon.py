@@ -15,6 +15,7 @@ applied by a restart; the daemon runs on with the config it started with (never 
 """
 from __future__ import annotations
 
+import gc
 import logging
 import math
 import os
@@ -432,6 +433,7 @@ class Daemon:
             signal.signal(sig, self._on_signal)
         signal.signal(signal.SIGHUP, self._on_sighup)
         self.open()
+        self._freeze_heap()
         t_end = None if duration_s is None else self.clock() + duration_s
         try:
             while not self.stop_requested:
@@ -441,6 +443,15 @@ class Daemon:
         finally:
             self.close()
         return 0
+
+    @staticmethod
+    def _freeze_heap() -> None:
+        """Everything built up to the loop (modules, the dialects, the Pipeline, the link) is kept for
+        the process's life: collected once, then moved out of the cyclic collector's generations
+        (gc.freeze), so its full collections no longer walk ~80k objects that never become garbage
+        (in-process 400 Hz flight, bench/daemon_loop_cost.py's frames: GC 116 -> 26 ms per 26 s)."""
+        gc.collect()
+        gc.freeze()
 
     # --- the loop -----------------------------------------------------------------------------
 
