@@ -52,7 +52,7 @@ from typing import Callable
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from mavlink_io import decode as dec
+from mavlink_io import decode as dec, frame_pack
 from mavlink_io.frame_scan import RawImuFrame
 from mavlink_io.framing import FrameParser, SeqTracker
 from mavlink_io.imu_batch import BatchBuilder, ImuBatch, raw_imu_sample
@@ -254,7 +254,7 @@ class MavlinkLink:
             return False
         before = self.stats.messages_sent
         try:
-            self.mav.send(msg)
+            frame_pack.send(self.mav, msg)   # the outputs packed without pymavlink's objects, else mav.send
         except Exception as exc:  # noqa: BLE001 - packing user data (struct.error, TypeError...)
             self.stats.send_errors += 1
             self.last_error = f"send {getattr(msg, 'get_type', lambda: '?')()}: {exc}"

@@ -26,6 +26,7 @@ import traceback
 
 from pymavlink.dialects.v20 import common as mavlink2
 
+from mavlink_io import frame_pack
 from mavlink_io.commands import CommandProtocol, CommandProtocolParams, statustext_message
 from mavlink_io.decode import FcParam, FcStatusText
 from mavlink_io.imu_batch import ImuBatch
@@ -911,7 +912,7 @@ class Daemon:
         for p in self.extra_ports:
             try:
                 p.mav.srcSystem = self.link.mav.srcSystem
-                p.mav.send(msg)
+                frame_pack.send(p.mav, msg)
             except OSError as exc:
                 self.rl.log(logging.WARNING, "extra_send", "extra output send failed", error=str(exc))
 
