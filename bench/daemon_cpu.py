@@ -9,7 +9,8 @@ UDP on ``--port``, exactly as a user runs them. The simulator starts once the da
 ``started``; after ``--warmup-s`` more (take-off included) the daemon's psutil counters are read over
 ``--window-s`` of flight:
 
-- ``daemon_cpu_pct``: (user + system CPU time) / wall time, percent of one core;
+- ``daemon_cpu_pct``: (user + system CPU time) / wall time, percent of one core (``daemon_user_pct``,
+  ``daemon_system_pct``: the two apart; system is the kernel's work for the daemon: select, recv, send);
 - ``daemon_cpu_ms_per_imu_nominal``: that CPU time / (window x the requested RAW_IMU rate);
 - ``daemon_cpu_ms_per_processed_imu``: the daemon's CPU from its ``started`` log line to the end
   / the IMU samples it processed in that time (its ``stopped`` record): the cost per unit of work,
@@ -157,6 +158,8 @@ def measure(imu_hz: float, window_s: float, warmup_s: float, port: int, fixed_wa
     d_cpu_s = (d1.user - d0.user) + (d1.system - d0.system)
     out.update(daemon_cpu_pct=100.0 * d_cpu_s / wall,
                daemon_cpu_ms_per_s=1e3 * d_cpu_s / wall,
+               daemon_user_pct=100.0 * (d1.user - d0.user) / wall,
+               daemon_system_pct=100.0 * (d1.system - d0.system) / wall,
                daemon_cpu_ms_per_imu_nominal=1e3 * d_cpu_s / (wall * imu_hz),
                daemon_wakeups_per_s=(c1.voluntary - c0.voluntary) / wall,
                daemon_involuntary_per_s=(c1.involuntary - c0.involuntary) / wall,
@@ -192,7 +195,8 @@ def main(argv=None) -> int:
     what = "idle, no FC" if r["idle_no_fc"] else f"RAW_IMU {r['imu_hz']:g} Hz"
     print(f"scheduling: {r['sched']}; IMU path: {r['imu_path']}")
     print(f"daemon ({r['loop']}) {what}, over {r['window_s']:.0f} s (load {r['load_avg_1min']:.1f}): "
-          f"{r['daemon_cpu_pct']:.1f} % of a core ({r['daemon_cpu_ms_per_s']:.0f} ms CPU per s, "
+          f"{r['daemon_cpu_pct']:.1f} % of a core (user {r['daemon_user_pct']:.1f} + system {r['daemon_system_pct']:.1f}; "
+          f"{r['daemon_cpu_ms_per_s']:.0f} ms CPU per s, "
           f"{r['daemon_cpu_ms_per_imu_nominal']:.2f} ms per nominal IMU sample), loop wakeups "
           f"{r['daemon_wakeups_per_s']:.0f} /s; simulator {r['sim_cpu_pct']:.1f} %")
     if "daemon_cpu_ms_per_processed_imu" in r:

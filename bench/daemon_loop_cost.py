@@ -1,6 +1,6 @@
 """CPU of the daemon's own loop per RAW_IMU at 400 Hz, in this process, without the scheduler's noise.
 
-    python bench/daemon_loop_cost.py [--flight-s 30] [--repeat 2] [--json PATH]
+    python bench/daemon_loop_cost.py [--flight-s 30] [--repeat 2] [--json PATH] [--split]
 
 The bundled simulator (inclined_rail, ArduPilot personality, rest shortened to 6 s) is run in memory
 as fast as it computes, with the streams the daemon asks for at 400 Hz (RAW_IMU 400, SCALED_PRESSURE
@@ -15,6 +15,12 @@ for each. Figures, in flight (from launch + 4 s to the end):
 - ``empty_wakeup_us``: one step with nothing to read (the loop's fixed cost per wake-up);
 - call counts per RAW_IMU, which do not depend on the load: pymavlink parses (``MAVLink.parse_char``),
   NavSolutions built from propagated snapshots, ``OutputScheduler._fillable``, ``Pipeline.on_imu``.
+
+``--split``: one more run with the parts of a step timed (thread CPU time around the outermost call of
+each, in flight): ``split_us_per_imu`` per part, per RAW_IMU: where the loop's time goes (the link's
+receive and decode, its timers, the Pipeline, the output slots and their sends, the daemon's periodic
+work). A part's time includes the parts called inside it (Daemon._dispatch holds Pipeline.step_imu and
+most of Daemon._publish_due); the timing adds ~1 us per wrapped call (a clock_gettime each side).
 
 What it leaves out: the socket, select() and waking up (bench/speed.py measures the daemon as a
 process). The 1-min load is printed beside every figure.
@@ -69,6 +75,59 @@ def record(flight_s: float) -> list[tuple[float, bytes]]:
     return wire.frames
 
 
+SPLIT_PARTS = (
+    ("service.daemon", "Daemon", "step"),
+    ("mavlink_io.link", "MavlinkLink", "poll"),
+    ("mavlink_io.session", "Session", "read"),
+    ("mavlink_io.framing", "FrameParser", "parse_chunk"),
+    ("mavlink_io.link", "MavlinkLink", "_handle_imu_frame"),
+    ("mavlink_io.link", "MavlinkLink", "_handle"),
+    ("mavlink_io.link", "MavlinkLink", "_service_timers"),
+    ("mavlink_io.link", "MavlinkLink", "_next_due_s"),
+    ("service.daemon", "Daemon", "_dispatch"),
+    ("service.pipeline", "Pipeline", "step_imu"),
+    ("service.daemon", "Daemon", "_publish_due"),
+    ("service.daemon", "Daemon", "_send"),
+    ("service.daemon", "Daemon", "_periodic"),
+    ("service.daemon", "Daemon", "loop_wait_s"),
+)
+"""(module, class, method) timed by --split."""
+
+
+class _Split:
+    """Thread CPU time around the outermost call of each SPLIT_PARTS method while ``on``."""
+
+    def __init__(self):
+        import importlib
+        self.on, self.acc, self._saved = False, {}, []
+        for mod, cls_name, meth in SPLIT_PARTS:
+            cls = getattr(importlib.import_module(mod), cls_name)
+            self._saved.append((cls, meth, cls.__dict__[meth]))
+            setattr(cls, meth, self._wrap(f"{cls_name}.{meth}", cls.__dict__[meth]))
+
+    def _wrap(self, key, f):
+        acc, depth, pc = self.acc, [0], time.thread_time   # CPU time: the wall clock counts the waits for a core
+        acc[key] = [0.0, 0]
+
+        def timed(*a, **k):
+            if depth[0] or not self.on:
+                return f(*a, **k)
+            depth[0] += 1
+            t = pc()
+            try:
+                return f(*a, **k)
+            finally:
+                depth[0] -= 1
+                r = acc[key]
+                r[0] += pc() - t
+                r[1] += 1
+        return timed
+
+    def restore(self) -> None:
+        for cls, meth, f in self._saved:
+            setattr(cls, meth, f)
+
+
 class _Clock:
     t = 0.0
 
@@ -76,7 +135,7 @@ class _Clock:
         return self.t
 
 
-def run(frames, t0_s: float, counting: bool = False) -> dict:
+def run(frames, t0_s: float, counting: bool = False, split: bool = False) -> dict:
     """One daemon over the frames; CPU and wake-ups counted from t0_s on."""
     import socket
 
@@ -100,6 +159,7 @@ def run(frames, t0_s: float, counting: bool = False) -> dict:
     d.extra_ports.append(mavutil.mavlink_connection(f"udpout:127.0.0.1:{sink.getsockname()[1]}", source_system=1,
                                                     source_component=d.link_cfg.component_id, dialect="ardupilotmega"))
     counts = {}
+    timer = _Split() if split else None
     if counting:
         import cProfile
         prof = cProfile.Profile()
@@ -109,6 +169,8 @@ def run(frames, t0_s: float, counting: bool = False) -> dict:
         tr.inbox.append(f)
         inside = t >= t0_s
         if inside:
+            if timer is not None:
+                timer.on = True
             if counting:
                 prof.enable()
             c0 = time.process_time()
@@ -119,8 +181,11 @@ def run(frames, t0_s: float, counting: bool = False) -> dict:
                 prof.disable()
             n_dg += 1
             n_imu += f[7] == 27 and f[8] == 0 and f[9] == 0
+    if timer is not None:
+        timer.on = False
+        timer.restore()
     empty = None
-    if not counting:
+    if not counting and not split:
         best = float("inf")
         for _ in range(3):
             c0 = time.process_time()
@@ -140,6 +205,8 @@ def run(frames, t0_s: float, counting: bool = False) -> dict:
         counts = {k: calls.get(k, 0) / n_imu for k in (
             "ardupilotmega.py:parse_char", "pipeline.py:solution_from_snapshot", "outputs.py:_fillable",
             "pipeline.py:on_imu", "daemon.py:step")}
+    if timer is not None:
+        counts = {k: {"us_per_imu": 1e6 * v[0] / n_imu, "calls_per_imu": v[1] / n_imu} for k, v in timer.acc.items()}
     return {"us_per_imu": 1e6 * cpu / n_imu, "imu": n_imu, "datagrams": n_dg, "sent": sent,
             "empty_wakeup_us": None if empty is None else 1e6 * empty, "calls_per_imu": counts,
             "load_avg_1min": os.getloadavg()[0]}
@@ -150,6 +217,7 @@ def main(argv=None) -> int:
     ap.add_argument("--flight-s", type=float, default=30.0)
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--json", default=str(ROOT / "bench" / "results" / "daemon_loop_cost.json"))
+    ap.add_argument("--split", action="store_true", help="one more run with the parts of a step timed")
     a = ap.parse_args(argv)
     if not a.flight_s > 5.0 or a.repeat < 1:
         ap.error("--flight-s must be > 5 and --repeat >= 1")
@@ -166,6 +234,13 @@ def main(argv=None) -> int:
     print("calls per RAW_IMU: " + ", ".join(f"{k} {v:.3f}" for k, v in counted["calls_per_imu"].items()))
     out = {"best": best, "runs": runs, "calls_per_imu": counted["calls_per_imu"], "flight_s": a.flight_s,
            "rates_hz": {str(k): v for k, v in RATES_HZ.items()}}
+    if a.split:
+        parts = run(frames, t0, split=True)
+        out["split_us_per_imu"] = {k: v["us_per_imu"] for k, v in parts["calls_per_imu"].items()}
+        print(f"split (us per RAW_IMU in flight, calls per RAW_IMU; load {parts['load_avg_1min']:.1f}; "
+              f"the whole loop {parts['us_per_imu']:.1f} us with the timing):")
+        for k, v in parts["calls_per_imu"].items():
+            print(f"  {k:32s} {v['us_per_imu']:8.1f} us  {v['calls_per_imu']:6.3f} calls")
     Path(a.json).parent.mkdir(parents=True, exist_ok=True)
     Path(a.json).write_text(json.dumps(out, indent=2) + "\n")
     print(f"json: {a.json}")
