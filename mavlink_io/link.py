@@ -342,11 +342,14 @@ class MavlinkLink:
                     rx_s, items)
 
     def _next_due_s(self) -> float | None:
-        dues = [self._session.next_due_s()]
-        for d in (self._rates.next_due_s(), self._params.next_due_s()):
-            if d is not None:
-                dues.append(d)
-        return min(dues)
+        due = self._session.next_due_s()   # once per wake-up: no list, no min()
+        d = self._rates.next_due_s()
+        if d is not None and d < due:
+            due = d
+        d = self._params.next_due_s()
+        if d is not None and d < due:
+            due = d
+        return due
 
     def _service_timers(self, now: float, items: list) -> None:
         self.stats.set_now(now)

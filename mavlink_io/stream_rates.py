@@ -77,8 +77,10 @@ class StreamRates:
 
     def next_due_s(self) -> float | None:
         """When a retry or the achieved-rate check is next due (None: nothing pending)."""
-        dues = [d for d in (self.requester.next_due_s(), self._rate_check_at_s) if d is not None]
-        return min(dues) if dues else None
+        due, check = self.requester.next_due_s(), self._rate_check_at_s   # every wake-up: no list
+        if due is None or (check is not None and check < due):
+            return check
+        return due
 
     def report(self) -> dict[str, dict]:
         """Per requested stream: ``asked_hz``, ``granted_hz``, ``achieved_hz``, ``result``
