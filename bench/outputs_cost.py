@@ -3,8 +3,9 @@
     python bench/outputs_cost.py [--quick] [--json PATH]
 
 Figures:
-- encode_us_per_solution: OutputScheduler.messages + packing the due messages (MAVLink), mean
-  over 200 Hz solutions with the default rates;
+- encode_us_per_solution: OutputScheduler.messages + sending the due messages as the daemon does
+  (mavlink_io/frame_pack) to a null file, mean over 200 Hz solutions with the default rates, best of
+  3; ``encode_pymavlink_us_per_solution`` the same with pymavlink's MAVLink.send, alternated with it;
 - zenoh_publish_us_per_solution: ZenohBus.publish_solution (default rates) with a subscriber;
 - zenoh_latency_p50_ms / p99_ms: put -> callback in a subscriber process on loopback (the
   subscriber reports its receive time on the same monotonic clock, CLOCK_MONOTONIC is
@@ -31,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from estimators.rotations import quat_from_euler  # noqa: E402
-from mavlink_io import outputs  # noqa: E402
+from mavlink_io import frame_pack, outputs  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 from mavlink_io.navsolution import NavSolution  # noqa: E402
 from service.zenoh_bus import ZenohBus  # noqa: E402
@@ -73,13 +74,26 @@ def main(argv=None) -> int:
     n = 2000 if args.quick else 20000
     sols = [solution(k) for k in range(n)]
 
-    sched = outputs.OutputScheduler(profile=outputs.ODOMETRY_PROFILES["ardupilot"])
-    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=191)
-    t0 = time.perf_counter()
-    for k, sol in enumerate(sols):
-        for msg in sched.messages(sol, k * 0.005):
-            msg.pack(mav)
-    encode_us = (time.perf_counter() - t0) / n * 1e6
+    class _Null:
+        def write(self, buf) -> None:
+            pass
+
+    def encode(send) -> float:
+        """Mean us per solution: the due messages built and sent by ``send(mav, msg)`` to a null file."""
+        sched = outputs.OutputScheduler(profile=outputs.ODOMETRY_PROFILES["ardupilot"])
+        mav = mavlink2.MAVLink(_Null(), srcSystem=1, srcComponent=191)
+        t0 = time.perf_counter()
+        for k, sol in enumerate(sols):
+            for msg in sched.messages(sol, k * 0.005):
+                send(mav, msg)
+        return (time.perf_counter() - t0) / n * 1e6
+
+    # what the daemon sends with (frame_pack) and pymavlink's own send, alternated, best of 3 each
+    fast, slow = [], []
+    for _ in range(3):
+        fast.append(encode(frame_pack.send))
+        slow.append(encode(lambda mav, msg: mav.send(msg)))
+    encode_us, encode_pymavlink_us = min(fast), min(slow)
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -105,6 +119,8 @@ def main(argv=None) -> int:
     bus.close()
     lat_ms = np.array([(t - sent[i]) * 1e3 for i, t in got])
     res = {"encode_us_per_solution": round(encode_us, 2),
+           "encode_pymavlink_us_per_solution": round(encode_pymavlink_us, 2),
+           "load_avg_1min": round(os.getloadavg()[0], 2),
            "zenoh_publish_us_per_solution": round(publish_us, 2),
            "zenoh_latency_p50_ms": round(float(np.percentile(lat_ms, 50)), 3),
            "zenoh_latency_p99_ms": round(float(np.percentile(lat_ms, 99)), 3),
