@@ -74,6 +74,7 @@ void bind_hot_path(py::module_& m);        // core/bindings_hot_path.cpp: the Pi
 void bind_phases(py::module_& m);          // core/bindings_phases.cpp: the flight phases
 void bind_fit(py::module_& m);             // core/bindings_fit.cpp: method A's re-solve, method D's RLS
 void bind_arbitration(py::module_& m);     // core/bindings_arbitration.cpp: the heading arbitration
+void bind_filter_chain(py::module_& m);    // core/bindings_filter_chain.cpp: C's rest detection, its filter-step chain
 
 PYBIND11_MODULE(_core, m) {
     m.doc() = "azimuthd's compiled estimator core (estimators/core.py is its Python face)";
@@ -86,6 +87,7 @@ PYBIND11_MODULE(_core, m) {
     bind_phases(m);
     bind_fit(m);
     bind_arbitration(m);
+    bind_filter_chain(m);
 
     m.def("strapdown_step",
           [](const ArrayD& q, bool has_prev, double time_prev_s, const ArrayD& gyro_prev, const ArrayD& gyro,

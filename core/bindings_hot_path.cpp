@@ -11,6 +11,7 @@
 #include <string>
 
 #include "hot_path.hpp"
+#include "filter_chain.hpp"  // mag_hard_iron_residual
 #include "mag_disturbance.hpp"
 
 namespace py = pybind11;
@@ -255,33 +256,6 @@ GroundInputs ground_inputs(const py::object& phase_state, const py::object& phas
     return gi;
 }
 
-
-// service/pipeline.py Pipeline._mag_hard_iron_residual with the hard iron's covariance P read from
-// the held MagDisturbance (no array built): with C = C_P_from_body and the levelled field
-// m = C m_body, H^2 = m_x^2 + m_y^2, g = [m_y, -m_x, 0] / H^2, the heading-equivalent sigma
-// s_eq = sqrt(H^2 g^T C P C^T g) (evaluated left to right, as numpy does), and with it the
-// uncompensated soft iron: hypot(s_eq, soft_iron |m_body|). Not given (false) without a P or a
-// horizontal field.
-bool mag_hard_iron_residual(const MagDisturbance& md, const Q4& q, const V3& mb, double soft_iron, double& out) {
-    if (!md.has_P) return false;
-    const M3 C = dcm_from_quat(q);
-    double m[3];
-    for (int i = 0; i < 3; ++i) m[i] = C[3 * i] * mb[0] + C[3 * i + 1] * mb[1] + C[3 * i + 2] * mb[2];
-    const double H2 = std::pow(m[0], 2.0) + std::pow(m[1], 2.0);
-    if (H2 <= 0.0) return false;
-    const double g[3] = {m[1] / H2, -m[0] / H2, 0.0 / H2};
-    double u[3], v[3], w[3];
-    for (int j = 0; j < 3; ++j) u[j] = g[0] * C[j] + g[1] * C[3 + j] + g[2] * C[6 + j];             // g C
-    for (int j = 0; j < 3; ++j) v[j] = u[0] * md.P[j] + u[1] * md.P[3 + j] + u[2] * md.P[6 + j];   // (g C) P
-    for (int j = 0; j < 3; ++j) w[j] = v[0] * C[3 * j] + v[1] * C[3 * j + 1] + v[2] * C[3 * j + 2];  // ... C^T
-    const double x = w[0] * g[0] + w[1] * g[1] + w[2] * g[2];
-    const double arg = H2 * x;
-    if (arg < 0.0) throw py::value_error("math domain error");  // math.sqrt's
-    const double s_eq = std::sqrt(arg);
-    const double n = std::sqrt(mb[0] * mb[0] + mb[1] * mb[1] + mb[2] * mb[2]);
-    out = std::hypot(s_eq, soft_iron * n);
-    return true;
-}
 
 }  // namespace
 

@@ -751,10 +751,13 @@ def polar_attitude_estimate(state) -> _pa.AttitudeEstimate | None:
 
 
 def attitude_zero_rate_update(state, rate: _zr.RestRate, params: _zr.ZeroRateParams = _zr.ZeroRateParams()):
-    """estimators.zero_rate.attitude_zero_rate_update for either state: the reference's update on the
-    held state's record (once per rest chunk, not per sample), put back in the core when it fused."""
+    """estimators.zero_rate.attitude_zero_rate_update for either state: on a held state the core's
+    (core/zero_rate.hpp, what the filter chain runs), else (an older build) the reference's update on
+    the held state's record, put back in the core when it fused."""
     if not isinstance(state, HeldPolarAttitude):
         return _zr.attitude_zero_rate_update(state, rate, params)
+    if ZERO_RATE_AVAILABLE:
+        return attitude_zero_rate_update_core(state, rate, params)
     st, diag = _zr.attitude_zero_rate_update(state.to_state(), rate, params)
     if diag.fused:
         state._c.set_state(_fields(st))
@@ -928,10 +931,12 @@ def polar_heading_attitude(state, heading_rad: float | None = None) -> np.ndarra
 
 
 def heading_zero_rate_update(state, rate: _zr.RestRate, params: _zr.ZeroRateParams = _zr.ZeroRateParams()):
-    """estimators.zero_rate.heading_zero_rate_update for either state: the reference's update on the
-    held state's record (once per rest chunk, not per sample), put back in the core when it fused."""
+    """estimators.zero_rate.heading_zero_rate_update for either state: on a held state the core's
+    (core/zero_rate.hpp), else (an older build) the reference's update on the held state's record."""
     if not isinstance(state, HeldPolarHeading):
         return _zr.heading_zero_rate_update(state, rate, params)
+    if ZERO_RATE_AVAILABLE:
+        return heading_zero_rate_update_core(state, rate, params)
     st, diag = _zr.heading_zero_rate_update(state.to_state(), rate, params)
     if diag.fused:
         state._c.set_state(_fields(st))
@@ -1097,3 +1102,115 @@ def deviation_coverage(state, params=None):
     if not isinstance(state, HeldDeviation):
         return _dv.deviation_coverage(state, params)
     return _dv.Coverage(*state._c.coverage(params.min_samples_per_bin))
+
+
+# --- method C's rest detection (estimators/zero_rate.py rest_step) ---------------------------------
+# Held in the core between filter steps (HeldZeroRate, core/zero_rate.hpp); the reference's
+# ZeroRateState is built only when asked (to_state: a copy, a test).
+
+ZERO_RATE_AVAILABLE = AVAILABLE and hasattr(_core, "ZeroRate")
+
+
+class HeldZeroRate:
+    """A ZeroRateState held in the core, stepped in place by ``rest_step``; it reads like the
+    reference's state where the service reads it (``time_s``) and ``to_state()`` gives the reference's
+    record. Not a pure value: the owner replaces it, never shares it."""
+
+    __slots__ = ("_c", "_params", "_cp")
+
+    def __init__(self, state: _zr.ZeroRateState):
+        self._c = _core.ZeroRate(state)
+        self._params = self._cp = None
+
+    def _p(self, params: _zr.ZeroRateParams):
+        if params is not self._params:
+            self._params, self._cp = params, _core.ZeroRateParams(params)
+        return self._cp
+
+    time_s = property(lambda self: self._c.time_s)
+
+    def to_state(self) -> _zr.ZeroRateState:
+        return _zr.ZeroRateState(**self._c.get_state())
+
+    def __reduce__(self):  # copy.deepcopy / pickle: through the reference's record (exact)
+        return HeldZeroRate, (self.to_state(),)
+
+
+def rest_step(state: _zr.ZeroRateState | HeldZeroRate, time_s: float, gyro_body_rad_s, accel_body_m_s2,
+              params: _zr.ZeroRateParams = _zr.ZeroRateParams()) -> tuple[HeldZeroRate, _zr.RestRate | None]:
+    """estimators.zero_rate.rest_step with the state held in the core (a ZeroRateState is taken in on
+    the first call); the same results."""
+    w = np.asarray(gyro_body_rad_s, float)
+    f = np.asarray(accel_body_m_s2, float)
+    if w.shape != (3,) or f.shape != (3,):
+        raise ValueError(f"gyro_body_rad_s and accel_body_m_s2 must have shape (3,), got {w.shape}, {f.shape}")
+    if not isinstance(state, HeldZeroRate):
+        state = HeldZeroRate(state)
+    r = state._c.step(state._p(params), float(time_s), *w.tolist(), *f.tolist())
+    return state, None if r is None else _zr.RestRate(*r)
+
+
+def _zr_diag(code: int, ratio: float, not_ready: str) -> _zr.ZeroRateDiag:
+    if code == 0:
+        return _zr.ZeroRateDiag(True, ratio)
+    return _zr.ZeroRateDiag(reason=not_ready) if code == 1 else _zr.ZeroRateDiag(test_ratio=ratio,
+                                                                                 reason="rest rate gated out")
+
+
+def attitude_zero_rate_update_core(state, rate: _zr.RestRate, params: _zr.ZeroRateParams = _zr.ZeroRateParams()):
+    """estimators.zero_rate.attitude_zero_rate_update in the core (core/zero_rate.hpp) on the held state:
+    what the filter chain runs (tests/test_core_zero_rate.py proves it equal to the reference)."""
+    state = _held_pa(state)
+    code, ratio = _core.attitude_zero_rate_update(state._c, rate, _core.ZeroRateParams(params))
+    return state, _zr_diag(code, ratio, "attitude filter not levelled")
+
+
+def heading_zero_rate_update_core(state, rate: _zr.RestRate, params: _zr.ZeroRateParams = _zr.ZeroRateParams()):
+    """estimators.zero_rate.heading_zero_rate_update in the core (core/zero_rate.hpp) on the held state."""
+    state = _held_ph(state)
+    code, ratio = _core.heading_zero_rate_update(state._c, rate, _core.ZeroRateParams(params))
+    return state, _zr_diag(code, ratio, "heading filter not in the platform formulation")
+
+
+# --- method C's filter step with its magnetometer chain (core/filter_chain.hpp) -------------------
+# service/pipeline.py Pipeline._filter_chain_python (the reference) as one C++ call on the held states.
+
+FILTER_CHAIN_AVAILABLE = (ZERO_RATE_AVAILABLE and hasattr(_core, "filter_chain") and POLAR_AVAILABLE
+                          and POLAR_HEADING_AVAILABLE and MAG_DISTURBANCE_AVAILABLE and MAG_USABILITY_AVAILABLE
+                          and DEVIATION_AVAILABLE)
+
+
+class ChainOut(NamedTuple):
+    """What the Pipeline needs of a filter step after the chain."""
+    att: object            # AttitudeEstimate or None
+    mag_s: object          # the magnetometer for B (sensor axes) or None
+    mag_raw: bool          # undisturbed and usable (D learns on the measured field)
+    hdiag: object          # HeadingDiag, None when the heading filter did not step (no tilt)
+    events: list           # [(kind, text)] in the reference's order
+    mag_status: object     # the Pipeline's new mag_status, None: unchanged
+    dev_hard_iron_changed: bool
+    dev_in_use: object     # None / False / True
+
+
+def filter_chain_step(att: HeldPolarAttitude, att_params, zr: HeldZeroRate, zr_params, md: HeldMagDisturbance,
+                      md_params, mu: HeldMagUsability, mu_params, hdg: HeldPolarHeading, hdg_params,
+                      dev: HeldDeviation | None, t: float, gyro_b, accel_b, mag_b, C_body_from_sensor,
+                      fc_tilt, fc_sigma_tilt_rad: float, fc_tilt_max_age_s: float, declination_rad: float,
+                      declination_sigma_rad: float, field_model_ned_gauss, dev_apply: bool, dev_min_coverage: float,
+                      dev_min_samples_per_bin: int, dev_hard_iron_changed: bool, dev_in_use) -> ChainOut:
+    """One filter step of method C in the core on the held states (each stepped in place). ``fc_tilt``:
+    (time_s, roll, pitch) of the FC's ATTITUDE while method B trusts it, else None."""
+    r = _core.filter_chain(att._c, att._p(att_params), zr._c, zr._p(zr_params), md._c, md._p(md_params), mu._c,
+                           mu._p(mu_params), hdg._c, hdg._p(hdg_params), None if dev is None else dev._c, t, gyro_b,
+                           accel_b, mag_b, C_body_from_sensor, fc_tilt, fc_sigma_tilt_rad, fc_tilt_max_age_s,
+                           declination_rad, declination_sigma_rad, field_model_ned_gauss, dev_apply, dev_min_coverage,
+                           dev_min_samples_per_bin, dev_hard_iron_changed, dev_in_use)
+    e, d = r[0], r[3]
+    if e is not None:
+        est = object.__new__(_pa.AttitudeEstimate)  # a frozen record without __post_init__
+        est.__dict__.update(zip(_AE_FIELDS, e))
+        e = est
+    if d is not None:
+        d = _PH_SIMPLE[d] if d.__class__ is int else _ph_diag(d, None, hdg_params)
+    md._t = md._c.time_s
+    return ChainOut(e, r[1], r[2], d, r[4], r[5], r[6], r[7])
