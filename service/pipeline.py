@@ -82,6 +82,16 @@ B1_HEADING_PERIOD_S = 0.1
 
 FC_TILT_MAX_AGE_S = 0.2
 """The FC's roll/pitch older than this (FC time, s) does not level C's magnetometer."""
+# the backend's steps that Pipeline._filter_chain_core takes in one core call, and the core's own
+_FILTER_CHAIN_CALLS = (("polar_attitude_step", "polar_attitude_step"),
+                       ("polar_attitude_estimate", "polar_attitude_estimate"),
+                       ("attitude_zero_rate_update", "attitude_zero_rate_update"),
+                       ("mag_disturbance_step", "mag_disturbance_step"),
+                       ("mag_usability_step", "mag_usability_step"), ("mag_usability_stale", "mag_usability_stale"),
+                       ("deviation_coverage", "deviation_coverage"), ("deviation_corrected_mag", "corrected_mag"),
+                       ("polar_heading_step", "polar_heading_step"),
+                       ("polar_heading_estimate", "polar_heading_estimate"),
+                       ("heading_zero_rate_update", "heading_zero_rate_update"))
 
 AIR_EVIDENCE_MAX_AGE_S = 1.0
 """Air data older than this (FC time, s) is no evidence for the started-in-flight rule."""
@@ -195,6 +205,10 @@ class Pipeline:
         self.strapdown_params = StrapdownParams(max_dt_s=cfg["mavlink"]["imu_gap_s"])
         self.core = select_core()
         """The compiled core or the Python reference for the ported parts (service/core_backend.py)."""
+        self.filter_chain_core = core_facade.FILTER_CHAIN_AVAILABLE and all(
+            getattr(self.core, k) is getattr(core_facade, f) for k, f in _FILTER_CHAIN_CALLS)
+        """Method C's filter step runs as one core call (``_filter_chain``): every step it takes is the
+        core's in this backend (one replaced, e.g. a test's recorder, or the reference: the Python chain)."""
         self._hs = self.core.sample_state()
         """The per-sample fields (service/hot_path.py): the core's object, or the reference's."""
         self._ground = self.core.ground_state()
@@ -480,58 +494,11 @@ class Pipeline:
         C = self.C_body_from_sensor
         gyro_b, accel_b = C @ gyro_s, C @ accel_s
         mag_b = C @ mag_s if mag_s is not None else None
-        speed = self._manoeuvre_speed_m_s(t)
-        if abs(speed - self.polar_att_params.manoeuvre_speed_m_s) >= MANOEUVRE_SPEED_STEP_M_S:
-            self.polar_att_params = dc_replace(self.polar_att_params, manoeuvre_speed_m_s=speed)
-        self.polar_att, adiag = self.core.polar_attitude_step(self.polar_att, t, gyro_b, accel_b,
-                                                              self.polar_att_params)
-        if adiag.relevelled:
-            self._event("attitude", adiag.reason)
-        # zero-rate updates only while the vehicle may be at rest (as the re-levelling): steady
-        # flight also has a steady rate and specific force, and a slow turn is no gyro bias
-        rest_rate = None
-        if self.polar_att_params.relevel_allowed:
-            self.zero_rate, rest_rate = rest_step(self.zero_rate, t, gyro_b, accel_b, self.zero_rate_params)
-        elif self.zero_rate.time_s is not None:
-            self.zero_rate = ZeroRateState()
-        if rest_rate is not None:
-            self.polar_att, _ = self.core.attitude_zero_rate_update(self.polar_att, rest_rate, self.zero_rate_params)
-        att = self.core.polar_attitude_estimate(self.polar_att)
-        tilt = self._heading_tilt(t, att, gyro_b)
-        mag_b_meas = mag_b                                # as measured: what D learns on and corrects
-        mag_b_hi = self._mag_disturbance(mag_b, t, att)   # m - learnt hard iron, None when disturbed
-        if not self._mag_usable(mag_b, t, tilt, gyro_b) or mag_b_hi is None:
-            mag_b = mag_s = None
-        else:
-            mag_b, mag_s = mag_b_hi, C.T @ mag_b_hi
-        mag_b_raw = mag_b
-        if mag_b is not None:
-            mag_b = self._deviation_corrected(mag_b_meas, mag_b)
-        if tilt is not None:
-            self.polar_hdg, hdiag = self.core.polar_heading_step(
-                self.polar_hdg, HeadingInputs(t, gyro_b, tilt[0], tilt[1], tilt[2],
-                                              mag_b, self.declination_rad, self.declination_sigma_rad,
-                                              # D applied: its residual; else C's uncalibrated model
-                                              float(np.max(residual_sigma_gauss(self.deviation)))
-                                              if mag_b is not mag_b_raw else self._mag_hard_iron_residual(mag_b, att),
-                                              # heading in every attitude: the platform formulation
-                                              *self._heading_platform(att, tilt),
-                                              # the model's field: its mismatch widens the sigma
-                                              field_model_ned_gauss=self.field.e_ned_gauss),
-                self.polar_hdg_params)
-            if rest_rate is not None:
-                self.polar_hdg, _ = self.core.heading_zero_rate_update(self.polar_hdg, rest_rate,
-                                                                       self.zero_rate_params)
-            if hdiag.measured:
-                self._hdg_measurement = (t, hdiag)
-            if hdiag.measured and hdiag.source_available != self._hdg_available:
-                self._hdg_available = hdiag.source_available
-                self._event("heading_filter", "magnetometer heading available" if hdiag.source_available
-                            else f"magnetometer heading unavailable: {hdiag.reason}")
+        att, mag_s, mag_b_learn = self._filter_chain(t, gyro_b, accel_b, mag_b)
         self._step_ahrs(ImuEvent(t, gyro_s, mag_s))
         sol = self._solution(s, gyro_s, att)
-        if self.deviation_calibrate and mag_b_raw is not None:   # undisturbed, usable
-            self._deviation_learn(sol, mag_b_meas, t)
+        if self.deviation_calibrate and mag_b_learn is not None:   # undisturbed, usable
+            self._deviation_learn(sol, mag_b_learn, t)
         has_q = att is not None and sol.q_nav_from_body is not None
         self._out = output_reset(sol.q_nav_from_body, t) if has_q else None
         self._out_sol = sol if has_q else None
@@ -742,6 +709,115 @@ class Pipeline:
                 self._ahrs_trusted = out.reference_trusted
                 self._event("reference", ("FC attitude trusted: " if out.reference_trusted
                                           else "FC attitude NOT trusted: ") + out.reference_reason)
+
+    def _filter_chain(self, t: float, gyro_b: np.ndarray, accel_b: np.ndarray, mag_b: np.ndarray | None):
+        """Method C's filter step with its magnetometer chain (body axes: the filter-rate mean rate and
+        specific force, the newest magnetometer): the attitude filter, the zero-rate update at rest, the
+        heading filter's tilt, the magnetometer's hard iron, disturbance and usability, D's correction,
+        the heading filter. -> (attitude estimate or None, the magnetometer for B (sensor axes) or None,
+        the measured field D may learn on or None). With the compiled core one C++ call
+        (core/filter_chain.hpp, ``_filter_chain_core``); the Python chain is the reference
+        (``_filter_chain_python``; tests/test_core_filter_chain.py proves them equal)."""
+        speed = self._manoeuvre_speed_m_s(t)
+        if abs(speed - self.polar_att_params.manoeuvre_speed_m_s) >= MANOEUVRE_SPEED_STEP_M_S:
+            self.polar_att_params = dc_replace(self.polar_att_params, manoeuvre_speed_m_s=speed)
+        if self.filter_chain_core and self._chain_states_held():
+            return self._filter_chain_core(t, gyro_b, accel_b, mag_b)
+        return self._filter_chain_python(t, gyro_b, accel_b, mag_b)
+
+    def _chain_states_held(self) -> bool:
+        """The chain's states are held in the core (those not yet are taken in; a deviation state the
+        core does not take leaves the step to the Python chain)."""
+        cf = core_facade
+        if type(self.polar_att) is not cf.HeldPolarAttitude or type(self.polar_hdg) is not cf.HeldPolarHeading:
+            return False
+        if type(self.zero_rate) is not cf.HeldZeroRate:
+            self.zero_rate = cf.HeldZeroRate(self.zero_rate)
+        if type(self.mag_dist) is not cf.HeldMagDisturbance:
+            self.mag_dist = cf.HeldMagDisturbance(self.mag_dist)
+        if type(self.mag_usability) is not cf.HeldMagUsability:
+            self.mag_usability = cf.HeldMagUsability(self.mag_usability)
+        if self.deviation is not None and type(self.deviation) is not cf.HeldDeviation:
+            try:
+                self.deviation = cf.HeldDeviation(self.deviation)
+            except ValueError:   # a state without its coverage bins
+                return False
+        return True
+
+    def _filter_chain_core(self, t: float, gyro_b: np.ndarray, accel_b: np.ndarray, mag_b: np.ndarray | None):
+        """``_filter_chain_python`` in one core call on the held states (estimators/core.py filter_chain_step)."""
+        fc, b = self.fc_attitude, self.ahrs_out
+        r = core_facade.filter_chain_step(
+            self.polar_att, self.polar_att_params, self.zero_rate, self.zero_rate_params, self.mag_dist,
+            self.mag_dist_params, self.mag_usability, self.mag_usability_params, self.polar_hdg, self.polar_hdg_params,
+            self.deviation, t, gyro_b, accel_b, mag_b, self.C_body_from_sensor,
+            (fc.time_fc_s, fc.roll_rad, fc.pitch_rad) if fc is not None and b is not None and b.reference_trusted
+            else None, self.ahrs_params.fc_sigma_tilt_rad, FC_TILT_MAX_AGE_S, self.declination_rad,
+            self.declination_sigma_rad, self.field.e_ned_gauss, self.deviation_apply, self.deviation_min_coverage,
+            self.deviation_params.min_samples_per_bin, self._deviation_hard_iron_changed, self._deviation_in_use)
+        for ev in r.events:
+            self._event(*ev)
+        if r.mag_status is not None:
+            self.mag_status = r.mag_status
+        self._deviation_hard_iron_changed, self._deviation_in_use = r.dev_hard_iron_changed, r.dev_in_use
+        hdiag = r.hdiag
+        if hdiag is not None and hdiag.measured:
+            self._hdg_measurement = (t, hdiag)
+            if hdiag.source_available != self._hdg_available:
+                self._hdg_available = hdiag.source_available
+                self._event("heading_filter", "magnetometer heading available" if hdiag.source_available
+                            else f"magnetometer heading unavailable: {hdiag.reason}")
+        return r.att, r.mag_s, (mag_b if r.mag_raw else None)
+
+    def _filter_chain_python(self, t: float, gyro_b: np.ndarray, accel_b: np.ndarray, mag_b: np.ndarray | None):
+        """``_filter_chain``'s reference: each step a call of its own (the core's or the Python reference's)."""
+        self.polar_att, adiag = self.core.polar_attitude_step(self.polar_att, t, gyro_b, accel_b,
+                                                              self.polar_att_params)
+        if adiag.relevelled:
+            self._event("attitude", adiag.reason)
+        # zero-rate updates only while the vehicle may be at rest (as the re-levelling): steady
+        # flight also has a steady rate and specific force, and a slow turn is no gyro bias
+        rest_rate = None
+        if self.polar_att_params.relevel_allowed:
+            step = core_facade.rest_step if type(self.zero_rate) is core_facade.HeldZeroRate else rest_step
+            self.zero_rate, rest_rate = step(self.zero_rate, t, gyro_b, accel_b, self.zero_rate_params)
+        elif self.zero_rate.time_s is not None:
+            self.zero_rate = ZeroRateState()
+        if rest_rate is not None:
+            self.polar_att, _ = self.core.attitude_zero_rate_update(self.polar_att, rest_rate, self.zero_rate_params)
+        att = self.core.polar_attitude_estimate(self.polar_att)
+        tilt = self._heading_tilt(t, att, gyro_b)
+        mag_b_meas = mag_b                                # as measured: what D learns on and corrects
+        mag_b_hi = self._mag_disturbance(mag_b, t, att)   # m - learnt hard iron, None when disturbed
+        if not self._mag_usable(mag_b, t, tilt, gyro_b) or mag_b_hi is None:
+            mag_b = mag_s = None
+        else:
+            mag_b, mag_s = mag_b_hi, self.C_body_from_sensor.T @ mag_b_hi
+        mag_b_raw = mag_b
+        if mag_b is not None:
+            mag_b = self._deviation_corrected(mag_b_meas, mag_b)
+        if tilt is not None:
+            self.polar_hdg, hdiag = self.core.polar_heading_step(
+                self.polar_hdg, HeadingInputs(t, gyro_b, tilt[0], tilt[1], tilt[2],
+                                              mag_b, self.declination_rad, self.declination_sigma_rad,
+                                              # D applied: its residual; else C's uncalibrated model
+                                              float(np.max(residual_sigma_gauss(self.deviation)))
+                                              if mag_b is not mag_b_raw else self._mag_hard_iron_residual(mag_b, att),
+                                              # heading in every attitude: the platform formulation
+                                              *self._heading_platform(att, tilt),
+                                              # the model's field: its mismatch widens the sigma
+                                              field_model_ned_gauss=self.field.e_ned_gauss),
+                self.polar_hdg_params)
+            if rest_rate is not None:
+                self.polar_hdg, _ = self.core.heading_zero_rate_update(self.polar_hdg, rest_rate,
+                                                                       self.zero_rate_params)
+            if hdiag.measured:
+                self._hdg_measurement = (t, hdiag)
+            if hdiag.measured and hdiag.source_available != self._hdg_available:
+                self._hdg_available = hdiag.source_available
+                self._event("heading_filter", "magnetometer heading available" if hdiag.source_available
+                            else f"magnetometer heading unavailable: {hdiag.reason}")
+        return att, mag_s, (mag_b_meas if mag_b_raw is not None else None)
 
     def _manoeuvre_speed_m_s(self, t: float | None) -> float:
         """The speed V along the body x axis with which C's attitude filter bounds the centripetal
