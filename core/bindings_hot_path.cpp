@@ -54,6 +54,46 @@ void take_seq(const py::handle& obj, double* out, py::ssize_t n, const char* nam
     take(obj, out, n, name);
 }
 
+// Method A's output configuration (core/azimuth_output.hpp) from estimators/core.py azimuth_output_cfg's
+// tuple: (has_solution, C_isf_af, C_sf_body, C_nf_af, C_af_isf, c_gyro (12), P_psi_c (15 x 15), arw2,
+// launch_time_s, fm2, last_sample_s, sigma_b, u_sf or None, aligned, du_dbeta_sf (3 x 2) or None, c_tilt (2)).
+AzimuthOutputCfg azimuth_cfg_in(const py::tuple& t) {
+    if (t.size() != 16) throw std::invalid_argument("azimuth output configuration: 16 items expected");
+    AzimuthOutputCfg c;
+    c.set = true;
+    c.has_solution = t[0].cast<bool>();
+    take(t[1], c.C_isf_af.data(), 9, "C_isf_af");
+    take(t[2], c.C_sf_body.data(), 9, "C_sf_body");
+    if (c.has_solution) {
+        take(t[3], c.C_nf_af.data(), 9, "C_nf_af");
+        take(t[4], c.C_af_isf.data(), 9, "C_af_isf");
+        take(t[5], c.c_gyro, 12, "c_gyro");
+        ArrayC P = ArrayC::ensure(t[6]);
+        if (!P || P.ndim() != 2 || P.shape(0) != 15 || P.shape(1) != 15)
+            throw std::invalid_argument("P_psi_c: 15 x 15 expected");
+        c.nP = 15;
+        c.P.assign(P.data(), P.data() + 225);
+        c.arw2 = t[7].cast<double>();
+        c.launch_time_s = t[8].cast<double>();
+        c.fm2 = t[9].cast<double>();
+        c.last_sample_s = t[10].cast<double>();
+        c.sigma_b = t[11].cast<double>();
+        c.has_u = !t[12].is_none();
+        if (c.has_u) take(t[12], c.u_sf.data(), 3, "u_sf");
+        c.aligned = t[13].cast<bool>();
+        c.has_du = !t[14].is_none();
+        if (c.has_du) take(t[14], c.du, 6, "du_dbeta_sf");
+        take(t[15], c.c_tilt, 2, "c_tilt");
+    }
+    return c;
+}
+
+// (roll, pitch, q_nav_from_body, heading, heading_sigma, azimuth, azimuth_sigma, launch_azimuth)
+py::tuple azimuth_numbers_out(const AzimuthOutputNumbers& o) {
+    return py::make_tuple(o.roll, o.pitch, give(o.q.data(), 4), o.heading, o.heading_sigma, o.azimuth,
+                          o.azimuth_sigma, o.launch_azimuth);
+}
+
 py::object out_get(const SampleState& h) {
     if (!h.out.has) return py::none();
     const OutputProp& o = h.out;
@@ -389,6 +429,36 @@ void bind_hot_path(py::module_& m) {
              py::arg("max_fit_samples"), py::arg("n_samples"), py::arg("last_mag_s"), py::arg("last_solve_s"),
              py::arg("solve_period_s"), py::arg("next_solve_s"), py::arg("submit_phase"))
         .def_readonly("active", &AzimuthRun::active)
+        .def_readonly("n_samples", &AzimuthRun::n_samples, "len(AzimuthState.samples) with the run's stored ones.")
+        .def("step",
+             [](AzimuthRun& a, double t, const ArrayC& gyro, const py::object& mag) {
+                 if (!a.active) throw std::invalid_argument("AzimuthRun.step: the run does not step method A");
+                 if (gyro.size() != 3) throw std::invalid_argument("gyro_rad_s: 3 numbers expected");
+                 double m[3];
+                 const double* mp = nullptr;
+                 if (!mag.is_none()) {
+                     take(mag, m, 3, "mag_gauss");
+                     if (std::isfinite(m[0]) && std::isfinite(m[1]) && std::isfinite(m[2])) mp = m;
+                 }
+                 StrapdownState a_sd{};
+                 double aG[36], aC[9];
+                 bool store = false;
+                 if (!azimuth_try(a, t, gyro.data(), mp, a_sd, aG, aC, store)) return false;
+                 azimuth_commit(a, t, mp, a_sd, aG, aC, store);
+                 return true;
+             },
+             py::arg("time_s"), py::arg("gyro_rad_s"), py::arg("mag_gauss"),
+             "Method A's step of one sample (Pipeline._step_azimuth in flight) when it is quiet: True and committed; "
+             "False (nothing changed) when it is not integrated or a solve or a solver submit is due on it.")
+        .def_property_readonly("output_set", [](const AzimuthRun& a) { return a.out.set; })
+        .def("set_output", [](AzimuthRun& a, const py::tuple& cfg) { a.out = azimuth_cfg_in(cfg); }, py::arg("cfg"),
+             "What A's output needs beside G and C (estimators/core.py azimuth_output_cfg), fixed for the run.")
+        .def("output",
+             [](const AzimuthRun& a, double t) {
+                 if (!a.out.set) throw std::invalid_argument("AzimuthRun.output before set_output");
+                 return azimuth_numbers_out(azimuth_output_numbers(a.out, a.G, a.C, t));
+             },
+             py::arg("time_s"), "The numbers of A's output at the run's last sample (time_s): see azimuth_output_numbers.")
         .def("result",
              [](AzimuthRun& a) {
                  ArrayC G({py::ssize_t(3), py::ssize_t(12)}), C({py::ssize_t(3), py::ssize_t(3)});
@@ -568,6 +638,14 @@ void bind_hot_path(py::module_& m) {
     m.attr("HOT_UNREAD") = static_cast<int>(HP_UNREAD);
 
     m.attr("HOT_STOP_END") = static_cast<int>(HS_END);
+    m.def("azimuth_output_numbers",
+          [](const py::tuple& cfg, const ArrayC& G, const ArrayC& C, double t) {
+              if (G.size() != 36 || C.size() != 9) throw std::invalid_argument("G (3, 12) and C (3, 3) expected");
+              return azimuth_numbers_out(azimuth_output_numbers(azimuth_cfg_in(cfg), G.data(), C.data(), t));
+          },
+          py::arg("cfg"), py::arg("G_gyro"), py::arg("C_isf_sf"), py::arg("time_s"),
+          "Method A's output numbers (core/azimuth_output.hpp; estimators/azimuth.py azimuth_output_numbers): (roll, pitch, "
+          "q_nav_from_body, heading, heading_sigma, azimuth, azimuth_sigma, launch_azimuth), NaN where none.");
     m.def("hot_run",
           [](SampleState& h, InputChecks& ic, py::object strapdown, AzimuthRun& a, const ArrayC& rows, long start,
              const py::object& gyro_bias, const py::object& C_bs, double strapdown_max_dt_s, double out_max_dt_s,

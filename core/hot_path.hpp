@@ -27,6 +27,7 @@
 #include <limits>
 #include <vector>
 
+#include "azimuth_output.hpp"
 #include "azimuth_propagation.hpp"
 #include "ground.hpp"
 #include "input_checks.hpp"
@@ -138,7 +139,44 @@ struct AzimuthRun {
     // the magnetometer samples stored in this run: time, h (3), C_sf_from_isf (3 x 3), G (3 x 12)
     std::vector<double> rec;
     static constexpr int REC = 1 + 3 + 9 + 36;
+    AzimuthOutputCfg out;           // what A's output needs beside G and C (set when first read)
 };
+
+// Method A's step of one sample (azimuth_step with neither a solve nor a submit due), on copies:
+// false when it is not quiet (not integrated, or a solve or a solver submit due on it). `store`:
+// its magnetometer sample `m` (nullptr: none) goes into the fit.
+inline bool azimuth_try(const AzimuthRun& a, double t, const double* g, const double* m, StrapdownState& a_sd,
+                        double aG[36], double aC[9], bool& store) {
+    a_sd = a.sd;
+    for (int k = 0; k < 36; ++k) aG[k] = a.G[k];
+    for (int k = 0; k < 9; ++k) aC[k] = a.C[k];
+    const double w[3] = {g[0] - a.bias[0], g[1] - a.bias[1], g[2] - a.bias[2]};
+    double dt = 0.0;
+    if (azimuth_propagate(a_sd, aG, aC, w, t, a.max_dt_s, dt) != StrapdownCode::integrated) return false;
+    store = m != nullptr && t - a.launch_time_s >= a.mag_skip_after_launch_s &&
+            t - a.last_mag_s >= a.mag_decimation_s - 1e-9 && a.n_samples < a.max_fit_samples;
+    const long long n_after = a.n_samples + (store ? 1 : 0);
+    if (t - a.last_solve_s >= a.solve_period_s && n_after > 0) return false;  // azimuth_step would solve
+    if (t >= a.next_solve_s && a.submit_phase && n_after > 0) return false;    // a solver submit is due
+    return true;
+}
+
+// ... and committed (the sample found quiet): the stored record is time, h, C_sf_from_isf = C^T, G.
+inline void azimuth_commit(AzimuthRun& a, double t, const double* m, const StrapdownState& a_sd, const double aG[36],
+                           const double aC[9], bool store) {
+    a.sd = a_sd;
+    for (int k = 0; k < 36; ++k) a.G[k] = aG[k];
+    for (int k = 0; k < 9; ++k) a.C[k] = aC[k];
+    if (store) {
+        a.rec.push_back(t);
+        for (int k = 0; k < 3; ++k) a.rec.push_back(m[k]);
+        for (int rr = 0; rr < 3; ++rr)
+            for (int cc = 0; cc < 3; ++cc) a.rec.push_back(aC[3 * cc + rr]);  // C_isf_sf^T
+        for (int k = 0; k < 36; ++k) a.rec.push_back(aG[k]);
+        a.n_samples += 1;
+        a.last_mag_s = t;
+    }
+}
 
 // What on_imu_batch passes that Python owns and only Python changes.
 struct HotInputs {
@@ -210,22 +248,10 @@ inline long hot_run(SampleState& h, InputChecks& ic, StrapdownState* sd, Azimuth
         if (!row_accepted(h, ic, in, r, verdict, checked)) return i;
         const bool has_mag = std::isfinite(m[0]) && std::isfinite(m[1]) && std::isfinite(m[2]);
         // method A's step, on copies
-        StrapdownState a_sd = a.sd;
+        StrapdownState a_sd{};
         double aG[36], aC[9];
         bool store = false;
-        if (a.active) {
-            for (int k = 0; k < 36; ++k) aG[k] = a.G[k];
-            for (int k = 0; k < 9; ++k) aC[k] = a.C[k];
-            const double w[3] = {g[0] - a.bias[0], g[1] - a.bias[1], g[2] - a.bias[2]};
-            double dt = 0.0;
-            if (azimuth_propagate(a_sd, aG, aC, w, t, a.max_dt_s, dt) != StrapdownCode::integrated) return i;
-            store = has_mag && t - a.launch_time_s >= a.mag_skip_after_launch_s &&
-                    t - a.last_mag_s >= a.mag_decimation_s - 1e-9 && a.n_samples < a.max_fit_samples;
-            const long long n_after = a.n_samples + (store ? 1 : 0);
-            const double last_solve = a.last_solve_s;
-            if (t - last_solve >= a.solve_period_s && n_after > 0) return i;  // azimuth_step would solve
-            if (t >= a.next_solve_s && a.submit_phase && n_after > 0) return i;  // a solver submit is due
-        }
+        if (a.active && !azimuth_try(a, t, g, has_mag ? m : nullptr, a_sd, aG, aC, store)) return i;
         // the Pipeline's strapdown, on a copy
         StrapdownState p_sd{};
         if (sd != nullptr) {
@@ -238,20 +264,7 @@ inline long hot_run(SampleState& h, InputChecks& ic, StrapdownState* sd, Azimuth
         if (!(t < h.filter_due_s - due_tol)) return i;  // a filter step
         // quiet: commit, in on_imu's order
         commit_times(h, t, rx, handled);
-        if (a.active) {
-            a.sd = a_sd;
-            for (int k = 0; k < 36; ++k) a.G[k] = aG[k];
-            for (int k = 0; k < 9; ++k) a.C[k] = aC[k];
-            if (store) {
-                a.rec.push_back(t);
-                for (int k = 0; k < 3; ++k) a.rec.push_back(m[k]);
-                for (int rr = 0; rr < 3; ++rr)
-                    for (int cc = 0; cc < 3; ++cc) a.rec.push_back(aC[3 * cc + rr]);  // C_isf_sf^T
-                for (int k = 0; k < 36; ++k) a.rec.push_back(aG[k]);
-                a.n_samples += 1;
-                a.last_mag_s = t;
-            }
-        }
+        if (a.active) azimuth_commit(a, t, m, a_sd, aG, aC, store);
         if (sd != nullptr) *sd = p_sd;
         accumulate_and_turn(h, in, g, acc, has_mag ? m : nullptr, t, rx);
     }

@@ -348,10 +348,53 @@ def _with_checks(state: AzimuthState, u_sf: np.ndarray) -> AzimuthState:
     return replace(state, u_sf=u_sf, cross_check_rad=cross, elevation_check_rad=elev)
 
 
+REC_COLUMNS = 1 + 3 + 9 + 36
+"""A stored sample packed as one row: time_s, h_sf_gauss (3), C_sf_from_isf (9, row-major), G_gyro (36)
+(core/hot_path.hpp AzimuthRun.rec's layout)."""
+
+
+def pack_samples(records) -> np.ndarray:
+    """MagRecords as (N, REC_COLUMNS) rows."""
+    out = np.empty((len(records), REC_COLUMNS))
+    for i, r in enumerate(records):
+        out[i, 0] = r.time_s
+        out[i, 1:4] = r.h_sf_gauss
+        out[i, 4:13] = r.C_sf_from_isf.reshape(9)
+        out[i, 13:] = r.G_gyro.reshape(36)
+    return out
+
+
+def record_of(row: np.ndarray) -> MagRecord:
+    """One packed row as its MagRecord (copies)."""
+    return MagRecord(float(row[0]), row[1:4].copy(), row[4:13].reshape(3, 3).copy(), row[13:49].reshape(3, 12).copy())
+
+
+class PackedSamples:
+    """AzimuthState.samples as one (N, REC_COLUMNS) array (a sequence of MagRecord built on access): what
+    the Pipeline hands its solver, so a worker process gets one ndarray instead of N pickled records
+    (``_solve`` reads the rows straight). The same samples, the same solve."""
+    __slots__ = ("rows",)
+
+    def __init__(self, rows: np.ndarray):
+        self.rows = rows
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return tuple(record_of(r) for r in self.rows[i])
+        return record_of(self.rows[i])
+
+    def __iter__(self):
+        return (record_of(r) for r in self.rows)
+
+
 def _solve(state: AzimuthState, time_s: float, fit_psi=af.fit_psi,
            orientation_diversity=af.orientation_diversity_rad) -> AzimuthState:
     """Re-solve with all kept samples and gate the result. ``fit_psi``, ``orientation_diversity``: the
-    solve's implementations (``azimuth_fit``'s or the core's twins in estimators.core: the same results)."""
+    solve's implementations (``azimuth_fit``'s or the core's twins in estimators.core: the same results).
+    The samples: a tuple of MagRecord, or PackedSamples (the same arrays, read from its rows)."""
     p = state.params
     recs = state.samples
     n = len(recs)
@@ -359,10 +402,11 @@ def _solve(state: AzimuthState, time_s: float, fit_psi=af.fit_psi,
     if n < p.gate.min_samples:
         reason = af.gate_reason(None, n, 0.0, math.inf, p.gate)
         return replace(state, last_solve_s=time_s, last_gate_reason=reason)
-    C = np.array([r.C_sf_from_isf for r in recs])
-    G = np.array([r.G_gyro for r in recs])
-    h = np.array([r.h_sf_gauss for r in recs])
-    tau = np.array([r.time_s for r in recs]) - state.launch_time_s
+    rows = recs.rows if isinstance(recs, PackedSamples) else pack_samples(recs)
+    C = np.ascontiguousarray(rows[:, 4:13]).reshape(n, 3, 3)
+    G = np.ascontiguousarray(rows[:, 13:]).reshape(n, 3, N_GYRO_CONSIDER)
+    h = np.ascontiguousarray(rows[:, 1:4])
+    tau = rows[:, 0] - state.launch_time_s
     e2 = float(e @ e)
     var_white = p.mag_noise_sigma_gauss ** 2 + (2.0 / 3.0) * e2 * p.gyro_arw_rad_sqrt_s ** 2 * tau
     var_drift = (2.0 / 3.0) * e2 * (p.gyro_bias_sigma_rad_s * tau) ** 2 if p.drift_weighting else 0.0
@@ -388,7 +432,7 @@ def _solve(state: AzimuthState, time_s: float, fit_psi=af.fit_psi,
         beta = np.array([fit.c_hat[K], fit.c_hat[K + 1], 0.0])
         sol = Solution(time_s, fit, psi_sigma, diversity, af.r3(fit.psi_rad).T,
                        (np.eye(3) - skew(beta)) @ state.C_isf_af.T, fit.c_hat[:K].copy(),
-                       last_sample_s=recs[-1].time_s)
+                       last_sample_s=float(rows[-1, 0]))
         if state.first_solution is not None:
             sol = replace(sol, wander_var_rad2=max(_wander_var(state, state.first_solution, sol),
                                                    state.solution.wander_var_rad2))
@@ -461,10 +505,12 @@ def azimuth_propagate(strapdown: StrapdownState, G_gyro: np.ndarray, C_isf_sf: n
 
 def azimuth_step(state: AzimuthState, gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray,
                  mag_gauss: np.ndarray | None, time_s: float, propagate=azimuth_propagate, fit_psi=af.fit_psi,
-                 orientation_diversity=af.orientation_diversity_rad) -> tuple[AzimuthState, AzimuthOutput]:
+                 orientation_diversity=af.orientation_diversity_rad, output_numbers=None
+                 ) -> tuple[AzimuthState, AzimuthOutput]:
     """One IMU sample in flight (FC time ``time_s``); ``mag_gauss`` None when there is none.
     ``propagate``: step 1's implementation (``azimuth_propagate`` or the core's twin); ``fit_psi`` and
-    ``orientation_diversity``: the re-solve's (``azimuth_fit``'s or estimators.core's)."""
+    ``orientation_diversity``: the re-solve's (``azimuth_fit``'s or estimators.core's); ``output_numbers``:
+    step 5's (``azimuth_output_numbers``, None, or estimators.core.azimuth_output_numbers)."""
     if state.phase == "prelaunch":
         raise ValueError("azimuth_step before azimuth_launch")
     if state.phase == "failed":
@@ -499,7 +545,7 @@ def azimuth_step(state: AzimuthState, gyro_rad_s: np.ndarray, accel_m_s2: np.nda
     period = p.resolve_period_s if st.solution is not None else p.resolve_period_unsolved_s
     if time_s - st.last_solve_s >= period and len(st.samples) > 0:
         st = _solve(st, time_s, fit_psi, orientation_diversity)
-    return st, _output(st, C_isf_sf, time_s)
+    return st, _output(st, C_isf_sf, time_s, output_numbers)
 
 
 def azimuth_status(st: AzimuthState) -> str:
@@ -512,47 +558,42 @@ def azimuth_status(st: AzimuthState) -> str:
     return "solved" if st.last_gate_reason == "" else "holding"
 
 
-def azimuth_output(st: AzimuthState, time_s: float) -> AzimuthOutput:
+def azimuth_output(st: AzimuthState, time_s: float, output_numbers=None) -> AzimuthOutput:
     """The output ``azimuth_step`` returned with ``st`` at its last sample ``time_s`` (computed
     when asked: the Pipeline's hot path steps A without building an output per sample)."""
     if st.phase == "failed":
         return AzimuthOutput(time_s, "failed", st.reason, False)
-    return _output(st, st.C_isf_sf, time_s)
+    return _output(st, st.C_isf_sf, time_s, output_numbers)
 
 
-def _output(st: AzimuthState, C_isf_sf: np.ndarray, time_s: float) -> AzimuthOutput:
+def _output(st: AzimuthState, C_isf_sf: np.ndarray, time_s: float, output_numbers=None) -> AzimuthOutput:
+    """``output_numbers``: step 5's numbers (``azimuth_output_numbers`` or the core's twin,
+    estimators.core.azimuth_output_numbers: the same signature)."""
+    nums = (output_numbers or azimuth_output_numbers)(st, st.G_gyro, C_isf_sf, time_s)
+    return output_from_numbers(st, time_s, len(st.samples), nums)
+
+
+def azimuth_output_numbers(st: AzimuthState, G_gyro: np.ndarray, C_isf_sf: np.ndarray, time_s: float) -> tuple:
+    """Step 5's numbers for the propagated G and C_ISF<-SF at ``time_s``: (roll, pitch, q_nav_from_body,
+    heading, heading_sigma, azimuth, azimuth_sigma, launch_azimuth), NaN where there is none (no
+    solution: the attitude only; no flight direction: no azimuth). The compiled twin:
+    core/azimuth_output.hpp."""
     p = st.params
     sol = st.solution
     C_sf_body = p.C_body_from_sensor.T
-    n = len(st.samples)
-    fit_last = st.last_fit
-    diag = dict(n_samples=n, diversity_rad=st.last_diversity_rad,
-                condition_number=fit_last.condition_number if fit_last is not None else math.nan,
-                normalised_residual=fit_last.s2 if fit_last is not None else math.nan,
-                u_sf=st.u_sf, cross_check_rad=st.cross_check_rad, elevation_check_rad=st.elevation_check_rad)
-    flags = []
-    if math.isfinite(st.cross_check_rad) and st.cross_check_rad > p.cross_check_max_rad:
-        flags.append(f"flight direction cross-check {math.degrees(st.cross_check_rad):.1f} deg")
-    if math.isfinite(st.elevation_check_rad) and abs(st.elevation_check_rad) > p.cross_check_max_rad:
-        flags.append(f"launch elevation differs from the configured one by "
-                     f"{math.degrees(st.elevation_check_rad):.1f} deg")
-    psi = sol.fit.psi_rad if sol is not None else 0.0
     if sol is not None:   # apply the estimated errors: C_true = (I - [err]x) C_propagated
-        C_isf_sf = (np.eye(3) - skew(st.G_gyro @ sol.c_gyro)) @ C_isf_sf
+        C_isf_sf = (np.eye(3) - skew(G_gyro @ sol.c_gyro)) @ C_isf_sf
         C_nf_sf = sol.C_nf_af @ sol.C_af_isf @ C_isf_sf
     else:
         C_nf_sf = st.C_isf_af.T @ C_isf_sf
     C_nf_body = C_nf_sf @ C_sf_body
-    roll, pitch, yaw = euler_from_dcm(C_nf_body)
-    status = azimuth_status(st)
+    roll, pitch, _ = euler_from_dcm(C_nf_body)
+    q = quat_from_dcm(C_nf_body)
+    nan = math.nan
     if sol is None:
-        reason = "; ".join([st.last_gate_reason or "no magnetometer samples yet"] + flags)
-        return AzimuthOutput(time_s, status, reason, False, roll_rad=roll, pitch_rad=pitch,
-                             q_nav_from_body=quat_from_dcm(C_nf_body), **diag)
-    if status == "holding":
-        flags.insert(0, "holding last solution: " + st.last_gate_reason)
+        return roll, pitch, q, nan, nan, nan, nan, nan
     arw_var = p.gyro_arw_rad_sqrt_s ** 2 * max(time_s - st.launch_time_s, 0.0)
-    hd, hs, _ = af.direction_azimuth_and_sigma(C_sf_body[:, 0], sol.C_nf_af, sol.C_af_isf, C_isf_sf, st.G_gyro,
+    hd, hs, _ = af.direction_azimuth_and_sigma(C_sf_body[:, 0], sol.C_nf_af, sol.C_af_isf, C_isf_sf, G_gyro,
                                                sol.fit.P_psi_c, arw_var)
     fm2 = p.field_model_sigma_rad ** 2 + sol.wander_var_rad2
     # in-run gyro bias (issue 18 item 3): the fit's c_gyro is one bias change over its samples; after
@@ -562,22 +603,52 @@ def _output(st: AzimuthState, C_isf_sf: np.ndarray, time_s: float) -> AzimuthOut
     gap = time_s - sol.last_sample_s if math.isfinite(sol.last_sample_s) else 0.0
     run_var = (p.gyro_bias_sigma_rad_s * max(gap, 0.0)) ** 2
     hs = math.sqrt(hs ** 2 + fm2 + run_var)
-    out = dict(heading_rad=hd, heading_sigma_rad=hs, roll_rad=roll, pitch_rad=pitch,
-               q_nav_from_body=quat_from_dcm(C_nf_body), psi_s_rad=psi,
-               psi_s_sigma_rad=math.sqrt(sol.psi_sigma_rad ** 2 + fm2),
-               distortion_A=sol.fit.A, distortion_b_gauss=sol.fit.b_gauss)
     if st.u_sf is None:
-        return AzimuthOutput(time_s, status, "; ".join([st.u_reason] + flags), False, **out, **diag)
+        return roll, pitch, q, hd, hs, nan, nan, nan
     if np.array_equal(st.u_sf, C_sf_body[:, 0]):   # aligned case: u is the body x axis
         az, az_s = hd, hs
     else:
         u = st.u_sf
         if st.du_dbeta_sf is not None:   # the measured up carries the estimated tilt error too
             u = u - st.du_dbeta_sf @ sol.fit.c_hat[N_GYRO_CONSIDER:N_GYRO_CONSIDER + 2]
-        az, az_s, _ = af.direction_azimuth_and_sigma(u, sol.C_nf_af, sol.C_af_isf, C_isf_sf, st.G_gyro,
+        az, az_s, _ = af.direction_azimuth_and_sigma(u, sol.C_nf_af, sol.C_af_isf, C_isf_sf, G_gyro,
                                                      sol.fit.P_psi_c, arw_var, st.du_dbeta_sf)
         az_s = math.sqrt(az_s ** 2 + fm2 + run_var)
     az0 = af.azimuth_of(sol.C_nf_af @ sol.C_af_isf @ st.u_sf)   # C_ISF<-SF = I at launch
+    return roll, pitch, q, hd, hs, az, az_s, az0
+
+
+def output_from_numbers(st: AzimuthState, time_s: float, n_samples: int, nums: tuple) -> AzimuthOutput:
+    """The AzimuthOutput of ``st`` (in flight, not failed) with step 5's ``nums`` (``azimuth_output_numbers``'s
+    tuple) and ``n_samples`` samples kept: the status, the reason and the flags, the diagnostics."""
+    p = st.params
+    sol = st.solution
+    roll, pitch, q, hd, hs, az, az_s, az0 = nums
+    fit_last = st.last_fit
+    diag = dict(n_samples=n_samples, diversity_rad=st.last_diversity_rad,
+                condition_number=fit_last.condition_number if fit_last is not None else math.nan,
+                normalised_residual=fit_last.s2 if fit_last is not None else math.nan,
+                u_sf=st.u_sf, cross_check_rad=st.cross_check_rad, elevation_check_rad=st.elevation_check_rad)
+    flags = []
+    if math.isfinite(st.cross_check_rad) and st.cross_check_rad > p.cross_check_max_rad:
+        flags.append(f"flight direction cross-check {math.degrees(st.cross_check_rad):.1f} deg")
+    if math.isfinite(st.elevation_check_rad) and abs(st.elevation_check_rad) > p.cross_check_max_rad:
+        flags.append(f"launch elevation differs from the configured one by "
+                     f"{math.degrees(st.elevation_check_rad):.1f} deg")
+    status = azimuth_status(st)
+    if sol is None:
+        reason = "; ".join([st.last_gate_reason or "no magnetometer samples yet"] + flags)
+        return AzimuthOutput(time_s, status, reason, False, roll_rad=roll, pitch_rad=pitch,
+                             q_nav_from_body=q, **diag)
+    if status == "holding":
+        flags.insert(0, "holding last solution: " + st.last_gate_reason)
+    fm2 = p.field_model_sigma_rad ** 2 + sol.wander_var_rad2
+    out = dict(heading_rad=hd, heading_sigma_rad=hs, roll_rad=roll, pitch_rad=pitch,
+               q_nav_from_body=q, psi_s_rad=sol.fit.psi_rad,
+               psi_s_sigma_rad=math.sqrt(sol.psi_sigma_rad ** 2 + fm2),
+               distortion_A=sol.fit.A, distortion_b_gauss=sol.fit.b_gauss)
+    if st.u_sf is None:
+        return AzimuthOutput(time_s, status, "; ".join([st.u_reason] + flags), False, **out, **diag)
     return AzimuthOutput(time_s, status, "; ".join(flags), True, azimuth_rad=az,
                          azimuth_sigma_rad=az_s, launch_azimuth_rad=az0, **out, **diag)
 

@@ -956,6 +956,32 @@ if HOT_PATH_AVAILABLE:
         HotPath, HOT_QUIET, HOT_UNREAD = _core.HotPath, _core.HOT_QUIET, _core.HOT_UNREAD
 
 
+AZIMUTH_OUTPUT_AVAILABLE = HOT_PATH_AVAILABLE and hasattr(_core, "azimuth_output_numbers")
+"""Method A's output numbers in the core (core/azimuth_output.hpp) and its filter-step sample on a held run."""
+
+
+def azimuth_output_cfg(st) -> tuple:
+    """What method A's output needs of the AzimuthState ``st`` (in flight) beside G and C_ISF<-SF: fixed
+    between two solves (core/bindings_hot_path.cpp azimuth_cfg_in reads it)."""
+    p, sol = st.params, st.solution
+    C_sf_body = p.C_body_from_sensor.T
+    if sol is None:
+        return (False, st.C_isf_af, C_sf_body, None, None, None, None, 0.0, 0.0, 0.0, 0.0, 0.0, None, False, None,
+                None)
+    from estimators.azimuth import N_GYRO_CONSIDER as K
+    u = st.u_sf
+    return (True, st.C_isf_af, C_sf_body, sol.C_nf_af, sol.C_af_isf, sol.c_gyro, sol.fit.P_psi_c,
+            p.gyro_arw_rad_sqrt_s ** 2, float(st.launch_time_s), p.field_model_sigma_rad ** 2 + sol.wander_var_rad2,
+            float(sol.last_sample_s), p.gyro_bias_sigma_rad_s, u,
+            u is not None and bool(np.array_equal(u, C_sf_body[:, 0])), st.du_dbeta_sf,
+            sol.fit.c_hat[K:K + 2] if st.du_dbeta_sf is not None else (0.0, 0.0))
+
+
+def azimuth_output_numbers(st, G_gyro: np.ndarray, C_isf_sf: np.ndarray, time_s: float) -> tuple:
+    """estimators.azimuth.azimuth_output_numbers in the core (core/azimuth_output.hpp): the same arguments and tuple."""
+    return _core.azimuth_output_numbers(azimuth_output_cfg(st), G_gyro, C_isf_sf, float(time_s))
+
+
 def mag_hard_iron_residual(state, mag_body_gauss, q_P_from_body, soft_iron: float) -> float | None:
     """service/pipeline.py Pipeline._mag_hard_iron_residual on a MagDisturbance state held in the
     core (HeldMagDisturbance: the hard iron's covariance read there, core/bindings_hot_path.cpp): the

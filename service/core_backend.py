@@ -105,6 +105,8 @@ class Backend:
     """Method A's re-solve (estimators.azimuth_fit.fit_psi's signature; the solver runs it) ..."""
     azimuth_orientation_diversity: Callable = _af_reference.orientation_diversity_rad
     """... and its orientation diversity (estimators.azimuth_fit.orientation_diversity_rad's signature)."""
+    azimuth_output_numbers: Callable = _a_reference.azimuth_output_numbers
+    """Method A's output numbers (estimators.azimuth.azimuth_output_numbers' signature)."""
     deviation_step: Callable = _dv_reference.deviation_step
     """Method D's RLS step (estimators.mag_deviation.deviation_step's signature) ..."""
     deviation_corrected_mag: Callable = _dv_reference.corrected_mag
@@ -204,6 +206,7 @@ def select(environ=os.environ) -> Backend:
                    **(dict(azimuth_fit_psi=core.fit_psi) if core.FIT_AVAILABLE else {}),
                    **(dict(azimuth_orientation_diversity=core.orientation_diversity_rad)
                       if core.DIVERSITY_AVAILABLE else {}),
+                   **(dict(azimuth_output_numbers=core.azimuth_output_numbers) if core.AZIMUTH_OUTPUT_AVAILABLE else {}),
                    **(dict(deviation_step=core.deviation_step, deviation_corrected_mag=core.corrected_mag,
                            deviation_residual_sigma_gauss=core.residual_sigma_gauss,
                            deviation_coverage=core.deviation_coverage) if core.DEVIATION_AVAILABLE else {}))

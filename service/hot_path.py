@@ -21,8 +21,11 @@ strapdown and the input checks the core steps are the Pipeline's own held core o
 AzimuthState replaced per step (as ``azimuth_step`` does): a run takes it in as a core AzimuthRun
 that the following runs go on with (``Pipeline._azimuth_held``) until Python reads or sets
 ``Pipeline.azimuth``, which takes the next AzimuthState back (a pure step over many samples); its
-per-sample output is built when read (``Pipeline.azimuth_out``, estimators.azimuth.azimuth_output). ``counters.imu_samples`` gets the
-run's count of samples. What decides whether a run may start (the phase, pending events, A's
+per-sample output is built when read (``Pipeline.azimuth_out``: ``azimuth_output_held``, its numbers from the
+run's G and C in the core, core/azimuth_output.hpp, no take-back). The filter-step sample on_imu takes goes on
+the held run too (``azimuth_held_step``: Pipeline._step_azimuth), so A's state comes back to Python only for a
+solver submit, a solver result, a status change or a reader; the solver gets its samples as one array
+(``SamplePack``, grown by the core's rows). ``counters.imu_samples`` gets the run's count of samples. What decides whether a run may start (the phase, pending events, A's
 phase, a solver result waiting) changes only on a sample Python handles, so it is judged before
 each run.
 
@@ -58,7 +61,8 @@ import math
 import numpy as np
 
 from estimators import core as _ec
-from estimators.azimuth import MagRecord, azimuth_prelaunch_step, azimuth_status
+from estimators.azimuth import (REC_COLUMNS, PackedSamples, azimuth_output, azimuth_prelaunch_step, azimuth_status,
+                                output_from_numbers, pack_samples, record_of)
 from estimators.core import HeldStrapdown
 from estimators.declination import RestState
 from estimators.output_propagation import output_step
@@ -250,16 +254,97 @@ def azimuth_take_back(p) -> None:
 
 
 def _azimuth_back(p, run) -> None:
-    """The AzimuthState after a run that stepped A: its strapdown, G, C and stored samples."""
+    """The AzimuthState after a run that stepped A: its strapdown, G, C and stored samples (their rows
+    go on A's sample pack as the core packed them)."""
     q, t_prev, g_prev, G, C, last_mag_s, rec = run.result()
     st = p._azimuth
     upd = {"strapdown": StrapdownState(q, t_prev, g_prev), "G_gyro": G, "C_isf_sf": C}
     if len(rec):
-        upd["samples"] = st.samples + tuple(
-            MagRecord(float(r[0]), r[1:4].copy(), r[4:13].reshape(3, 3).copy(), r[13:49].reshape(3, 12).copy())
-            for r in rec)
+        new = tuple(record_of(r) for r in rec)
+        p._a_pack.extend(st.samples, rec, new)
+        upd["samples"] = st.samples + new
         upd["last_mag_s"] = last_mag_s
     p._azimuth = fast_replace(st, **upd)
+
+
+class SamplePack:
+    """Method A's stored samples as rows (estimators.azimuth.REC_COLUMNS; what its re-solve and the
+    solver's worker take: one array), kept beside ``Pipeline.azimuth``'s tuple of MagRecord and grown
+    with it: by the core's rows of a held run, or by packing the records it has not seen (its last
+    record's identity tells; another store is packed anew)."""
+    __slots__ = ("rows", "n", "last")
+
+    def __init__(self):
+        self.rows = np.empty((0, REC_COLUMNS))
+        self.n = 0
+        self.last = None   # the MagRecord of row n - 1
+
+    def _fits(self, samples) -> bool:
+        n = self.n
+        return n <= len(samples) and (n == 0 or samples[n - 1] is self.last)
+
+    def _put(self, rows: np.ndarray, last) -> None:
+        n, k = self.n, len(rows)
+        if n + k > len(self.rows):
+            grown = np.empty((max(2 * len(self.rows), n + k, 64), REC_COLUMNS))
+            grown[:n] = self.rows[:n]
+            self.rows = grown
+        self.rows[n:n + k] = rows
+        self.n, self.last = n + k, last
+
+    def extend(self, samples, rows: np.ndarray, records: tuple) -> None:
+        """``records`` (packed as ``rows``) appended to ``samples``."""
+        if not self._fits(samples) or self.n != len(samples):
+            self.n, self.last = 0, None
+            self._put(pack_samples(samples), samples[-1] if samples else None)
+        self._put(rows, records[-1])
+
+    def of(self, samples) -> PackedSamples:
+        """``samples`` (A's tuple of MagRecord) as PackedSamples over a copy of their rows."""
+        if not self._fits(samples):
+            self.n, self.last = 0, None
+        if self.n < len(samples):
+            self._put(pack_samples(samples[self.n:]), samples[-1])
+        return PackedSamples(self.rows[:len(samples)].copy())
+
+
+def azimuth_for_solver(p, st):
+    """``st`` (Pipeline.azimuth) as the solver gets it: its samples as one packed array (PackedSamples)."""
+    return fast_replace(st, samples=p._a_pack.of(st.samples))
+
+
+def azimuth_held_step(p, gyro_rad_s, mag_gauss, time_s: float) -> bool:
+    """``Pipeline._step_azimuth`` in flight on A's held run (its state stays in the core): the filter-step
+    sample propagated and its magnetometer sample stored in C++ (AzimuthRun.step: hot_run's step of A),
+    the output built when read (``azimuth_output_held``). False, nothing changed, when the reference takes
+    the sample: a solver result to apply (or a solver that cannot say), a solve or a solver submit due on
+    it, a sample not integrated. Its status cannot change then: no event, as the reference."""
+    if not _A_CORE or p.core.azimuth_output_numbers is not _ec.azimuth_output_numbers:
+        return False
+    ready = getattr(p.solver, "ready", None)
+    if ready is None or ready():
+        return False
+    if not p._azimuth_held.step(time_s, gyro_rad_s, mag_gauss):
+        return False
+    p._azimuth_out_due = (None, float(time_s))
+    return True
+
+
+def azimuth_output_held(p, time_s: float):
+    """``Pipeline.azimuth_out`` at the held run's last sample ``time_s`` without taking A's state back:
+    the numbers from the run's G and C in the core (core/azimuth_output.hpp), the rest from the
+    AzimuthState the run started from (it changes only by a take-back). A backend whose output numbers
+    are not the core's: the state taken back and the reference's output."""
+    run = p._azimuth_held
+    if not _A_CORE or p.core.azimuth_output_numbers is not _ec.azimuth_output_numbers:
+        return azimuth_output(p.azimuth, time_s, p.core.azimuth_output_numbers)
+    st = p._azimuth
+    if not run.output_set:   # fixed for the run: set at its first read
+        run.set_output(_ec.azimuth_output_cfg(st))
+    return output_from_numbers(st, time_s, run.n_samples, run.output(time_s))
+
+
+_A_CORE = getattr(_ec, "AZIMUTH_OUTPUT_AVAILABLE", False)
 
 
 def hot_path_ready(p) -> bool:

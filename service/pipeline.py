@@ -58,7 +58,8 @@ from estimators.synthetic_ahrs import (AirEvent, FcAttitudeEvent, FcStatusEvent,
 from mavlink_io.samples import FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, ImuSample, PressureSample
 from service.core_backend import select as select_core
 from service.hot_path import GroundState as GroundStateReference
-from service.hot_path import (azimuth_take_back, batch_steps, ground_field, ground_step, ground_take_back,
+from service.hot_path import (SamplePack, azimuth_for_solver, azimuth_held_step, azimuth_output_held,
+                              azimuth_take_back, batch_steps, ground_field, ground_step, ground_take_back,
                               sample_field, sample_step)
 from service.input_checks import InputCheckParams
 from service.heading_arbitration import ArbitrationParams, ArbitrationState, SourceReading
@@ -271,6 +272,8 @@ class Pipeline:
         self._azimuth_held = None
         """Method A's core AzimuthRun while its state lives in the core (service/hot_path.py):
         ``azimuth`` takes it back when read or set."""
+        self._a_pack = SamplePack()
+        """Method A's stored samples as rows (service/hot_path.py SamplePack): what the solver gets."""
         self.azimuth = azimuth_init(self.azimuth_params)
         self._azimuth_out: AzimuthOutput | None = None
         self._azimuth_out_due: tuple | None = None
@@ -408,7 +411,11 @@ class Pipeline:
         due = self._azimuth_out_due
         if due is not None:
             st, t = due
-            self._azimuth_out, self._azimuth_out_due = azimuth_output(self.azimuth if st is None else st, t), None
+            if st is None and self._azimuth_held is not None:   # from the held run, no take-back
+                out = azimuth_output_held(self, t)
+            else:
+                out = azimuth_output(self.azimuth if st is None else st, t, self.core.azimuth_output_numbers)
+            self._azimuth_out, self._azimuth_out_due = out, None
         return self._azimuth_out
 
     @azimuth_out.setter
@@ -973,13 +980,16 @@ class Pipeline:
             self.azimuth, why = azimuth_launch(self.azimuth, t_launch)
             if why:
                 self._event("azimuth", why)
+        elif self._azimuth_held is not None and azimuth_held_step(self, gyro_s, mag_s, t):
+            return   # stepped on A's held run in the core: no solve, no result, no submit, its status kept
         elif self.azimuth.phase != "prelaunch":
-            self.azimuth, out = azimuth_step(self.azimuth, gyro_s, accel_s, mag_s, t, self.core.azimuth_propagate)
+            self.azimuth, out = azimuth_step(self.azimuth, gyro_s, accel_s, mag_s, t, self.core.azimuth_propagate,
+                                             output_numbers=self.core.azimuth_output_numbers)
             result = self.solver.poll()
             if result is not None:
                 self.azimuth = azimuth_apply_solve(self.azimuth, result)
             if t >= self._next_solve_s and self.azimuth.phase == "flight" and self.azimuth.samples \
-                    and self.solver.submit(self.azimuth, t, self.core.azimuth_fit_psi,
+                    and self.solver.submit(azimuth_for_solver(self, self.azimuth), t, self.core.azimuth_fit_psi,
                                            self.core.azimuth_orientation_diversity):
                 # the result (at once from an inline solver) applies from the next sample on
                 self._next_solve_s = t + self.solve_period_s[0 if self.azimuth.solution is not None else 1]
