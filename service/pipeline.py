@@ -767,13 +767,8 @@ class Pipeline:
         if r.mag_status is not None:
             self.mag_status = r.mag_status
         self._deviation_hard_iron_changed, self._deviation_in_use = r.dev_hard_iron_changed, r.dev_in_use
-        hdiag = r.hdiag
-        if hdiag is not None and hdiag.measured:
-            self._hdg_measurement = (t, hdiag)
-            if hdiag.source_available != self._hdg_available:
-                self._hdg_available = hdiag.source_available
-                self._event("heading_filter", "magnetometer heading available" if hdiag.source_available
-                            else f"magnetometer heading unavailable: {hdiag.reason}")
+        if r.hdiag is not None:
+            self._heading_measured(t, r.hdiag)
         return r.att, r.mag_s, (mag_b if r.mag_raw else None)
 
     def _filter_chain_python(self, t: float, gyro_b: np.ndarray, accel_b: np.ndarray, mag_b: np.ndarray | None):
@@ -818,13 +813,19 @@ class Pipeline:
             if rest_rate is not None:
                 self.polar_hdg, _ = self.core.heading_zero_rate_update(self.polar_hdg, rest_rate,
                                                                        self.zero_rate_params)
-            if hdiag.measured:
-                self._hdg_measurement = (t, hdiag)
-            if hdiag.measured and hdiag.source_available != self._hdg_available:
-                self._hdg_available = hdiag.source_available
-                self._event("heading_filter", "magnetometer heading available" if hdiag.source_available
-                            else f"magnetometer heading unavailable: {hdiag.reason}")
+            self._heading_measured(t, hdiag)
         return att, mag_s, (mag_b_meas if mag_b_raw is not None else None)
+
+    def _heading_measured(self, t: float, hdiag) -> None:
+        """After C's heading step (either chain): its measurement kept for the heading source, one
+        'heading_filter' event when the magnetometer heading comes or goes."""
+        if not hdiag.measured:
+            return
+        self._hdg_measurement = (t, hdiag)
+        if hdiag.source_available != self._hdg_available:
+            self._hdg_available = hdiag.source_available
+            self._event("heading_filter", "magnetometer heading available" if hdiag.source_available
+                        else f"magnetometer heading unavailable: {hdiag.reason}")
 
     def _manoeuvre_speed_m_s(self, t: float | None) -> float:
         """The speed V along the body x axis with which C's attitude filter bounds the centripetal
