@@ -7,6 +7,7 @@
 #include <pybind11/stl.h>
 
 #include "synthetic_ahrs.hpp"
+#include "bindings_arrays.hpp"
 
 namespace py = pybind11;
 using namespace azimuthd;
@@ -20,20 +21,8 @@ V3 v3(const py::handle& o) {
     if (!a || a.size() != 3) throw std::invalid_argument("expected 3 values");
     return {a.data()[0], a.data()[1], a.data()[2]};
 }
-template <size_t N>
-std::array<double, N> arr(const py::handle& o) {
-    auto a = py::array_t<double, py::array::c_style | py::array::forcecast>::ensure(o);
-    if (!a || static_cast<size_t>(a.size()) != N) throw std::invalid_argument("array of the wrong size");
-    std::array<double, N> out{};
-    for (size_t i = 0; i < N; ++i) out[i] = a.data()[i];
-    return out;
-}
-template <size_t N>
-py::array_t<double> np1(const std::array<double, N>& x) {
-    py::array_t<double> a(static_cast<py::ssize_t>(N));
-    for (size_t i = 0; i < N; ++i) a.mutable_data()[i] = x[i];
-    return a;
-}
+using azimuthd::bind::arr;
+using azimuthd::bind::np1;
 template <int R>
 py::array_t<double> np2(const Mat<R, R>& x) {
     py::array_t<double> a({static_cast<py::ssize_t>(R), static_cast<py::ssize_t>(R)});

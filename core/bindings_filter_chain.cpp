@@ -9,6 +9,7 @@
 #include <string>
 
 #include "filter_chain.hpp"
+#include "bindings_arrays.hpp"
 
 namespace py = pybind11;
 using namespace azimuthd;
@@ -16,22 +17,8 @@ using ArrayC = py::array_t<double, py::array::c_style | py::array::forcecast>;
 
 namespace {
 
-template <size_t N>
-std::array<double, N> arr(const py::handle& o, const char* name) {
-    auto a = ArrayC::ensure(o);
-    if (!a || static_cast<size_t>(a.size()) != N)
-        throw std::invalid_argument(std::string(name) + ": " + std::to_string(N) + " values expected");
-    std::array<double, N> out{};
-    for (size_t i = 0; i < N; ++i) out[i] = a.data()[i];
-    return out;
-}
-
-template <size_t N>
-py::array_t<double> np1(const std::array<double, N>& x) {
-    py::array_t<double> a(static_cast<py::ssize_t>(N));
-    for (size_t i = 0; i < N; ++i) a.mutable_data()[i] = x[i];
-    return a;
-}
+using azimuthd::bind::arr;
+using azimuthd::bind::np1;
 
 py::object opt(bool has, double v) { return has ? py::object(py::float_(v)) : py::object(py::none()); }
 py::object opt3(bool has, const V3& v) { return has ? py::object(np1(v)) : py::object(py::none()); }

@@ -11,6 +11,7 @@
 #include <string>
 
 #include "polar_attitude.hpp"
+#include "bindings_arrays.hpp"
 
 namespace py = pybind11;
 using namespace azimuthd;
@@ -67,23 +68,8 @@ Params params_from(const py::object& o) {
     return p;
 }
 
-template <size_t N>
-std::array<double, N> arr(const py::handle& o, const char* name) {
-    auto a = ArrayC::ensure(o);
-    if (!a || static_cast<size_t>(a.size()) != N)
-        throw std::invalid_argument(std::string(name) + ": " + std::to_string(N) + " values expected");
-    std::array<double, N> out{};
-    for (size_t i = 0; i < N; ++i) out[i] = a.data()[i];
-    return out;
-}
-
-template <size_t N>
-py::array_t<double> np1(const std::array<double, N>& x) {
-    py::array_t<double> a(static_cast<py::ssize_t>(N));
-    double* o = a.mutable_data();
-    for (size_t i = 0; i < N; ++i) o[i] = x[i];
-    return a;
-}
+using azimuthd::bind::arr;
+using azimuthd::bind::np1;
 
 py::array_t<double> np2(const double* x, py::ssize_t r, py::ssize_t c) {
     py::array_t<double> a({r, c});
