@@ -29,7 +29,7 @@ py::array_t<double> np2(const Mat<R, R>& x) {
     for (int i = 0; i < R * R; ++i) a.mutable_data()[i] = x[i];
     return a;
 }
-py::object opt(bool has, double v) { return has ? py::object(py::float_(v)) : py::object(py::none()); }
+using azimuthd::bind::opt;
 py::object opt_tri(int v) { return v < 0 ? py::object(py::none()) : py::object(py::bool_(v == 1)); }
 int tri(const py::handle& o) { return o.is_none() ? -1 : (o.cast<bool>() ? 1 : 0); }
 bool get_opt(const py::dict& d, const char* k, double& out) {

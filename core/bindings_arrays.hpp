@@ -1,4 +1,4 @@
-// Fixed-size arrays between numpy and C++ for the binding files (one copy for all of them).
+// Fixed-size arrays and optional floats between Python and C++ for the binding files (one copy for all of them).
 #pragma once
 
 #include <pybind11/numpy.h>
@@ -33,6 +33,9 @@ py::array_t<double> np1(const std::array<double, N>& x) {
     for (std::size_t i = 0; i < N; ++i) o[i] = x[i];
     return a;
 }
+
+// a float, or None when the value is absent (the core's has_* flags are Python's Optional)
+inline py::object opt(bool has, double v) { return has ? py::object(py::float_(v)) : py::object(py::none()); }
 
 }  // namespace bind
 }  // namespace azimuthd

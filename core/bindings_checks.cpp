@@ -12,6 +12,7 @@
 #include "input_checks.hpp"
 #include "mag_disturbance.hpp"
 #include "mag_usability.hpp"
+#include "bindings_arrays.hpp"
 
 namespace py = pybind11;
 using namespace azimuthd;
@@ -79,7 +80,7 @@ MagUsabilityParams mag_params(const py::handle& o) {
     return p;
 }
 
-py::object opt(bool has, double v) { return has ? py::object(py::float_(v)) : py::object(py::none()); }
+using azimuthd::bind::opt;
 
 py::tuple floats(const std::vector<double>& v) {
     py::tuple out(v.size());

@@ -20,7 +20,7 @@ namespace {
 using azimuthd::bind::arr;
 using azimuthd::bind::np1;
 
-py::object opt(bool has, double v) { return has ? py::object(py::float_(v)) : py::object(py::none()); }
+using azimuthd::bind::opt;
 py::object opt3(bool has, const V3& v) { return has ? py::object(np1(v)) : py::object(py::none()); }
 
 zero_rate::Params zr_params(const py::object& o) {

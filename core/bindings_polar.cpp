@@ -78,7 +78,7 @@ py::array_t<double> np2(const double* x, py::ssize_t r, py::ssize_t c) {
     return a;
 }
 
-py::object opt(bool has, double v) { return has ? py::object(py::float_(v)) : py::object(py::none()); }
+using azimuthd::bind::opt;
 template <size_t N>
 py::object opt_arr(bool has, const std::array<double, N>& v) {
     return has ? py::object(np1(v)) : py::object(py::none());

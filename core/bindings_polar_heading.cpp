@@ -14,6 +14,7 @@
 #include <string>
 
 #include "polar_heading.hpp"
+#include "bindings_arrays.hpp"
 
 namespace py = pybind11;
 using namespace azimuthd;
@@ -150,7 +151,7 @@ py::array_t<double> mat_n(const PH& P, int n) {
     return a;
 }
 
-py::object opt(bool has, double v) { return has ? py::object(py::float_(v)) : py::object(py::none()); }
+using azimuthd::bind::opt;
 
 bool get_opt(const py::dict& d, const char* k, double& out) {
     py::object o = d[k];
