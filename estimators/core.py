@@ -921,6 +921,8 @@ def polar_heading_attitude(state, heading_rad: float | None = None) -> np.ndarra
     if not isinstance(state, HeldPolarHeading):
         return _ph.polar_heading_attitude(state, heading_rad)
     c = state._c
+    if heading_rad.__class__ is float and math.isfinite(heading_rad):
+        return c.attitude(heading_rad)   # None there outside the platform formulation, as below
     if not (c.platform and c.initialised and c.q_P_from_body is not None):
         return None
     if heading_rad is None:
@@ -1240,3 +1242,21 @@ def filter_chain_step(att: HeldPolarAttitude, att_params, zr: HeldZeroRate, zr_p
         d = _PH_SIMPLE[d] if d.__class__ is int else _ph_diag(d, None, hdg_params)
     md._t = md._c.time_s
     return ChainOut(e, r[1], r[2], d, r[4], r[5], r[6], r[7])
+
+
+# --- the filter step's solution numbers (core/solution.hpp) ----------------------------------------
+# service/pipeline.py Pipeline._solution (the reference) reads C's roll/pitch, their sigmas, the heading
+# rate and C's heading from the held filters: here in one C++ call.
+
+SOLUTION_AVAILABLE = POLAR_AVAILABLE and POLAR_HEADING_AVAILABLE and hasattr(_core, "solution_numbers")
+
+
+def solution_numbers(att: HeldPolarAttitude, hdg: HeldPolarHeading, time_s: float, prev, rates_body) -> tuple | None:
+    """None before C's attitude filter levelled, else (roll, pitch, roll sigma, pitch sigma, yaw of its
+    q_P_from_body, heading rate or None, C's heading: None before its first, else (heading, published
+    variance, source_available, rejected_since_s, last_mag_time_s)). ``prev``: (time, yaw of q_P_from_body)
+    of the last solution or None; ``rates_body``: the body rates less the gyro bias (rad/s, (3,))."""
+    x, y, z = rates_body.tolist()
+    if prev is None:
+        return _core.solution_numbers(att._c, hdg._c, time_s, False, 0.0, 0.0, x, y, z)
+    return _core.solution_numbers(att._c, hdg._c, time_s, True, prev[0], prev[1], x, y, z)

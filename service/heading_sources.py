@@ -289,10 +289,22 @@ def heading_filter_source(h, state, last_measurement, t: float, superseded: bool
     if superseded:
         return NotOffered("heading_filter", "superseded", SUPERSEDED)
     if not h.initialised:
+        return heading_filter_reading(False, h.heading_rad, h.variance_rad2, None, None, last_measurement, t,
+                                      mag_update_period_s)
+    return heading_filter_reading(True, h.heading_rad, h.variance_rad2, state.rejected_since_s, state.last_mag_time_s,
+                                  last_measurement, t, mag_update_period_s)
+
+
+def heading_filter_reading(initialised: bool, heading_rad: float, variance_rad2: float, rejected_since_s,
+                           last_mag_time_s, last_measurement, t: float,
+                           mag_update_period_s: float) -> SourceReading | NotOffered:
+    """``heading_filter_source`` (not superseded) from the numbers of C's estimate and state (the
+    Pipeline's core path reads them in one call: estimators/core.py solution_numbers)."""
+    if not initialised:
         return NotOffered("heading_filter", "no_estimate", "no magnetometer heading yet")
-    if not math.isfinite(h.heading_rad):
+    if not math.isfinite(heading_rad):
         return NotOffered("heading_filter", "non_finite", "heading not finite")
-    rej, last = state.rejected_since_s, state.last_mag_time_s
+    rej, last = rejected_since_s, last_mag_time_s
     consistent = (rej is None or t - rej < SOURCE_INCONSISTENT_AFTER_S
                   or last is None or t - last > SOURCE_INCONSISTENT_AFTER_S / 4)
     own = {}
@@ -300,7 +312,7 @@ def heading_filter_source(h, state, last_measurement, t: float, superseded: bool
         d = last_measurement[1]
         own = dict(source_innovation_rad=d.innovation_rad, source_innovation_variance_rad2=d.innovation_var_rad2,
                    source_test_ratio=d.test_ratio)
-    return SourceReading("heading_filter", h.heading_rad, math.sqrt(h.variance_rad2), True, t, MAG_GROUP,
+    return SourceReading("heading_filter", heading_rad, math.sqrt(variance_rad2), True, t, MAG_GROUP,
                          consistent, "" if consistent else f"its magnetometer innovations gated out for {t - rej:.1f} s",
                          **own)
 

@@ -64,7 +64,8 @@ from service.hot_path import (SamplePack, azimuth_for_solver, azimuth_held_step,
 from service.input_checks import InputCheckParams
 from service.heading_arbitration import ArbitrationParams, ArbitrationState, SourceReading
 from service.heading_sources import (AzimuthCheck, SyntheticAhrsHealth, azimuth_source, deviation_record, fc_source,
-                                     heading_filter_source, superseded, synthetic_ahrs_source)
+                                     heading_filter_reading, heading_filter_source, superseded,
+                                     synthetic_ahrs_source)
 from service.phases import (IN_FLIGHT, LAUNCH, PRE_LAUNCH, FlightEvidence, InFlightParams, PhaseParams,
                             PhaseState)
 from mavlink_io.navsolution import NavSolution
@@ -210,6 +211,11 @@ class Pipeline:
             getattr(self.core, k) is getattr(core_facade, f) for k, f in _FILTER_CHAIN_CALLS)
         """Method C's filter step runs as one core call (``_filter_chain``): every step it takes is the
         core's in this backend (one replaced, e.g. a test's recorder, or the reference: the Python chain)."""
+        self.solution_core = core_facade.SOLUTION_AVAILABLE and all(
+            getattr(self.core, k) is getattr(core_facade, k) for k in ("polar_attitude_estimate",
+                                                                      "polar_heading_estimate"))
+        """The filter step's solution numbers (roll/pitch, sigmas, heading rate, C's heading) come from
+        one core call on the held filters (``_solution_attitude``); else the reference's reads."""
         self._hs = self.core.sample_state()
         """The per-sample fields (service/hot_path.py): the core's object, or the reference's."""
         self._ground = self.core.ground_state()
@@ -1245,13 +1251,24 @@ class Pipeline:
             return level.roll_sigma_rad
         return math.hypot(level.roll_sigma_rad, self.gyro_bias_sigma_rad_s * (time_s - self.phase.launch_time_s))
 
-    def _readings(self, t: float) -> tuple[list[SourceReading], list]:
+    def _readings(self, t: float, c_heading=False, a_status: str | None = None) -> tuple[list[SourceReading], list]:
         """Every heading source offered to the arbitration (service/heading_sources.py), and the
-        ones not offered with why (NotOffered): (readings, not_offered)."""
+        ones not offered with why (NotOffered): (readings, not_offered). ``c_heading``: C's heading as
+        the core read it (``_solution_attitude``: None before its first, else (heading, variance,
+        source_available, rejected_since_s, last_mag_time_s)); False: read here. ``a_status``: method
+        A's ``azimuth_status()`` (None: asked here)."""
         b = synthetic_ahrs_source(self.ahrs_out, self.b_health, t, False, self.use_fc_yaw)
-        c = heading_filter_source(self.core.polar_heading_estimate(self.polar_hdg), self.polar_hdg,
-                                  self._hdg_measurement, t, False, self.polar_hdg_params.mag_update_period_s)
-        a = azimuth_source(self.azimuth_out, self.azimuth_status(), t, self.a_check, (b, c), self.arb_params.gate_chi2)
+        period = self.polar_hdg_params.mag_update_period_s
+        if c_heading is False:
+            c = heading_filter_source(self.core.polar_heading_estimate(self.polar_hdg), self.polar_hdg,
+                                      self._hdg_measurement, t, False, period)
+        elif c_heading is None:
+            c = heading_filter_reading(False, math.nan, math.inf, None, None, self._hdg_measurement, t, period)
+        else:
+            c = heading_filter_reading(True, c_heading[0], c_heading[1], c_heading[3], c_heading[4],
+                                       self._hdg_measurement, t, period)
+        a = azimuth_source(self.azimuth_out, self.azimuth_status() if a_status is None else a_status, t,
+                           self.a_check, (b, c), self.arb_params.gate_chi2)
         if isinstance(a, SourceReading) and a.consistent and self.a_check.more_certain:
             # A's solution agrees with B and C and is the more certain: they are not offered
             b, c = superseded(b), superseded(c)
@@ -1282,9 +1299,18 @@ class Pipeline:
             self._b1_heading_s = t
             self._step_ahrs(HeadingEvent(t, best.heading_rad, best.sigma_rad))
 
-    def _solution(self, s: ImuSample, gyro_sensor_rad_s: np.ndarray, att) -> NavSolution:
-        t = s.time_fc_s
-        rates_body = self.C_body_from_sensor @ (gyro_sensor_rad_s - self.gyro_bias_rad_s)
+    def _solution_attitude(self, t: float, att, rates_body: np.ndarray):
+        """The solution's roll, pitch, their sigmas and the heading rate: (roll, pitch, roll sigma,
+        pitch sigma, heading rate or None, C's heading as read by the core or False), None when there is
+        no attitude yet. With the compiled core one call on the held filters (core/solution.hpp); the
+        reads below are the reference (tests/test_core_solution.py proves them equal)."""
+        if att is not None and self.solution_core and type(self.polar_att) is core_facade.HeldPolarAttitude \
+                and type(self.polar_hdg) is core_facade.HeldPolarHeading:
+            n = core_facade.solution_numbers(self.polar_att, self.polar_hdg, t, self._yaw_P_prev, rates_body)
+            if n is not None:
+                roll, pitch, roll_sigma, pitch_sigma, yaw_P, heading_rate, c_heading = n
+                self._yaw_P_prev = (t, yaw_P)
+                return roll, pitch, roll_sigma, pitch_sigma, heading_rate, c_heading
         # roll/pitch: the attitude filter once levelled, else the levelled/strapdown attitude
         if att is not None:
             roll, pitch = att.roll_rad, att.pitch_rad
@@ -1295,15 +1321,9 @@ class Pipeline:
                 quat_from_euler(self.phase.level.roll_rad, self.phase.level.pitch_rad, 0.0)
                 if self.phase.level is not None else None)
             if q_ns is None:
-                return NavSolution(t, s.time_rx_s, self.phase.phase, None, None, None, rates_body)
+                return None
             roll, pitch, _ = euler_from_quat(quat_mul(q_ns, self.q_sensor_from_body))
             roll_sigma = pitch_sigma = self._tilt_sigma_rad(t)
-        if self.phase.phase == PRE_LAUNCH and self.phase.level is None and self.fc_armed:
-            # armed and not levelled yet: the vehicle may be flying (the started-in-flight rule has
-            # not decided), so the accelerometer-levelled attitude is only as good as in a turn
-            wide = self.phase_params.in_flight.accel_tilt_sigma_rad
-            roll_sigma, pitch_sigma = max(roll_sigma or 0.0, wide), max(pitch_sigma or 0.0, wide)
-
         heading_rate = None
         yaw_P = euler_from_quat(att.q_P_from_body)[2] if att is not None else None
         prev, self._yaw_P_prev = self._yaw_P_prev, (t, yaw_P) if yaw_P is not None else None
@@ -1313,7 +1333,22 @@ class Pipeline:
             heading_rate = wrap_pi(yaw_P - prev[1]) / (t - prev[0])
         elif abs(math.cos(pitch)) > 1e-3:  # psi_dot = (q sin(phi) + r cos(phi)) / cos(theta)
             heading_rate = (rates_body[1] * math.sin(roll) + rates_body[2] * math.cos(roll)) / math.cos(pitch)
-        readings, not_offered = self._readings(t)
+        return roll, pitch, roll_sigma, pitch_sigma, heading_rate, False
+
+    def _solution(self, s: ImuSample, gyro_sensor_rad_s: np.ndarray, att) -> NavSolution:
+        t = s.time_fc_s
+        rates_body = self.C_body_from_sensor @ (gyro_sensor_rad_s - self.gyro_bias_rad_s)
+        a = self._solution_attitude(t, att, rates_body)
+        if a is None:
+            return NavSolution(t, s.time_rx_s, self.phase.phase, None, None, None, rates_body)
+        roll, pitch, roll_sigma, pitch_sigma, heading_rate, c_heading = a
+        if self.phase.phase == PRE_LAUNCH and self.phase.level is None and self.fc_armed:
+            # armed and not levelled yet: the vehicle may be flying (the started-in-flight rule has
+            # not decided), so the accelerometer-levelled attitude is only as good as in a turn
+            wide = self.phase_params.in_flight.accel_tilt_sigma_rad
+            roll_sigma, pitch_sigma = max(roll_sigma or 0.0, wide), max(pitch_sigma or 0.0, wide)
+        a_status = self.azimuth_status()
+        readings, not_offered = self._readings(t, c_heading, a_status)
         self.arb, arb_out = self.core.arbitrate(self.arb, readings, t, self.arb_params, heading_rate, not_offered)
         self.arb_out = arb_out
         self.aiding = {**arb_out.records, "deviation": self._deviation_record(t)}
@@ -1322,7 +1357,7 @@ class Pipeline:
         for ev in arb_out.events:
             self._event("heading_" + ev.kind, ev.message)
 
-        flags = {"azimuth": self.azimuth_status()}
+        flags = {"azimuth": a_status}
         az = self.azimuth_out
         if self.phase.started_in_flight:
             flags["started_in_flight"] = self.phase.in_flight_evidence
