@@ -2,6 +2,7 @@
 
     python bench/daemon_cpu.py [--imu-hz 50] [--window-s 40] [--port 47100] [--json PATH] [--quick]
                                [--fixed-wait-s 0.005] [--idle] [--imu-batch] [--sched unit|inherit]
+                               [--link-scan core|python]
 
 ``azimuthd sim`` (inclined_rail with its rest shortened to 6 s, real time) and ``azimuthd run`` (the
 example config with the scenario's site, zenoh off, no extra outputs) as two processes over loopback
@@ -32,6 +33,8 @@ it blocked until input or a timer (``Daemon.loop_wait_s`` replaced by that const
 before/after in one tree. One run per call: the machine is shared; run it before and after a
 change in the same conditions and compare. ``--imu-batch``: the daemon with the batch path (a
 read's RAW_IMU as one ImuBatch, [mavlink] imu_batch on) instead of its default message path, likewise.
+``--link-scan python``: the link's frame scan in Python (mavlink_io.frame_scan) instead of the compiled
+core's (service/link_core.py), the rest unchanged: an A/B of the scan in one tree.
 
 Scheduling (``--sched unit``, the default): the daemon starts in a session of its own whose CPU
 group (kernel autogroup) gets the systemd unit's ``Nice=`` (bench/sitl.py ``unit_nice``: the stand-in
@@ -86,7 +89,7 @@ FC_GROUP_NICE = -15
 
 
 def measure(imu_hz: float, window_s: float, warmup_s: float, port: int, fixed_wait_s: float | None = None,
-            idle: bool = False, imu_batch: bool = False, sched: str = "unit") -> dict:
+            idle: bool = False, imu_batch: bool = False, sched: str = "unit", link_scan: str = "core") -> dict:
     import psutil
 
     from bench.sitl import _set_nice, scenario_site, unit_nice, write_config
@@ -110,6 +113,8 @@ def measure(imu_hz: float, window_s: float, warmup_s: float, port: int, fixed_wa
     # the batch path or the link's message path (one ImuSample per RAW_IMU), whatever [mavlink] imu_batch says
     patches.append("_init = Daemon.__init__; Daemon.__init__ = lambda self, *a, **k: (_init(self, *a, **k), "
                    f"setattr(self, 'link_cfg', dataclasses.replace(self.link_cfg, imu_batch={bool(imu_batch)!r})))[0]")
+    if link_scan == "python":   # the link's frame scan in Python (mavlink_io.frame_scan), the rest as the daemon's
+        patches.append("import service.link_core as _lc; _lc.frame_scan = lambda environ=None: None")
     if patches:
         run = ["-c", "import dataclasses, sys; from service.daemon import Daemon; from service.cli import main; "
                      + "; ".join(patches) + "; sys.exit(main(sys.argv[1:]))"]
@@ -133,7 +138,7 @@ def measure(imu_hz: float, window_s: float, warmup_s: float, port: int, fixed_wa
                            preexec_fn=_set_nice(None, FC_GROUP_NICE) if own else None)
     out = {"imu_hz": imu_hz, "window_s": window_s, "warmup_s": warmup_s, "workdir": str(workdir),
            "loop": "blocking (Daemon.loop_wait_s)" if fixed_wait_s is None else f"fixed wait {fixed_wait_s:g} s",
-           "imu_path": "batch (ImuBatch)" if imu_batch else "message (ImuSample)",
+           "imu_path": "batch (ImuBatch)" if imu_batch else "message (ImuSample)", "link_scan": link_scan,
            "sched": (f"daemon CPU group nice {unit_nice()} (the unit's Nice=), simulator group nice {FC_GROUP_NICE}"
                      if own else "inherited"),
            "azimuthd_core": os.environ.get("AZIMUTHD_CORE", "core"), "idle_no_fc": idle}
@@ -188,12 +193,14 @@ def main(argv=None) -> int:
                          "as the daemon's default: one ImuSample per RAW_IMU)")
     ap.add_argument("--sched", choices=("unit", "inherit"), default="unit",
                     help="unit: the daemon's CPU group at the unit's Nice=, the simulator's at -15 (root)")
+    ap.add_argument("--link-scan", choices=("core", "python"), default="core",
+                    help="the link's frame scan: the compiled core's (the daemon's when built) or mavlink_io's Python")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     window = 20.0 if a.quick else a.window_s
-    r = measure(a.imu_hz, window, a.warmup_s, a.port, a.fixed_wait_s, a.idle, a.imu_batch, a.sched)
+    r = measure(a.imu_hz, window, a.warmup_s, a.port, a.fixed_wait_s, a.idle, a.imu_batch, a.sched, a.link_scan)
     what = "idle, no FC" if r["idle_no_fc"] else f"RAW_IMU {r['imu_hz']:g} Hz"
-    print(f"scheduling: {r['sched']}; IMU path: {r['imu_path']}")
+    print(f"scheduling: {r['sched']}; IMU path: {r['imu_path']}; link frame scan: {r['link_scan']}")
     print(f"daemon ({r['loop']}) {what}, over {r['window_s']:.0f} s (load {r['load_avg_1min']:.1f}): "
           f"{r['daemon_cpu_pct']:.1f} % of a core (user {r['daemon_user_pct']:.1f} + system {r['daemon_system_pct']:.1f}; "
           f"{r['daemon_cpu_ms_per_s']:.0f} ms CPU per s, "

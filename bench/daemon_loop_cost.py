@@ -1,6 +1,7 @@
 """CPU of the daemon's own loop per RAW_IMU at 400 Hz, in this process, without the scheduler's noise.
 
     python bench/daemon_loop_cost.py [--flight-s 30] [--repeat 2] [--json PATH] [--split]
+                                     [--link-scan core|python|ab]
 
 The bundled simulator (inclined_rail, ArduPilot personality, rest shortened to 6 s) is run in memory
 as fast as it computes, with the streams the daemon asks for at 400 Hz (RAW_IMU 400, SCALED_PRESSURE
@@ -135,8 +136,9 @@ class _Clock:
         return self.t
 
 
-def run(frames, t0_s: float, counting: bool = False, split: bool = False) -> dict:
-    """One daemon over the frames; CPU and wake-ups counted from t0_s on."""
+def run(frames, t0_s: float, counting: bool = False, split: bool = False, link_scan: str = "core") -> dict:
+    """One daemon over the frames; CPU and wake-ups counted from t0_s on. ``link_scan``: "core" (the
+    daemon's: the compiled frame scan, service/link_core.py, when built) or "python" (mavlink_io.frame_scan)."""
     import socket
 
     from pymavlink import mavutil
@@ -144,6 +146,7 @@ def run(frames, t0_s: float, counting: bool = False, split: bool = False) -> dic
     from mavlink_io.link import MavlinkLink
     from mem_transport import MemTransport
     from service.config import validate
+    from service import link_core
     from service.daemon import Daemon
     from sitl import scenario_site
     work = Path(tempfile.mkdtemp(prefix="azimuthd-loop-cost-"))
@@ -153,7 +156,8 @@ def run(frames, t0_s: float, counting: bool = False, split: bool = False) -> dic
     clock = _Clock()
     d = Daemon(validate(over), clock=clock)
     tr = MemTransport(datagram=True)
-    d.link = MavlinkLink(d.link_cfg, clock=clock, transport=tr)
+    d.link = MavlinkLink(d.link_cfg, clock=clock, transport=tr,
+                         frame_scan=link_core.frame_scan() if link_scan == "core" else None)
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)   # the ground station's port (never read)
     sink.bind(("127.0.0.1", 0))
     d.extra_ports.append(mavutil.mavlink_connection(f"udpout:127.0.0.1:{sink.getsockname()[1]}", source_system=1,
@@ -218,6 +222,9 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--json", default=str(ROOT / "bench" / "results" / "daemon_loop_cost.json"))
     ap.add_argument("--split", action="store_true", help="one more run with the parts of a step timed")
+    ap.add_argument("--link-scan", choices=("core", "python", "ab"), default="core",
+                    help="the link's frame scan: the compiled core's (the daemon's), mavlink_io's Python, or both "
+                         "interleaved (ab: --repeat runs of each, alternating)")
     a = ap.parse_args(argv)
     if not a.flight_s > 5.0 or a.repeat < 1:
         ap.error("--flight-s must be > 5 and --repeat >= 1")
@@ -225,17 +232,28 @@ def main(argv=None) -> int:
     logging.getLogger("azimuthd").setLevel(logging.ERROR)   # the simulator here never answers the rate requests
     frames = record(a.flight_s)
     t0 = REST_S + 4.0
-    runs = [run(frames, t0) for _ in range(a.repeat)]
+    if a.link_scan == "ab":
+        ab = {"core": [], "python": []}
+        for _ in range(a.repeat):
+            for scan in ("python", "core"):
+                ab[scan].append(run(frames, t0, link_scan=scan))
+        for scan, rs in ab.items():
+            print(f"link scan {scan:6s}: " + ", ".join(f"{r['us_per_imu']:.1f}" for r in rs) + " us CPU per RAW_IMU "
+                  f"(best {min(r['us_per_imu'] for r in rs):.1f}; loads "
+                  + ", ".join(f"{r['load_avg_1min']:.1f}" for r in rs) + ")")
+        runs = ab["core"]
+    else:
+        runs = [run(frames, t0, link_scan=a.link_scan) for _ in range(a.repeat)]
     best = min(runs, key=lambda r: r["us_per_imu"])
     counted = run(frames, t0, counting=True)
     for r in runs:
         print(f"daemon loop: {r['us_per_imu']:.1f} us CPU per RAW_IMU in flight ({r['imu']} RAW_IMU, {r['datagrams']} "
               f"datagrams), empty wake-up {r['empty_wakeup_us']:.1f} us (load {r['load_avg_1min']:.1f}); sent {r['sent']}")
     print("calls per RAW_IMU: " + ", ".join(f"{k} {v:.3f}" for k, v in counted["calls_per_imu"].items()))
-    out = {"best": best, "runs": runs, "calls_per_imu": counted["calls_per_imu"], "flight_s": a.flight_s,
+    out = {"best": best, "runs": runs, "link_scan": a.link_scan, "calls_per_imu": counted["calls_per_imu"], "flight_s": a.flight_s,
            "rates_hz": {str(k): v for k, v in RATES_HZ.items()}}
     if a.split:
-        parts = run(frames, t0, split=True)
+        parts = run(frames, t0, split=True, link_scan="python" if a.link_scan == "python" else "core")
         out["split_us_per_imu"] = {k: v["us_per_imu"] for k, v in parts["calls_per_imu"].items()}
         print(f"split (us per RAW_IMU in flight, calls per RAW_IMU; load {parts['load_avg_1min']:.1f}; "
               f"the whole loop {parts['us_per_imu']:.1f} us with the timing):")

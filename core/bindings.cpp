@@ -76,6 +76,7 @@ void bind_fit(py::module_& m);             // core/bindings_fit.cpp: method A's 
 void bind_arbitration(py::module_& m);     // core/bindings_arbitration.cpp: the heading arbitration
 void bind_filter_chain(py::module_& m);    // core/bindings_filter_chain.cpp: C's rest detection, its filter-step chain
 void bind_solution(py::module_& m);        // core/bindings_solution.cpp: the filter step's solution numbers
+void bind_link(py::module_& m);            // core/bindings_link.cpp: the MAVLink link's per-datagram scan
 
 PYBIND11_MODULE(_core, m) {
     m.doc() = "azimuthd's compiled estimator core (estimators/core.py is its Python face)";
@@ -90,6 +91,7 @@ PYBIND11_MODULE(_core, m) {
     bind_arbitration(m);
     bind_filter_chain(m);
     bind_solution(m);
+    bind_link(m);
 
     m.def("strapdown_step",
           [](const ArrayD& q, bool has_prev, double time_prev_s, const ArrayD& gyro_prev, const ArrayD& gyro,

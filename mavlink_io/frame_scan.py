@@ -15,6 +15,11 @@ would decode into a RAW_IMU message. Everything else (other messages, signed fra
 garbage) comes back as byte segments, in order, for pymavlink. The CRC is ``fastcrc``'s compiled
 MCRF4XX (the one pymavlink's dialects use when it is importable); without ``fastcrc`` the split
 is off (:data:`AVAILABLE`) and everything goes through pymavlink.
+
+:func:`split_raw_imu` is the reference: the compiled core has a copy (core/mavlink_frames.hpp,
+core/bindings_link.cpp: the same walk, CRC and RawImuFrames; tests/test_link_core.py holds them equal on
+recorded flights and a fault corpus). mavlink_io imports nothing above it, so the service hands the core's
+to the link (``MavlinkLink(frame_scan=...)``, service/link_core.py).
 """
 from __future__ import annotations
 
@@ -37,12 +42,15 @@ _MAGIC_RE = re.compile(b"[\xfd\xfe]")
 
 
 class RawImuFrame(NamedTuple):
-    """One CRC-checked unsigned RAW_IMU frame: its header fields and its payload (as sent: MAVLink 2
-    may have cut trailing zero bytes)."""
+    """One CRC-checked unsigned RAW_IMU frame: its header fields, its payload (as sent: MAVLink 2
+    may have cut trailing zero bytes) and the payload's time_usec and id (a cut field's missing bytes
+    are zeros)."""
     src_system: int
     src_component: int
     seq: int
     payload: bytes
+    time_usec: int
+    imu_id: int
 
 
 def frame_length(header: bytes) -> int | None:
@@ -81,8 +89,9 @@ def split_raw_imu(data: bytes) -> list[bytes | RawImuFrame]:
                 and data[pos + 9] == 0 and _raw_imu_ok(data, pos, data[pos + 1])):
             if seg < pos:
                 out.append(data[seg:pos])
-            out.append(RawImuFrame(data[pos + 5], data[pos + 6], data[pos + 4],
-                                   data[pos + _HEADER_V2:pos + _HEADER_V2 + data[pos + 1]]))
+            p = data[pos + _HEADER_V2:pos + _HEADER_V2 + data[pos + 1]]
+            out.append(RawImuFrame(data[pos + 5], data[pos + 6], data[pos + 4], p,
+                                   int.from_bytes(p[:8], "little"), p[26] if len(p) > 26 else 0))
             seg = pos + length
         pos += length
     if seg < n:

@@ -47,6 +47,8 @@ class FrameParser:
         self._split_seen = False
         self.split_imu = False
         """Hand unsigned RAW_IMU frames back as RawImuFrame (the link without a signing key); needs fastcrc."""
+        self.scan = split_raw_imu
+        """frame_scan.split_raw_imu, or the compiled core's copy (MavlinkLink's ``frame_scan``)."""
 
     def reset(self) -> None:
         """A new byte stream: drop any half frame of the old one (pymavlink has no reset method)."""
@@ -70,29 +72,33 @@ class FrameParser:
         when a datagram that does not start with a magic byte completes a held frame that decodes
         (CRC with CRC_EXTRA): from then on this link parses UDP as a byte stream (no resets) until
         the transport is reopened."""
-        held = self._rx_mav.buf_len()
+        rx = self._rx_mav
+        held = len(rx.buf) - rx.buf_index   # rx.buf_len() without the call
         if not datagram or held == 0:
-            return self._parse_split(data) if self.split_imu and SPLIT_AVAILABLE else self._parse(data)
+            return self._parse_split(data, held) if self.split_imu and SPLIT_AVAILABLE else self._parse(data)
         if not self.udp_split_sender and data[:1] and data[0] in MAGIC_BYTES:
             self.reset()
             self.stats.datagram_resets += 1
-            return self._parse_split(data) if self.split_imu and SPLIT_AVAILABLE else self._parse(data)
+            return self._parse_split(data, 0) if self.split_imu and SPLIT_AVAILABLE else self._parse(data)
         out = self._parse(data, held=held)
         if self._split_seen and not self.udp_split_sender:
             self.udp_split_sender = True
             self._on_split_sender(rx_s, items)
         return out
 
-    def _parse_split(self, data: bytes) -> list:
+    def _parse_split(self, data: bytes, held: int) -> list:
         """``_parse`` with the RAW_IMU frames set apart. A frame the parser holds from the previous
-        read (a byte stream) is taken back and scanned with this read: pymavlink holds nothing but
-        those bytes (always a frame's start: it never holds a bad prefix), so this is the same."""
-        rx = self._rx_mav
-        if rx.buf_len():
+        read (``held`` bytes, a byte stream) is taken back and scanned with this read: pymavlink holds
+        nothing but those bytes (always a frame's start: it never holds a bad prefix), so this is the same."""
+        if held:
+            rx = self._rx_mav
             data = bytes(rx.buf[rx.buf_index:]) + data
             self.reset()
+        parts = self.scan(data)
+        if len(parts) == 1 and type(parts[0]) is RawImuFrame:
+            return parts   # the usual datagram: one RAW_IMU frame
         out = []
-        for part in split_raw_imu(data):
+        for part in parts:
             if type(part) is RawImuFrame:
                 out.append(part)
             else:

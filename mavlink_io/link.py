@@ -100,10 +100,13 @@ class MavlinkLink:
     """
 
     def __init__(self, cfg: LinkConfig, clock: Callable[[], float] = time.monotonic,
-                 transport: Transport | None = None, wall_clock: Callable[[], float] = time.time):
+                 transport: Transport | None = None, wall_clock: Callable[[], float] = time.time,
+                 frame_scan: Callable | None = None):
         """cfg: LinkConfig; clock: monotonic seconds (injectable for tests and replay);
         transport: override the transport made from cfg.url (e.g. NullTransport for replay);
-        wall_clock: Unix time, s (only for the outgoing signing timestamp).
+        wall_clock: Unix time, s (only for the outgoing signing timestamp);
+        frame_scan: a copy of frame_scan.split_raw_imu to use instead (the compiled core's: the service
+        passes it, service/link_core.py; mavlink_io imports nothing above it).
         Never raises for an unreachable port or device (it is retried with backoff and reported
         as a "transport_error" LinkEvent); raises ValueError only for a bad configuration."""
         self.cfg = cfg
@@ -123,6 +126,8 @@ class MavlinkLink:
         # unsigned RAW_IMU frames without pymavlink (frame_scan, fastcrc) on both paths: a read's samples
         # as one ImuBatch (imu_batch), else each its ImuSample; a key sends every frame to pymavlink
         self._parser.split_imu = self._security.verifier is None
+        if frame_scan is not None:
+            self._parser.scan = frame_scan
         self._batch = BatchBuilder()
         self._seq = SeqTracker(self.stats)
         self._rates = StreamRates(cfg, self.stats, self._fc, self._source_seen_s, self.mav, self.send, self._event)
@@ -488,10 +493,10 @@ class MavlinkLink:
         if self._session.mark_alive(rx_s, items):
             self._rates.request(rx_s, "link restored", items)
         p = f.payload
-        time_usec = int.from_bytes(p[:8], "little")  # a cut payload: its missing bytes are zeros
+        time_usec = f.time_usec
         self.stats.count_message("RAW_IMU", rx_s, time_usec * 1e-6 if time_usec > 0 else None)
         self._source_seen_s["RAW_IMU"] = rx_s
-        t = self._decoder.stamp_raw_imu(time_usec, p[26] if len(p) > 26 else 0, rx_s, items)
+        t = self._decoder.stamp_raw_imu(time_usec, f.imu_id, rx_s, items)
         if t is not None:
             if self.cfg.imu_batch:
                 self._batch.add(p, t, items)

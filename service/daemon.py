@@ -36,7 +36,7 @@ from mavlink_io.outputs import encode_attitude, encode_attitude_quaternion
 from mavlink_io.output_gate import FcLagMeter, OutputLimits, gate_solution
 from mavlink_io.samples import (CommandAck, FcAttitude, FcEkfStatus, FcFlightState, FcHeartbeat, FcSysStatus,
                                 ImuSample, IncomingCommand, PressureSample)
-from service import state_file
+from service import link_core, state_file
 from service.calibration_keeper import CalibrationKeeper
 from service.vehicle_type import param_names as vehicle_param_names
 from service.command_server import MSG_ATTITUDE, MSG_ATTITUDE_QUATERNION, MSG_HEARTBEAT, CommandServer
@@ -278,7 +278,7 @@ class Daemon:
             log.info("SIGHUP: the config file is unchanged", extra={"fields": {"config": path}})
 
     def open(self) -> None:
-        self.link = MavlinkLink(self.link_cfg, clock=self.clock)
+        self.link = MavlinkLink(self.link_cfg, clock=self.clock, frame_scan=link_core.frame_scan())
         for url in self.cfg["outputs"]["extra_mavlink_urls"]:
             from pymavlink import mavutil   # here: it loads pymavlink's "all" dialects (~0.4 s CPU)
             from mavlink_io.url import parse_url
