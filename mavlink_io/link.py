@@ -17,9 +17,9 @@ this class only wires them):
 3. parse with pymavlink (MAVLink 2 out, 1 or 2 in, ardupilotmega dialect; :mod:`mavlink_io.framing`);
    bad CRC / framing / unknown ids are counted in :class:`~mavlink_io.stats.LinkStats`; without a
    signing key, CRC-checked unsigned RAW_IMU frames are set apart first (:mod:`mavlink_io.frame_scan`,
-   fastcrc) and decoded without pymavlink (:mod:`mavlink_io.imu_batch`: the same checks, counters and
-   events per frame; each its ImuSample, or with ``imu_batch`` one ImuBatch per run of consecutive
-   samples);
+   fastcrc; or its compiled copy given as ``frame_scan``: service/link_core.py) and decoded without
+   pymavlink (:mod:`mavlink_io.imu_batch`: the same checks, counters and events per frame; each its
+   ImuSample, or with ``imu_batch`` one ImuBatch per run of consecutive samples);
 4. signing policy and commands to us (:mod:`mavlink_io.security`): a signed frame that fails
    verification is dropped, unsigned frames by ``require_signed``; COMMAND_LONG/INT addressed
    exactly to our component become IncomingCommand; then keep only the autopilot's messages (its
