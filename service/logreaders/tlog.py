@@ -105,6 +105,7 @@ class TlogLogReader:
         from mavlink_io.samples import FcFlightState, FcHeartbeat, ImuSample
         from mavlink_io.tlog import TlogReader
         from mavlink_io.transport import NullTransport
+        from service import link_core
 
         self._vehicle_type = None
 
@@ -112,7 +113,9 @@ class TlogLogReader:
         # never opened; RAW_IMU through the batch path as the daemon reads it (the same samples,
         # tests/test_mavlink_imu_batch_daemon.py), without pymavlink's message objects
         cfg = LinkConfig(url="udpin:127.0.0.1:0", imu_gap_s=self.imu_gap_s, imu_batch=True)
-        self.link = link = MavlinkLink(cfg, clock=lambda: clock_s[0], transport=NullTransport(None))
+        # the daemon's RAW_IMU frame scan (the compiled core's when built: service/link_core.py)
+        self.link = link = MavlinkLink(cfg, clock=lambda: clock_s[0], transport=NullTransport(None),
+                                       frame_scan=link_core.frame_scan())
         os.environ.setdefault("MAVLINK20", "1")
         from pymavlink.dialects.v20 import ardupilotmega as mavlink2
         parser = mavlink2.MAVLink(None)
