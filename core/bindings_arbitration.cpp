@@ -19,6 +19,7 @@
 #include <vector>
 
 #include "heading_arbitration.hpp"
+#include "bindings_arrays.hpp"
 
 namespace py = pybind11;
 using namespace azimuthd::arbitration;
@@ -275,7 +276,7 @@ py::tuple str_tuple(const std::vector<std::string>& v) {
     return t;
 }
 
-py::object opt(bool has, double x) { return has ? py::object(py::float_(x)) : py::object(py::none()); }
+using azimuthd::bind::opt;
 
 // dict(last_fused_s).get(name, nan)
 double last_fused(const State& s, const std::string& name) {
