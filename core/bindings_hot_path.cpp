@@ -430,6 +430,8 @@ void bind_hot_path(py::module_& m) {
              py::arg("solve_period_s"), py::arg("next_solve_s"), py::arg("submit_phase"))
         .def_readonly("active", &AzimuthRun::active)
         .def_readonly("n_samples", &AzimuthRun::n_samples, "len(AzimuthState.samples) with the run's stored ones.")
+        .def_readwrite("submit_blocked", &AzimuthRun::submit_blocked,
+                       "The solver is busy (its submit would be refused): a sample with a submit due stays quiet.")
         .def("step",
              [](AzimuthRun& a, double t, const ArrayC& gyro, const py::object& mag) {
                  if (!a.active) throw std::invalid_argument("AzimuthRun.step: the run does not step method A");

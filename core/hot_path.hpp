@@ -7,7 +7,7 @@
 // sample that stops the loop is handed back, the check having run once), the sample is finite and
 // its FC time increases, the Pipeline's strapdown integrates it (core/strapdown.hpp; a gap is not
 // quiet), method A's in-flight step propagates it and may store its magnetometer sample with
-// neither a solve nor a solver submit due (core/azimuth_propagation.hpp), the filter-rate
+// neither a solve nor an accepted solver submit due (core/azimuth_propagation.hpp), the filter-rate
 // accumulators take it with no filter step due, and the output attitude is turned by it
 // (estimators/output_propagation.py output_step, twin below). Whether the Pipeline is in a state
 // where such samples exist at all (phase in flight, nothing pending, A not in its boost window...)
@@ -136,6 +136,8 @@ struct AzimuthRun {
     double solve_period_s = 0.0;    // azimuth_step's inline period (the Pipeline's: infinite)
     double next_solve_s = 0.0;      // the Pipeline's solver schedule
     bool submit_phase = false;      // phase == "flight"
+    bool submit_blocked = false;    // the solver is busy: a submit due is refused (the reference's submit returns
+                                    // False and changes nothing), so the sample stays quiet; set by Python per run
     // the magnetometer samples stored in this run: time, h (3), C_sf_from_isf (3 x 3), G (3 x 12)
     std::vector<double> rec;
     static constexpr int REC = 1 + 3 + 9 + 36;
@@ -157,7 +159,7 @@ inline bool azimuth_try(const AzimuthRun& a, double t, const double* g, const do
             t - a.last_mag_s >= a.mag_decimation_s - 1e-9 && a.n_samples < a.max_fit_samples;
     const long long n_after = a.n_samples + (store ? 1 : 0);
     if (t - a.last_solve_s >= a.solve_period_s && n_after > 0) return false;  // azimuth_step would solve
-    if (t >= a.next_solve_s && a.submit_phase && n_after > 0) return false;    // a solver submit is due
+    if (t >= a.next_solve_s && a.submit_phase && n_after > 0 && !a.submit_blocked) return false;  // a submit due
     return true;
 }
 

@@ -210,21 +210,21 @@ def _sample(records: np.ndarray, i: int, source: str):
     return ImuSample(t_fc, t_rx, np.array(g), np.array(a), np.array(m) if m[0] == m[0] else None, source, imu_id)
 
 
-def _azimuth_run(p):
+def _azimuth_run(p, t_last: float = math.inf):
     """Method A's part of a run from the Pipeline's state: the core's AzimuthRun (inactive when A is
     not stepped in flight), or None when A's next sample is not quiet. A run held since the last one
-    (``Pipeline._azimuth_held``: A's state lives in the core while Python does not look at it) goes on."""
+    (``Pipeline._azimuth_held``: A's state lives in the core while Python does not look at it) goes on.
+    ``t_last``: the FC time of the run's last sample (inf: not known)."""
     held = p._azimuth_held
     if held is not None:
-        ready = getattr(p.solver, "ready", None)
-        if ready is None or ready():   # a solver result to apply: Python takes the sample
+        if _solver_has_result(p):   # a solver result to apply: Python takes the sample
             return None, False
+        _submit_blocked(p, held, t_last)
         return held, True
     if p.phase.started_in_flight or p._azimuth_off is not None or p.azimuth.phase == "prelaunch":
         return _ec.AzimuthRun(), False
     st = p.azimuth
-    ready = getattr(p.solver, "ready", None)
-    if ready is None or ready():   # a solver result to apply (or a solver that cannot say)
+    if _solver_has_result(p):   # a solver result to apply (or a solver that cannot say)
         return None, False
     if azimuth_status(st) != p._azimuth_status:   # its status changes on the next sample: an event
         return None, False
@@ -234,12 +234,34 @@ def _azimuth_run(p):
         return None, False
     ap, sd = st.params, st.strapdown
     has = sd.time_s is not None and sd.gyro_prev_rad_s is not None
-    return _ec.AzimuthRun(
+    run = _ec.AzimuthRun(
         sd.q_ref_from_sensor, has, float(sd.time_s) if has else 0.0, sd.gyro_prev_rad_s if has else _ZERO3,
         st.G_gyro, st.C_isf_sf, st.gyro_bias_rad_s, ap.strapdown.max_dt_s, st.launch_time_s,
         ap.mag_skip_after_launch_s, ap.mag_decimation_s, ap.max_fit_samples, len(st.samples), st.last_mag_s,
         st.last_solve_s, ap.resolve_period_s if st.solution is not None else ap.resolve_period_unsolved_s,
-        p._next_solve_s, True), True
+        p._next_solve_s, True)
+    _submit_blocked(p, run, t_last)
+    return run, True
+
+
+def _solver_has_result(p) -> bool:
+    """A solver result waits to be applied (or the solver cannot say): on_imu takes the sample (it
+    polls the result). Asked before ``_submit_blocked``: a solve that ends between the two calls leaves
+    busy False (Python takes the submit), never a result unapplied."""
+    ready = getattr(p.solver, "ready", None)
+    return ready is None or ready()
+
+
+def _submit_blocked(p, run, t_last: float) -> None:
+    """``run.submit_blocked``: a submit due on the run's samples (FC time up to ``t_last``) would be
+    refused, the worker solving (``busy``): the reference's submit then returns False and changes
+    nothing, no schedule moved, so the core takes such a sample (else every sample of a solve's
+    duration goes to on_imu; a slow worker on a busy machine sends them all there). Set only when a
+    submit may come due by ``t_last`` (the core reads it only then: the run's next_solve_s is the
+    Pipeline's, which moves only on a sample Python takes after taking A's state back)."""
+    if t_last >= p._next_solve_s:
+        busy = getattr(p.solver, "busy", None)
+        run.submit_blocked = busy is not None and busy()
 
 
 _ZERO3 = np.zeros(3)
@@ -318,13 +340,15 @@ def azimuth_held_step(p, gyro_rad_s, mag_gauss, time_s: float) -> bool:
     sample propagated and its magnetometer sample stored in C++ (AzimuthRun.step: hot_run's step of A),
     the output built when read (``azimuth_output_held``). False, nothing changed, when the reference takes
     the sample: a solver result to apply (or a solver that cannot say), a solve or a solver submit due on
-    it, a sample not integrated. Its status cannot change then: no event, as the reference."""
+    it (one the busy solver would refuse is not), a sample not integrated. Its status cannot change then: no
+    event, as the reference."""
     if not _A_CORE or p.core.azimuth_output_numbers is not _ec.azimuth_output_numbers:
         return False
-    ready = getattr(p.solver, "ready", None)
-    if ready is None or ready():
+    if _solver_has_result(p):
         return False
-    if not p._azimuth_held.step(time_s, gyro_rad_s, mag_gauss):
+    held = p._azimuth_held
+    _submit_blocked(p, held, time_s)
+    if not held.step(time_s, gyro_rad_s, mag_gauss):
         return False
     p._azimuth_out_due = (None, float(time_s))
     return True
@@ -507,15 +531,16 @@ def sample_step(p, s):
     ph = p.phase
     phase = ph.phase
     if phase == IN_FLIGHT:
-        if ph.started_in_flight and p.polar_att_params.relevel_allowed:
+        if ph.started_in_flight and p.polar_att_params.relevel_allowed:   # on_imu turns C's re-levelling off
             return p.on_imu(s)
         sd = p.strapdown
         if sd is not None:
-            if not isinstance(sd, HeldStrapdown):
+            if not isinstance(sd, HeldStrapdown):   # a strapdown the core does not hold
                 return p.on_imu(s)
             sd = sd._c
-        arun, a_steps = _azimuth_run(p)
-        if arun is None:
+        t = s.time_fc_s
+        arun, a_steps = _azimuth_run(p, t if type(t) is float else math.inf)
+        if arun is None:   # A's next sample is not quiet (a solver result, its status, its boost window)
             return p.on_imu(s)
         code = hot.flight(s, sd, arun, p.gyro_bias_rad_s)
         if code == _QUIET:
@@ -523,9 +548,9 @@ def sample_step(p, s):
             if a_steps:
                 if arun.active:   # A's state stays in the core until Python reads it
                     p._azimuth_held = arun
-                    p._azimuth_out_due = (None, float(s.time_fc_s))
+                    p._azimuth_out_due = (None, float(t))
                 else:
-                    p._azimuth_out_due = (p.azimuth, float(s.time_fc_s))
+                    p._azimuth_out_due = (p.azimuth, float(t))
             return None
     elif phase == PRE_LAUNCH and p._ground_core and type(ph) is HeldPhaseState and not ph.started_in_flight \
             and (p._azimuth_off is not None or p._ground_a or p._azimuth.phase == "prelaunch"):
