@@ -8,9 +8,10 @@ checks' verdict the core already reached on it: a check runs once per sample), t
 goes on. A quiet sample is one that on_imu takes through these steps only, none deciding
 anything: the input checks pass with no event, finite and increasing FC time, the phase stays
 IN_FLIGHT (phase_step does nothing there), method A propagates it and may store its magnetometer
-sample with neither a solve, nor a solver submit, nor a solver result due (its status cannot
-change then), the Pipeline's strapdown integrates it (a gap is not quiet), the filter-rate
-accumulators take it with no filter step due, and the output attitude is turned by it.
+sample with neither a solve, nor a solver submit (one the busy worker would refuse changes nothing:
+``_submit_blocked``), nor a solver result due (its status cannot change then), the Pipeline's
+strapdown integrates it (a gap is not quiet), the filter-rate accumulators take it with no filter
+step due, and the output attitude is turned by it.
 
 One state: the Pipeline's per-sample fields (``last_time_fc_s``, ``_last_rx_s``, ``_filter_due_s``,
 ``_acc_gyro``/``_acc_accel``/``_acc_n``/``_acc_mag``, ``_out``, ``_out_bias_body_rad_s``,
@@ -216,10 +217,12 @@ def _azimuth_run(p, t_last: float = math.inf):
     (``Pipeline._azimuth_held``: A's state lives in the core while Python does not look at it) goes on.
     ``t_last``: the FC time of the run's last sample (inf: not known)."""
     held = p._azimuth_held
-    if held is not None:
-        if _solver_has_result(p):   # a solver result to apply: Python takes the sample
+    if held is not None:   # (per sample on the message path: _solver_has_result written out)
+        ready = getattr(p.solver, "ready", None)
+        if ready is None or ready():   # a solver result to apply: Python takes the sample
             return None, False
-        _submit_blocked(p, held, t_last)
+        if t_last >= p._next_solve_s:   # a submit may come due on these samples
+            _submit_blocked(p, held)
         return held, True
     if p.phase.started_in_flight or p._azimuth_off is not None or p.azimuth.phase == "prelaunch":
         return _ec.AzimuthRun(), False
@@ -240,7 +243,8 @@ def _azimuth_run(p, t_last: float = math.inf):
         ap.mag_skip_after_launch_s, ap.mag_decimation_s, ap.max_fit_samples, len(st.samples), st.last_mag_s,
         st.last_solve_s, ap.resolve_period_s if st.solution is not None else ap.resolve_period_unsolved_s,
         p._next_solve_s, True)
-    _submit_blocked(p, run, t_last)
+    if t_last >= p._next_solve_s:
+        _submit_blocked(p, run)
     return run, True
 
 
@@ -252,16 +256,16 @@ def _solver_has_result(p) -> bool:
     return ready is None or ready()
 
 
-def _submit_blocked(p, run, t_last: float) -> None:
-    """``run.submit_blocked``: a submit due on the run's samples (FC time up to ``t_last``) would be
-    refused, the worker solving (``busy``): the reference's submit then returns False and changes
-    nothing, no schedule moved, so the core takes such a sample (else every sample of a solve's
-    duration goes to on_imu; a slow worker on a busy machine sends them all there). Set only when a
-    submit may come due by ``t_last`` (the core reads it only then: the run's next_solve_s is the
-    Pipeline's, which moves only on a sample Python takes after taking A's state back)."""
-    if t_last >= p._next_solve_s:
-        busy = getattr(p.solver, "busy", None)
-        run.submit_blocked = busy is not None and busy()
+def _submit_blocked(p, run) -> None:
+    """``run.submit_blocked``: a submit due on the run's samples would be refused, the worker solving
+    (``busy``): the reference's submit then returns False and changes nothing, no schedule moved, so
+    the core takes such a sample (else every sample of a solve's duration goes to on_imu; a slow
+    worker on a busy machine sends them all there). Called when a submit may come due by the run's
+    last sample (t >= Pipeline._next_solve_s): the core reads the flag only then (the run's
+    next_solve_s is the Pipeline's, which moves only on a sample Python takes after taking A's state
+    back)."""
+    busy = getattr(p.solver, "busy", None)
+    run.submit_blocked = busy is not None and busy()
 
 
 _ZERO3 = np.zeros(3)
@@ -347,7 +351,8 @@ def azimuth_held_step(p, gyro_rad_s, mag_gauss, time_s: float) -> bool:
     if _solver_has_result(p):
         return False
     held = p._azimuth_held
-    _submit_blocked(p, held, time_s)
+    if time_s >= p._next_solve_s:
+        _submit_blocked(p, held)
     if not held.step(time_s, gyro_rad_s, mag_gauss):
         return False
     p._azimuth_out_due = (None, float(time_s))
@@ -478,10 +483,10 @@ class _Bound:
     """Holds a Pipeline's bound hot path (estimators._core.HotPath; False: its backend's hot_run is not
     the compiled one, a test's wrapper, called with every argument) and the input checks it was bound
     to. A copy of the Pipeline (copy.deepcopy, pickle) binds its own again."""
-    __slots__ = ("hot", "checks")
+    __slots__ = ("hot", "checks", "core")
 
     def __init__(self):
-        self.hot, self.checks = None, None
+        self.hot, self.checks, self.core = None, None, None
 
     def __deepcopy__(self, memo):
         return _Bound()
@@ -496,11 +501,11 @@ def _bound(p):
     the Pipeline's fixed config), or False when its backend's hot_run is another (a test's wrapper or
     mutant: every run calls it with every argument). Bound again when the input checks were replaced."""
     b = p._hot_bound
-    if b is not None and b.checks is p.input_checks:
+    if b is not None and b.checks is p.input_checks and b.core is p.core:
         return b.hot
     if b is None:
         b = p._hot_bound = _Bound()
-    b.checks = p.input_checks
+    b.checks, b.core = p.input_checks, p.core
     b.hot = False
     if _HOT_PATH is not None and p.core.hot_run is _HOT_RUN and isinstance(p.input_checks, CoreImuInputChecks):
         b.hot = _HOT_PATH(p._hs, p.input_checks._c, p.C_body_from_sensor, p.strapdown_params.max_dt_s,
@@ -521,11 +526,16 @@ def sample_step(p, s):
     core's bound hot path (``_core.HotPath.flight`` / ``.ground``: hot_run on the sample's row, read
     from the ImuSample in C++), else on_imu itself, with the input checks' verdict when they ran: the
     same result, events and state. The conditions are batch_steps' (judged per sample)."""
-    if not hot_path_ready(p):
-        return p.on_imu(s)
-    hot = _bound(p)
-    if not hot:   # a backend's own hot_run: a batch of one row through batch_steps
-        return _sample_step_rows(p, s)
+    b = p._hot_bound   # the bound hot path while the backend and input checks it was bound to stay
+    if b is not None and b.hot and b.checks is p.input_checks and b.core is p.core:
+        hot = b.hot
+    else:
+        if not hot_path_ready(p):
+            return p.on_imu(s)
+        hot = _bound(p)
+        if not hot:   # a backend's own hot_run: a batch of one row through batch_steps
+            return _sample_step_rows(p, s)
+    # the vehicle type, an FC estimator status or samples unseen, pending: on_imu words them
     if p.vehicle.pending or p._unseen_pending or p._fc_status_pending is not None:
         return p.on_imu(s)
     ph = p.phase
