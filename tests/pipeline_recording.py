@@ -48,6 +48,16 @@ def fly(name: str, sims: dict, inputs: dict, data_dir: Path, no_site=()) -> dict
     return {k: getattr(res, k) for k in REPLAY_KEYS}
 
 
+
+def select_core_backend(monkeypatch):
+    """The compiled core's backend as the daemon selects it (AZIMUTHD_CORE unset): the parity tests'
+    "core" side; fails when the core is not what select() gives."""
+    from service import core_backend as cb
+    monkeypatch.delenv("AZIMUTHD_CORE", raising=False)
+    backend = cb.select()
+    assert backend.name == "core"
+    return backend
+
 def run_with_backend(fly_one, name: str, backend):
     """(what ``fly_one(name)`` returns, the Pipeline it ran) with ``backend`` as the Pipeline's core backend."""
     import service.pipeline as sp

@@ -33,7 +33,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 from parity_compare import differences  # noqa: E402
-from pipeline_recording import fly, run_with_backend  # noqa: E402
+from pipeline_recording import fly, run_with_backend, select_core_backend  # noqa: E402
 from test_core_polar_heading import ANY_MOTION, DATA, _sim, _solutions_differences  # noqa: E402
 
 from service import arbitration_core as ac  # noqa: E402
@@ -169,9 +169,8 @@ def test_pipeline_runs_the_arbitration_in_the_core(recorded, monkeypatch):
     name, rec = recorded
     if name not in ("magnet_nearby", "gnss_lost", "arducopter-rtl-midflight.bin"):
         pytest.skip("three flights are enough for the wiring (a disturbance; a source lost; a start in flight)")
-    monkeypatch.delenv("AZIMUTHD_CORE", raising=False)
-    backend = core_backend.select()
-    assert backend.name == "core" and backend.arbitrate is ac.arbitrate
+    backend = select_core_backend(monkeypatch)
+    assert backend.arbitrate is ac.arbitrate
     before = _FALLBACKS[0]
     out, p = run_with_backend(_fly, name, backend)
     assert _FALLBACKS[0] == before

@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from estimators import core  # noqa: E402
 from parity_compare import differences  # noqa: E402
-from pipeline_recording import fly, run_with_backend  # noqa: E402
+from pipeline_recording import fly, run_with_backend, select_core_backend  # noqa: E402
 from sitl import feed_pipeline  # noqa: E402
 from test_core_polar_heading import (DATA, LOGS, NO_SITE, RTOL, SIMS, _angle_differences,  # noqa: E402
                                      _solutions_differences, _state_differences)
@@ -83,10 +83,7 @@ def _both(name: str, monkeypatch):
     """{"core": (out, pipeline, chain calls), "python": ...} of one flight on the core backend."""
     if name in _CACHE:
         return _CACHE[name]
-    from service import core_backend
-    monkeypatch.delenv("AZIMUTHD_CORE", raising=False)
-    backend = core_backend.select()
-    assert backend.name == "core"
+    backend = select_core_backend(monkeypatch)
     runs = {}
     for mode in ("core", "python"):
         calls = [0]

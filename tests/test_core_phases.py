@@ -39,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT / "tests"))
 from parity_compare import differences  # noqa: E402
-from pipeline_recording import fly as fly_recorded, run_with_backend  # noqa: E402
+from pipeline_recording import fly as fly_recorded, run_with_backend, select_core_backend  # noqa: E402
 
 from estimators import core  # noqa: E402
 from estimators.levelling import LevellingParams  # noqa: E402
@@ -523,9 +523,8 @@ def test_pipeline_runs_the_phases_in_the_core(recorded, monkeypatch):
     if name == "arducopter-flight.tlog":
         pytest.skip("RAW_IMU at ~2 Hz: no block ever levels (2-4 of 20 samples), the take-off is unlevelled; its "
                     "phase calls are compared in the test above")
-    monkeypatch.delenv("AZIMUTHD_CORE", raising=False)
-    backend = core_backend.select()
-    assert backend.name == "core" and backend.phase_step is phases_core.phase_step
+    backend = select_core_backend(monkeypatch)
+    assert backend.phase_step is phases_core.phase_step
     out, p = run_with_backend(_fly, name, backend)
     q = rec["pipeline"]
     assert isinstance(p.phase, phases_core.HeldPhaseState) and isinstance(q.phase, PhaseState)

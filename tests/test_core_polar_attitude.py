@@ -35,7 +35,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT / "tests"))
-from pipeline_recording import fly, run_with_backend  # noqa: E402
+from pipeline_recording import fly, run_with_backend, select_core_backend  # noqa: E402
 from parity_compare import differences  # noqa: E402
 from sitl import pipeline_inputs, scenario_site  # noqa: E402
 
@@ -214,9 +214,8 @@ def test_pipeline_runs_c_in_the_core(recorded, monkeypatch):
     name, rec = recorded
     if name not in ("inclined_rail", "arducopter-rtl-midflight.bin"):
         pytest.skip("two flights are enough for the wiring (a launch; a start in flight)")
-    monkeypatch.delenv("AZIMUTHD_CORE", raising=False)
-    backend = core_backend.select()
-    assert backend.name == "core" and backend.polar_attitude_step is core.polar_attitude_step
+    backend = select_core_backend(monkeypatch)
+    assert backend.polar_attitude_step is core.polar_attitude_step
     out, p = _run(name, backend)
     q = rec["pipeline"]
     assert isinstance(p.polar_att, core.HeldPolarAttitude) and not isinstance(q.polar_att, core.HeldPolarAttitude)

@@ -39,7 +39,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT / "tests"))
-from pipeline_recording import fly, run_with_backend  # noqa: E402
+from pipeline_recording import fly, run_with_backend, select_core_backend  # noqa: E402
 from parity_compare import RTOL, differences  # noqa: E402
 from sitl import pipeline_inputs, scenario_site  # noqa: E402
 
@@ -320,9 +320,8 @@ def test_pipeline_runs_c_heading_in_the_core(recorded, monkeypatch):
     name, rec = recorded
     if name not in ("inclined_rail", "arducopter-rtl-midflight.bin", "magnet_attached"):
         pytest.skip("three flights are enough for the wiring (a launch; a start in flight; a relearn)")
-    monkeypatch.delenv("AZIMUTHD_CORE", raising=False)
-    backend = core_backend.select()
-    assert backend.name == "core" and backend.polar_heading_step is core.polar_heading_step
+    backend = select_core_backend(monkeypatch)
+    assert backend.polar_heading_step is core.polar_heading_step
     out, p = _run(name, backend)
     q = rec["pipeline"]
     assert isinstance(p.polar_hdg, core.HeldPolarHeading) and not isinstance(q.polar_hdg, core.HeldPolarHeading)

@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from estimators import core  # noqa: E402
 from parity_compare import differences  # noqa: E402
-from pipeline_recording import fly, run_with_backend  # noqa: E402
+from pipeline_recording import fly, run_with_backend, select_core_backend  # noqa: E402
 from test_core_filter_chain import _aiding_differences  # noqa: E402
 from test_core_polar_heading import DATA, NO_SITE, SIMS as C_SIMS, _solutions_differences  # noqa: E402
 
@@ -101,10 +101,7 @@ def _both(name: str, monkeypatch, broken=None):
     if key in _CACHE:
         return _CACHE[key]
     import service.pipeline as sp
-    from service import core_backend
-    monkeypatch.delenv("AZIMUTHD_CORE", raising=False)
-    backend = core_backend.select()
-    assert backend.name == "core"
+    backend = select_core_backend(monkeypatch)
     runs = {}
     for mode in ("core", "python"):
         counted = _Counted(core.solution_numbers, broken)
